@@ -1,0 +1,171 @@
+"""The experiment configuration: one YAML file, validated before any work starts.
+
+Every section forbids unknown keys, so a typo fails with the key's dotted path instead of
+being ignored. ``load_config`` raises :class:`ConfigError` naming the offending key.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from foldwise.conditions import load_condition_table
+
+
+class ConfigError(ValueError):
+    """An experiment configuration that cannot run; the message names the bad key."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class AssetsConfig(_Section):
+    """Where object textures, backgrounds and occluders come from (None: built-in defaults)."""
+
+    objects: Path | None = None
+    backgrounds: Path | None = None
+    occluders: Path | None = None
+    # How many of the built-in object textures to use as classes (the paper uses 5).
+    n_objects: int = Field(default=5, ge=1, le=5)
+
+
+class RenderConfig(_Section):
+    backend: Literal["raster", "blender"] = "raster"
+    image_size: int = Field(default=128, ge=32, le=2048)
+    # Cycles samples per pixel for the blender backend.
+    samples: int = Field(default=16, ge=1, le=4096)
+    # How many times a rejected θ (self-intersecting sheet, invisible target) is redrawn.
+    max_resamples: int = Field(default=20, ge=0, le=1000)
+    # θ per render task: larger batches amortise task overhead, smaller ones spread better.
+    batch_size: int = Field(default=8, ge=1, le=1000)
+
+
+class CurriculumConfig(_Section):
+    conditions: list[str] = Field(default_factory=lambda: ["fb", "mb", "po", "de", "eo", "sc", "li"], min_length=1)
+    difficulties: list[str] = Field(default_factory=lambda: ["easy", "medium", "hard"], min_length=1)
+
+    @model_validator(mode="after")
+    def _known(self) -> "CurriculumConfig":
+        table = load_condition_table()
+        for i, code in enumerate(self.conditions):
+            if code not in table.conditions:
+                raise ValueError(f"conditions[{i}]: unknown condition {code!r}; known: {', '.join(table.codes)}")
+        for i, difficulty in enumerate(self.difficulties):
+            if difficulty not in table.difficulties:
+                raise ValueError(
+                    f"difficulties[{i}]: unknown difficulty {difficulty!r}; known: {', '.join(table.difficulties)}"
+                )
+        if len(set(self.conditions)) != len(self.conditions):
+            raise ValueError("conditions: a condition is listed twice")
+        if len(set(self.difficulties)) != len(self.difficulties):
+            raise ValueError("difficulties: a difficulty is listed twice")
+        return self
+
+
+class TestSetConfig(_Section):
+    # n: standard test images per (condition, difficulty); the paper has 30 per object.
+    per_stage: int = Field(default=150, ge=1)
+    # Which (condition, difficulty) pairs the standard test set covers: all of Table 3
+    # ("all") as in the paper, or only those in the curriculum ("curriculum").
+    covers: Literal["all", "curriculum"] = "curriculum"
+
+
+class ActiveLearningConfig(_Section):
+    m: int = Field(default=50, ge=1, description="training images per increment")
+    t: int = Field(default=1000, ge=1, description="training iterations per increment")
+    M: int = Field(default=3, ge=1, description="recent window of the stopping rule")
+    N: int = Field(default=8, ge=1, description="earlier window of the stopping rule")
+    tau: float = Field(default=0.02, ge=0.0, le=1.0, description="plateau threshold on |P_M - P_N|")
+    max_increments: int = Field(default=40, ge=1, description="cap on increments per stage")
+    training_set: Literal["reset", "grow"] = "reset"
+
+
+class DetectorConfig(_Section):
+    family: Literal["faster_rcnn", "fast_rcnn", "yolo"] = "faster_rcnn"
+    backbone: str = "mobilenet_v3_large_fpn"
+    input_size: int = Field(default=128, ge=32, le=2048)
+    pretrained: Literal["none", "imagenet"] = "none"
+    batch_size: int = Field(default=4, ge=1, le=512)
+    learning_rate: float = Field(default=0.01, gt=0)
+    momentum: float = Field(default=0.9, ge=0, lt=1)
+    weight_decay: float = Field(default=1e-4, ge=0)
+    # Non-finite losses tolerated (each skipped, learning rate lowered) before the task fails.
+    max_nonfinite_steps: int = Field(default=5, ge=0)
+    device: Literal["auto", "cpu", "cuda"] = "auto"
+    # Torch intra-op threads; 0 lets torch choose.
+    num_threads: int = Field(default=0, ge=0)
+
+
+class EvaluationConfig(_Section):
+    score_threshold: float = Field(default=0.8, ge=0.0, le=1.0, description="the paper's confidence cut")
+    iou_threshold: float = Field(default=0.5, gt=0.0, le=1.0)
+    batch_size: int = Field(default=16, ge=1)
+
+
+class ExperimentConfig(_Section):
+    name: str = Field(min_length=1, max_length=200)
+    seed: int = Field(default=0, ge=0, lt=2**31)
+    assets: AssetsConfig = AssetsConfig()
+    render: RenderConfig = RenderConfig()
+    curriculum: CurriculumConfig = CurriculumConfig()
+    test_set: TestSetConfig = TestSetConfig()
+    active_learning: ActiveLearningConfig = ActiveLearningConfig()
+    detector: DetectorConfig = DetectorConfig()
+    evaluation: EvaluationConfig = EvaluationConfig()
+
+    @field_validator("name")
+    @classmethod
+    def _printable(cls, value: str) -> str:
+        if not value.strip():
+            raise ValueError("must not be blank")
+        return value
+
+    def stage_order(self) -> list[tuple[str, str]]:
+        """(condition, difficulty) in curriculum order: for c in C, for δ in Δ."""
+        return [(c, d) for c in self.curriculum.conditions for d in self.curriculum.difficulties]
+
+    def test_pairs(self) -> list[tuple[str, str]]:
+        if self.test_set.covers == "curriculum":
+            return self.stage_order()
+        table = load_condition_table()
+        return [(c, d) for c in table.codes for d in table.difficulties]
+
+
+def _format_validation_error(error: ValidationError) -> str:
+    lines = []
+    for item in error.errors():
+        key = ".".join(str(part) for part in item["loc"]) or "(top level)"
+        message = item["msg"]
+        if item["type"] == "extra_forbidden":
+            message = "unknown key"
+        lines.append(f"{key}: {message}")
+    return "invalid experiment config:\n  " + "\n  ".join(lines)
+
+
+def parse_config(data: Any) -> ExperimentConfig:
+    if not isinstance(data, dict):
+        raise ConfigError(f"invalid experiment config: expected a mapping at the top level, got {type(data).__name__}")
+    try:
+        return ExperimentConfig.model_validate(data)
+    except ValidationError as error:
+        raise ConfigError(_format_validation_error(error)) from None
+
+
+def parse_config_text(text: str) -> ExperimentConfig:
+    """YAML (or JSON, which is YAML) text to a validated config."""
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as error:
+        raise ConfigError(f"invalid experiment config: not YAML: {error}") from None
+    return parse_config(data)
+
+
+def load_config(path: str | Path) -> ExperimentConfig:
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"experiment config {str(path)!r} does not exist")
+    return parse_config_text(path.read_text())

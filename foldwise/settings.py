@@ -1,0 +1,38 @@
+"""Process settings from the environment (prefix ``FOLDWISE_``), one class for every role."""
+
+from __future__ import annotations
+
+from functools import lru_cache
+from pathlib import Path
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="FOLDWISE_", extra="ignore")
+
+    data_dir: Path = Field(default=Path("var"), description="artifact store: images and checkpoints")
+    database_url: str | None = Field(default=None, description="SQLAlchemy URL; SQLite in data_dir if unset")
+    broker_url: str = "redis://127.0.0.1:6379/0"
+    eager: bool = Field(default=False, description="run Celery tasks in-process (embedded mode, tests)")
+    api_token: str | None = Field(default=None, description="token for POST/DELETE on the API")
+    configs_dir: Path = REPO_ROOT / "configs"
+    scheduler_poll_s: float = 1.0
+    # A task redelivered by the broker after this long is assumed lost with its worker.
+    visibility_timeout_s: int = 6 * 3600
+    # Queued render/train work not finished after this long is enqueued again (idempotent).
+    requeue_after_s: float = 3600.0
+
+    @property
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        return f"sqlite:///{(self.data_dir / 'foldwise.db').resolve()}"
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

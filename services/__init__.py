@@ -1,0 +1,1 @@
+"""Services: the scheduler (curriculum and stopping rule), the REST API and the CLI."""

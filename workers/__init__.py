@@ -1,0 +1,1 @@
+"""Celery workers: ``render`` (θ → image and box) and ``train`` (images → model and score)."""

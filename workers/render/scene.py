@@ -1,0 +1,63 @@
+"""The geometry both backends share: a posed, textured sheet seen by a pinhole camera.
+
+Conventions (both backends must follow them, so that the same θ gives the same mask):
+
+* World frame in metres. Camera frame is OpenCV's: x right, y down, z forward (into the
+  scene). ``R``, ``t`` map world to camera: ``X_cam = R @ X_world + t``.
+* Pixel coordinates: ``u`` to the right, ``v`` down, the centre of pixel (row i, column j)
+  at ``(j + 0.5, i + 0.5)``; ``K`` maps camera coordinates to these continuous pixel
+  coordinates. An image is ``height`` rows by ``width`` columns.
+* UVs follow OBJ/Blender: ``u`` left→right across the texture, ``v`` bottom→top, both in
+  [0, 1]; texel (row r, column c) of an ``h × w`` texture sits at
+  ``u = (c + 0.5) / w``, ``v = 1 - (r + 0.5) / h``.
+* Boxes are ``[x0, y0, x1, y1]`` in pixel-edge coordinates: a mask whose leftmost pixel is
+  column j has ``x0 = j``; its rightmost pixel k gives ``x1 = k + 1``.
+* Lighting: one distant light of irradiance ``irradiance`` (W/m², canonical 1) shining
+  along ``-light_direction``; Lambertian sheet of albedo = texture; ``exposure`` maps
+  radiance to linear image values so that the canonical scene looks like the texture.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Camera:
+    K: np.ndarray  # (3, 3) intrinsics
+    R: np.ndarray  # (3, 3) world -> camera rotation
+    t: np.ndarray  # (3,) world -> camera translation
+    width: int
+    height: int
+
+    def project(self, points_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Pixel coordinates (N, 2) and camera depths (N,) of world points (N, 3)."""
+        cam = points_world @ self.R.T + self.t
+        depth = cam[:, 2]
+        uvw = cam @ self.K.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            pix = uvw[:, :2] / uvw[:, 2:3]
+        return pix, depth
+
+
+@dataclass(frozen=True)
+class Scene3D:
+    vertices: np.ndarray  # (V, 3) float64, world coordinates of the deformed sheet
+    faces: np.ndarray  # (F, 3) int, counter-clockwise seen from the textured (+normal) side
+    uv: np.ndarray  # (V, 2) float64 texture coordinates of the flat sheet
+    texture: np.ndarray  # (h, w, 3) uint8 RGB albedo
+    camera: Camera
+    irradiance: float = 1.0
+    light_direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))  # towards the light
+    exposure: float = 1.0
+
+
+@dataclass(frozen=True)
+class BackendOutput:
+    """What a backend returns before the 2D stages."""
+
+    rgb: np.ndarray  # (H, W, 3) float32 linear colour of the object (0 where not covered), unclipped
+    mask: np.ndarray  # (H, W) bool: pixels whose centre the sheet covers
+    alpha: np.ndarray  # (H, W) float32 coverage in [0, 1] (anti-aliased edge), equals mask where no AA
