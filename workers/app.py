@@ -1,0 +1,58 @@
+"""The Celery app: two queues, ``render`` and ``train``, and the settings that make them reliable.
+
+Task modules import bpy or torch only inside the task body, so either worker role can load
+this app (and the scheduler can send tasks) without the other role's libraries.
+"""
+
+from __future__ import annotations
+
+from celery import Celery
+from kombu import Queue
+
+from foldwise.settings import Settings, get_settings
+
+RENDER_QUEUE = "render"
+TRAIN_QUEUE = "train"
+RENDER_TASK = "foldwise.render_batch"
+TRAIN_TASK = "foldwise.train_increment"
+
+
+def configure(app: Celery, settings: Settings) -> None:
+    app.conf.update(
+        broker_url=settings.broker_url,
+        # Results live in the database, not in the broker.
+        task_ignore_result=True,
+        result_backend=None,
+        task_queues=(Queue(RENDER_QUEUE), Queue(TRAIN_QUEUE)),
+        task_routes={RENDER_TASK: {"queue": RENDER_QUEUE}, TRAIN_TASK: {"queue": TRAIN_QUEUE}},
+        task_default_queue=RENDER_QUEUE,
+        # A typo in a route must fail loudly, not create a queue no worker listens to.
+        task_create_missing_queues=False,
+        # Ack after the task ran: a worker killed mid-task leaves the message for another worker.
+        task_acks_late=True,
+        # ...and a worker process that dies (OOM, SIGKILL) gets its message requeued, not acked.
+        task_reject_on_worker_lost=True,
+        # One message at a time per process: a long training increment never hoards renders.
+        worker_prefetch_multiplier=1,
+        # Redis redelivers unacked messages after this; it must exceed the longest task or a
+        # running increment would be delivered to a second worker.
+        broker_transport_options={"visibility_timeout": settings.visibility_timeout_s},
+        # The API can tell "started" from "waiting in the queue".
+        task_track_started=True,
+        task_serializer="json",
+        accept_content=["json"],
+        worker_hijack_root_logger=False,
+        broker_connection_retry_on_startup=True,
+        # Embedded mode and tests: run tasks in-process, and let their exceptions surface.
+        task_always_eager=settings.eager,
+        task_eager_propagates=True,
+    )
+
+
+def create_app(settings: Settings | None = None) -> Celery:
+    app = Celery("foldwise", include=["workers.render.tasks", "workers.train.tasks"])
+    configure(app, settings or get_settings())
+    return app
+
+
+app = create_app()
