@@ -56,3 +56,8 @@ def create_app(settings: Settings | None = None) -> Celery:
 
 
 app = create_app()
+
+
+def use_eager(eager: bool = True) -> None:
+    """Switch this process's app to in-process execution (embedded mode, tests)."""
+    app.conf.task_always_eager = eager

@@ -1,0 +1,46 @@
+"""The artifact store: a directory (``FOLDWISE_DATA_DIR``) of images and checkpoints.
+
+Paths in the database are relative to it, and every artifact's name is derived from the id
+of the row it belongs to, so a task delivered twice rewrites the same file.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+from foldwise.settings import get_settings
+
+
+def data_dir() -> Path:
+    return get_settings().data_dir
+
+
+def resolve(relative: str | Path) -> Path:
+    return data_dir() / relative
+
+
+def image_path(experiment_id: int, parameter_set_id: int) -> str:
+    return f"experiments/{experiment_id}/images/{parameter_set_id}.png"
+
+
+def checkpoint_path(experiment_id: int, model_id: int) -> str:
+    return f"experiments/{experiment_id}/models/{model_id}.pt"
+
+
+def report_dir(experiment_id: int) -> str:
+    return f"experiments/{experiment_id}/report"
+
+
+def atomic_write_bytes(path: Path, payload: bytes) -> None:
+    """Write via a temporary file and rename, so readers never see half a file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(handle, "wb") as stream:
+            stream.write(payload)
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise

@@ -1,0 +1,498 @@
+"""One reconcile step: read an experiment's state, decide what happens next, do it.
+
+``plan`` is a pure function of a :class:`Snapshot` of the database, so a scheduler killed at
+any point and restarted makes the same decisions from the same rows, and the same function
+drives eager tests. ``apply`` writes the decisions in the transaction that read the
+snapshot (the experiment row is locked on PostgreSQL, so two schedulers never decide for
+the same experiment at once) and returns the tasks to send once it has committed.
+
+Task messages are sent after the commit and marked as sent afterwards (at least once): a
+crash in between re-sends them on restart, which idempotent tasks absorb.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import Counter
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from datetime import datetime, timedelta, timezone
+
+import numpy as np
+from sqlalchemy import func, select, update
+from sqlalchemy.orm import Session
+
+from db.models import (
+    Evaluation,
+    Experiment,
+    ExperimentStatus,
+    Model,
+    ModelStatus,
+    ParameterSet,
+    RenderStatus,
+    Split,
+    Stage,
+    StageEndReason,
+    StageStatus,
+    utcnow,
+)
+from db.session import session_scope
+from foldwise.conditions import load_condition_table
+from foldwise.config import ExperimentConfig
+from foldwise.settings import get_settings
+from services.scheduler.stopping import best_index, stopping_rule
+
+log = logging.getLogger(__name__)
+
+_OPEN = (RenderStatus.pending, RenderStatus.queued)
+
+
+# ---------------------------------------------------------------------------------------
+# Snapshot: what the decision depends on, and nothing else.
+
+
+@dataclass(frozen=True)
+class StageView:
+    id: int
+    order: int
+    condition: str
+    difficulty: str
+    status: StageStatus
+    init_model_id: int | None
+    best_model_id: int | None
+
+
+@dataclass(frozen=True)
+class ModelView:
+    id: int
+    stage_id: int
+    increment: int
+    parent_id: int | None
+    status: ModelStatus
+    score: float | None  # mAP (paper protocol); None when not evaluated or not finite
+    error: str | None
+    enqueued_at: datetime | None
+    claimed_at: datetime | None
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    experiment_id: int
+    status: ExperimentStatus
+    seed: int
+    config: ExperimentConfig
+    stages: tuple[StageView, ...]
+    models: tuple[ModelView, ...]
+    # (split, stage_id, increment) -> status -> count
+    theta_counts: dict[tuple[str, int | None, int | None], Counter]
+    pending_theta_ids: tuple[int, ...]
+    stale_theta_ids: tuple[int, ...]
+    now: datetime
+    requeue_after: timedelta
+
+    def counts(self, split: Split, stage_id: int | None = None, increment: int | None = None) -> Counter:
+        return self.theta_counts.get((split.value, stage_id, increment), Counter())
+
+    def test_counts(self) -> Counter:
+        total: Counter = Counter()
+        for (split, _, _), counts in self.theta_counts.items():
+            if split == Split.test.value:
+                total.update(counts)
+        return total
+
+    def stale(self, when: datetime | None) -> bool:
+        return when is not None and _aware(when) < self.now - self.requeue_after
+
+
+def _aware(when: datetime) -> datetime:
+    return when if when.tzinfo is not None else when.replace(tzinfo=timezone.utc)
+
+
+# ---------------------------------------------------------------------------------------
+# Decisions.
+
+
+@dataclass(frozen=True)
+class Start:
+    """Fix the classes, create the stages and sample the standard test set Θ_te."""
+
+
+@dataclass(frozen=True)
+class SampleTraining:
+    """Θ_tr ← generate_parameters(c, δ, m) for (stage, k)."""
+
+    stage_id: int
+    increment: int
+
+
+@dataclass(frozen=True)
+class EnqueueRender:
+    ids: tuple[int, ...]
+    requeue: bool = False
+
+
+@dataclass(frozen=True)
+class OpenStage:
+    stage_id: int
+    init_model_id: int | None
+
+
+@dataclass(frozen=True)
+class CreateModel:
+    """ω_k will be trained from ω_in = parent on (stage, k)."""
+
+    stage_id: int
+    increment: int
+    parent_id: int | None
+
+
+@dataclass(frozen=True)
+class EnqueueTraining:
+    model_id: int
+    requeue: bool = False
+
+
+@dataclass(frozen=True)
+class CloseStage:
+    stage_id: int
+    reason: StageEndReason
+    best_model_id: int
+
+
+@dataclass(frozen=True)
+class Finish:
+    final_model_id: int | None
+
+
+@dataclass(frozen=True)
+class Fail:
+    reason: str
+
+
+Decision = Start | SampleTraining | EnqueueRender | OpenStage | CreateModel | EnqueueTraining | CloseStage | Finish | Fail
+
+
+def plan(s: Snapshot) -> list[Decision]:
+    """What must happen next for this experiment, from its state alone."""
+    if s.status == ExperimentStatus.pending:
+        return [Start()]
+    if s.status != ExperimentStatus.running:
+        return []
+
+    decisions: list[Decision] = []
+    if s.pending_theta_ids:
+        decisions.append(EnqueueRender(s.pending_theta_ids))
+    if s.stale_theta_ids:
+        decisions.append(EnqueueRender(s.stale_theta_ids, requeue=True))
+
+    test = s.test_counts()
+    test_open = sum(test[status] for status in _OPEN)
+    if test_open == 0 and test[RenderStatus.rendered] == 0:
+        return decisions + [Fail("no image of the standard test set could be rendered")]
+
+    stage = next((st for st in s.stages if st.status != StageStatus.done), None)
+    if stage is None:
+        last = s.stages[-1] if s.stages else None
+        return decisions + [Finish(last.best_model_id if last else None)]
+    if stage.status == StageStatus.pending:
+        previous = [st for st in s.stages if st.order < stage.order]
+        init = previous[-1].best_model_id if previous else None
+        return decisions + [OpenStage(stage.id, init)]
+
+    al = s.config.active_learning
+    models = sorted((m for m in s.models if m.stage_id == stage.id), key=lambda m: m.increment)
+    latest = models[-1] if models else None
+    where = f"stage {stage.order} ({stage.condition}/{stage.difficulty})"
+
+    def ensure_sampled(st: StageView, k: int) -> None:
+        if k <= al.max_increments and not s.counts(Split.train, st.id, k):
+            decisions.append(SampleTraining(st.id, k))
+
+    if latest is not None and latest.status == ModelStatus.failed:
+        return decisions + [Fail(f"model {latest.id} of {where}, increment {latest.increment}, failed: {latest.error}")]
+
+    if latest is None or latest.status == ModelStatus.evaluated:
+        scores = [m.score for m in models]
+        if latest is not None:
+            decision = stopping_rule(scores, al.M, al.N, al.tau, al.max_increments)
+            if decision.stop:
+                best = best_index(scores)
+                if best is None:
+                    return decisions + [Fail(f"{where} ended ({decision.reason}) without a single finite mAP")]
+                return decisions + [CloseStage(stage.id, StageEndReason(decision.reason), models[best].id)]
+        k = latest.increment + 1 if latest else 1
+        counts = s.counts(Split.train, stage.id, k)
+        if not counts:
+            ensure_sampled(stage, k)
+        elif sum(counts[status] for status in _OPEN) == 0 and test_open == 0:
+            if counts[RenderStatus.rendered] == 0:
+                return decisions + [Fail(f"every training image of {where}, increment {k}, was rejected")]
+            parent = latest.id if latest else stage.init_model_id
+            decisions.append(CreateModel(stage.id, k, parent))
+        # θ does not depend on the model: render increment k+1 while k trains.
+        ensure_sampled(stage, k + 1)
+    else:
+        if latest.status == ModelStatus.pending:
+            decisions.append(EnqueueTraining(latest.id))
+        elif s.stale(latest.claimed_at or latest.enqueued_at):
+            decisions.append(EnqueueTraining(latest.id, requeue=True))
+        ensure_sampled(stage, latest.increment + 1)
+
+    # ...and the next stage's first increment too.
+    following = next((st for st in s.stages if st.order > stage.order), None)
+    if following is not None:
+        ensure_sampled(following, 1)
+    return decisions
+
+
+# ---------------------------------------------------------------------------------------
+# Reading the snapshot and applying decisions.
+
+
+def load_snapshot(session: Session, experiment: Experiment, now: datetime | None = None) -> Snapshot:
+    settings = get_settings()
+    now = now or utcnow()
+    requeue_after = timedelta(seconds=settings.requeue_after_s)
+    stages = tuple(
+        StageView(st.id, st.order, st.condition, st.difficulty, st.status, st.init_model_id, st.best_model_id)
+        for st in session.scalars(select(Stage).where(Stage.experiment_id == experiment.id).order_by(Stage.order))
+    )
+    model_rows = session.execute(
+        select(Model, Evaluation.map)
+        .outerjoin(Evaluation, Evaluation.model_id == Model.id)
+        .where(Model.experiment_id == experiment.id)
+    ).all()
+    models = tuple(
+        ModelView(
+            m.id,
+            m.stage_id,
+            m.increment,
+            m.parent_id,
+            m.status,
+            score if m.status == ModelStatus.evaluated else None,
+            m.error,
+            m.enqueued_at,
+            m.claimed_at,
+        )
+        for m, score in model_rows
+    )
+    theta_counts: dict[tuple[str, int | None, int | None], Counter] = {}
+    for split, stage_id, increment, status, count in session.execute(
+        select(ParameterSet.split, ParameterSet.stage_id, ParameterSet.increment, ParameterSet.status, func.count())
+        .where(ParameterSet.experiment_id == experiment.id)
+        .group_by(ParameterSet.split, ParameterSet.stage_id, ParameterSet.increment, ParameterSet.status)
+    ):
+        theta_counts.setdefault((split.value, stage_id, increment), Counter())[status] += count
+    pending = tuple(
+        session.scalars(
+            select(ParameterSet.id)
+            .where(ParameterSet.experiment_id == experiment.id, ParameterSet.status == RenderStatus.pending)
+            .order_by(ParameterSet.id)
+        )
+    )
+    stale = tuple(
+        session.scalars(
+            select(ParameterSet.id)
+            .where(
+                ParameterSet.experiment_id == experiment.id,
+                ParameterSet.status == RenderStatus.queued,
+                ParameterSet.enqueued_at < now - requeue_after,
+            )
+            .order_by(ParameterSet.id)
+        )
+    )
+    return Snapshot(
+        experiment_id=experiment.id,
+        status=experiment.status,
+        seed=experiment.seed,
+        config=ExperimentConfig.model_validate(experiment.config),
+        stages=stages,
+        models=models,
+        theta_counts=theta_counts,
+        pending_theta_ids=pending,
+        stale_theta_ids=stale,
+        now=now,
+        requeue_after=requeue_after,
+    )
+
+
+def derive_seed(*parts: int) -> int:
+    """A 31-bit seed from integers: the same parts always give the same seed."""
+    return int(np.random.SeedSequence(list(parts)).generate_state(1)[0] & 0x7FFFFFFF)
+
+
+@dataclass(frozen=True)
+class Send:
+    kind: str  # "render" | "train"
+    ids: tuple[int, ...]
+    requeue: bool = False
+
+
+@dataclass
+class Applied:
+    decisions: list[Decision] = field(default_factory=list)
+    sends: list[Send] = field(default_factory=list)
+
+
+def _assets(config: ExperimentConfig):
+    from workers.render.assets import load_assets
+
+    return load_assets(config.assets)
+
+
+def _sample(
+    config: ExperimentConfig, condition: str, difficulty: str, n: int, seed: int
+) -> list[dict]:
+    from workers.render.parameters import generate_parameters
+
+    return generate_parameters(
+        condition, difficulty, n, seed, image_size=config.render.image_size, assets=_assets(config)
+    )
+
+
+def apply(session: Session, experiment: Experiment, decisions: Sequence[Decision], config: ExperimentConfig) -> Applied:
+    applied = Applied(decisions=list(decisions))
+    table = load_condition_table()
+    stages = {st.id: st for st in session.scalars(select(Stage).where(Stage.experiment_id == experiment.id))}
+    now = utcnow()
+    for decision in decisions:
+        match decision:
+            case Start():
+                experiment.classes = list(_assets(config).classes)
+                experiment.status = ExperimentStatus.running
+                experiment.started_at = now
+                for order, (condition, difficulty) in enumerate(config.stage_order()):
+                    session.add(Stage(experiment=experiment, order=order, condition=condition, difficulty=difficulty))
+                for condition, difficulty in config.test_pairs():
+                    seed = derive_seed(
+                        experiment.seed, 1, table.codes.index(condition), table.difficulties.index(difficulty)
+                    )
+                    thetas = _sample(config, condition, difficulty, config.test_set.per_stage, seed)
+                    session.add_all(
+                        ParameterSet(
+                            experiment_id=experiment.id,
+                            key=f"test/{condition}/{difficulty}/{i}",
+                            split=Split.test,
+                            index=i,
+                            condition=condition,
+                            difficulty=difficulty,
+                            seed=int(theta.get("seed", seed)),
+                            theta=theta,
+                        )
+                        for i, theta in enumerate(thetas)
+                    )
+            case SampleTraining(stage_id, k):
+                stage = stages[stage_id]
+                seed = derive_seed(experiment.seed, 2, stage.order, k)
+                thetas = _sample(config, stage.condition, stage.difficulty, config.active_learning.m, seed)
+                session.add_all(
+                    ParameterSet(
+                        experiment_id=experiment.id,
+                        key=f"train/{stage.order}/{k}/{i}",
+                        split=Split.train,
+                        stage_id=stage.id,
+                        increment=k,
+                        index=i,
+                        condition=stage.condition,
+                        difficulty=stage.difficulty,
+                        seed=int(theta.get("seed", seed)),
+                        theta=theta,
+                    )
+                    for i, theta in enumerate(thetas)
+                )
+            case EnqueueRender(ids, requeue):
+                batch = config.render.batch_size
+                for start in range(0, len(ids), batch):
+                    applied.sends.append(Send("render", ids[start : start + batch], requeue))
+            case OpenStage(stage_id, init_model_id):
+                stage = stages[stage_id]
+                stage.status = StageStatus.running
+                stage.init_model_id = init_model_id
+                stage.started_at = now
+            case CreateModel(stage_id, k, parent_id):
+                model = Model(
+                    experiment_id=experiment.id,
+                    stage_id=stage_id,
+                    increment=k,
+                    parent_id=parent_id,
+                    detector=config.detector.family,
+                    iterations=config.active_learning.t,
+                    status=ModelStatus.pending,
+                )
+                session.add(model)
+                session.flush()
+                applied.sends.append(Send("train", (model.id,)))
+            case EnqueueTraining(model_id, requeue):
+                applied.sends.append(Send("train", (model_id,), requeue))
+            case CloseStage(stage_id, reason, best_model_id):
+                stage = stages[stage_id]
+                stage.status = StageStatus.done
+                stage.end_reason = reason
+                stage.best_model_id = best_model_id
+                stage.finished_at = now
+            case Finish(final_model_id):
+                experiment.status = ExperimentStatus.finished
+                experiment.final_model_id = final_model_id
+                experiment.finished_at = now
+            case Fail(reason):
+                experiment.status = ExperimentStatus.failed
+                experiment.error = reason
+                experiment.finished_at = now
+                log.error("experiment %s failed: %s", experiment.id, reason)
+    return applied
+
+
+def _mark_sent(send: Send) -> None:
+    now = utcnow()
+    with session_scope() as session:
+        if send.kind == "render":
+            session.execute(
+                update(ParameterSet)
+                .where(ParameterSet.id.in_(send.ids), ParameterSet.status.in_(_OPEN))
+                .values(status=RenderStatus.queued, enqueued_at=now)
+            )
+        else:
+            session.execute(
+                update(Model)
+                .where(Model.id.in_(send.ids), Model.status.in_((ModelStatus.pending, ModelStatus.queued)))
+                .values(status=ModelStatus.queued, enqueued_at=now)
+            )
+            session.execute(
+                update(Model).where(Model.id.in_(send.ids), Model.status == ModelStatus.training).values(enqueued_at=now)
+            )
+
+
+def _send(send: Send) -> None:
+    from workers.app import RENDER_TASK, TRAIN_TASK, app
+
+    name, args = (RENDER_TASK, [list(send.ids)]) if send.kind == "render" else (TRAIN_TASK, [send.ids[0]])
+    if app.conf.task_always_eager:
+        # send_task ignores task_always_eager: run the registered task in this process.
+        import workers.render.tasks  # noqa: F401  (registers the tasks)
+        import workers.train.tasks  # noqa: F401
+
+        app.tasks[name].apply(args=args, throw=True)
+    else:
+        app.send_task(name, args=args)
+
+
+def reconcile_once(experiment_id: int, on_send: Callable[[Send], None] | None = None) -> list[Decision]:
+    """Plan and apply one step for one experiment; returns the decisions taken."""
+    with session_scope() as session:
+        query = select(Experiment).where(Experiment.id == experiment_id)
+        if session.get_bind().dialect.name == "postgresql":
+            query = query.with_for_update(skip_locked=True)
+        experiment = session.scalar(query)
+        if experiment is None:
+            return []
+        snapshot = load_snapshot(session, experiment)
+        decisions = plan(snapshot)
+        if not decisions:
+            return []
+        applied = apply(session, experiment, decisions, snapshot.config)
+    for send in applied.sends:
+        if on_send:
+            on_send(send)
+        _send(send)
+        _mark_sent(send)
+    return applied.decisions

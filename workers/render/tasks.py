@@ -1,0 +1,99 @@
+"""Celery task of the render worker: render a batch of θ ids into the artifact store.
+
+Idempotent: the image of θ #i is always ``experiments/<e>/images/<i>.png`` and rendering is
+deterministic, so a redelivered batch skips what is done and rewrites the rest identically.
+Each θ is committed on its own, so a worker lost mid-batch keeps what it finished.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from functools import lru_cache
+
+from db.models import Experiment, ExperimentStatus, ParameterSet, RenderStatus, utcnow
+from db.session import session_scope
+from foldwise import store
+from foldwise.config import AssetsConfig, ExperimentConfig
+from workers.app import RENDER_TASK, app
+
+log = logging.getLogger(__name__)
+
+
+@lru_cache(maxsize=8)
+def _assets(assets_config: AssetsConfig):
+    from workers.render.assets import load_assets
+
+    return load_assets(assets_config)
+
+
+def render_parameter_set(parameter_set_id: int) -> str:
+    """Render one θ row; returns what happened ("rendered", "skipped", "failed", "missing")."""
+    import cv2
+
+    from workers.render.pipeline import RenderRejected, render_with_resample
+
+    with session_scope() as session:
+        row = session.get(ParameterSet, parameter_set_id)
+        if row is None:
+            log.warning("θ %s does not exist (experiment deleted?)", parameter_set_id)
+            return "missing"
+        experiment = session.get(Experiment, row.experiment_id)
+        if experiment.status in (ExperimentStatus.cancelled, ExperimentStatus.failed):
+            return "skipped"
+        if row.status == RenderStatus.rendered and row.image_path and store.resolve(row.image_path).is_file():
+            return "skipped"
+        theta = dict(row.theta)
+        experiment_id = row.experiment_id
+        config = ExperimentConfig.model_validate(experiment.config)
+
+    started = time.perf_counter()
+    try:
+        result, rendered_theta, rejections = render_with_resample(
+            theta,
+            backend=config.render.backend,
+            max_resamples=config.render.max_resamples,
+            assets=_assets(config.assets),
+            samples=config.render.samples,
+        )
+    except RenderRejected as rejected:
+        with session_scope() as session:
+            row = session.get(ParameterSet, parameter_set_id)
+            row.status = RenderStatus.failed
+            row.error = f"every resample rejected; last reason: {rejected.reason}"
+            row.rejections = list(getattr(rejected, "reasons", [rejected.reason]))
+            row.render_seconds = time.perf_counter() - started
+        return "failed"
+
+    relative = store.image_path(experiment_id, parameter_set_id)
+    ok, encoded = cv2.imencode(".png", cv2.cvtColor(result.image, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise RuntimeError(f"PNG encoding failed for θ {parameter_set_id}")
+    store.atomic_write_bytes(store.resolve(relative), encoded.tobytes())
+    seconds = time.perf_counter() - started
+
+    with session_scope() as session:
+        row = session.get(ParameterSet, parameter_set_id)
+        if row is None:
+            return "missing"
+        row.status = RenderStatus.rendered
+        row.image_path = relative
+        row.rendered_theta = rendered_theta
+        row.rejections = rejections
+        row.label = int(result.label)
+        row.box = [float(v) for v in result.box]
+        row.amodal_box = [float(v) for v in result.amodal_box]
+        row.visible_fraction = float(result.visible_fraction)
+        row.render_seconds = seconds
+        row.rendered_at = utcnow()
+        row.error = None
+    return "rendered"
+
+
+@app.task(name=RENDER_TASK)
+def render_batch(parameter_set_ids: list[int]) -> dict[str, int]:
+    outcome: dict[str, int] = {}
+    for parameter_set_id in parameter_set_ids:
+        what = render_parameter_set(parameter_set_id)
+        outcome[what] = outcome.get(what, 0) + 1
+    return outcome

@@ -1,0 +1,192 @@
+"""Celery task of the train worker: one increment of Algorithm 1.
+
+``train_increment(model_id)``: ω_k ← train_detector(S_tr, ω_in, t), then
+P_k ← evaluate_predictions(detect_object(ω_k, I_te), B_te). The model row is claimed by the
+delivering task id, so a duplicate message skips while a redelivery after a lost worker
+takes over; the checkpoint path is derived from the model id, so a retry overwrites it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from datetime import timedelta
+
+import numpy as np
+from sqlalchemy import select
+
+from db.models import (
+    Evaluation,
+    Experiment,
+    ExperimentStatus,
+    Model,
+    ModelStatus,
+    ParameterSet,
+    RenderStatus,
+    Split,
+    Stage,
+    utcnow,
+)
+from db.session import session_scope
+from foldwise import store
+from foldwise.config import ExperimentConfig
+from foldwise.settings import get_settings
+from workers.app import TRAIN_TASK, app
+
+log = logging.getLogger(__name__)
+
+
+def _claim(model_id: int, task_id: str) -> bool:
+    """Take the model for this delivery, or say another live delivery has it."""
+    stale_before = utcnow() - timedelta(seconds=get_settings().requeue_after_s)
+    with session_scope() as session:
+        model = session.get(Model, model_id, with_for_update=True)
+        if model is None or model.status in (ModelStatus.evaluated, ModelStatus.failed):
+            return False
+        experiment = session.get(Experiment, model.experiment_id)
+        if experiment.status in (ExperimentStatus.cancelled, ExperimentStatus.failed):
+            return False
+        claimed_at = model.claimed_at
+        if claimed_at is not None and claimed_at.tzinfo is None:  # SQLite drops the zone
+            claimed_at = claimed_at.replace(tzinfo=stale_before.tzinfo)
+        if (
+            model.status == ModelStatus.training
+            and model.task_id != task_id
+            and claimed_at is not None
+            and claimed_at > stale_before
+        ):
+            return False
+        model.status = ModelStatus.training
+        model.task_id = task_id
+        model.claimed_at = utcnow()
+        model.attempts += 1
+        return True
+
+
+def _samples(rows):
+    from workers.train.data import Sample
+
+    samples = []
+    for row in rows:
+        boxes = np.asarray([row.box], dtype=np.float32) if row.box else np.zeros((0, 4), np.float32)
+        labels = np.asarray([row.label], dtype=np.int64) if row.box else np.zeros((0,), np.int64)
+        samples.append(
+            Sample(
+                image_path=store.resolve(row.image_path),
+                boxes=boxes,
+                labels=labels,
+                condition=row.condition,
+                difficulty=row.difficulty,
+            )
+        )
+    return samples
+
+
+def run_increment(model_id: int, task_id: str = "direct") -> str:
+    from workers.train.checkpoint import detect_object, load_detector
+    from workers.train.evaluation import evaluate_predictions
+    from workers.train.training import train_detector
+
+    if not _claim(model_id, task_id):
+        return "skipped"
+
+    with session_scope() as session:
+        model = session.get(Model, model_id)
+        stage = session.get(Stage, model.stage_id)
+        experiment = session.get(Experiment, model.experiment_id)
+        config = ExperimentConfig.model_validate(experiment.config)
+        classes = list(experiment.classes or [])
+        parent_path = None
+        if model.parent_id is not None:
+            parent = session.get(Model, model.parent_id)
+            parent_path = store.resolve(parent.checkpoint_path)
+        increments = (
+            [model.increment]
+            if config.active_learning.training_set == "reset"
+            else list(range(1, model.increment + 1))
+        )
+        train_rows = session.scalars(
+            select(ParameterSet)
+            .where(
+                ParameterSet.stage_id == stage.id,
+                ParameterSet.split == Split.train,
+                ParameterSet.increment.in_(increments),
+                ParameterSet.status == RenderStatus.rendered,
+            )
+            .order_by(ParameterSet.id)
+        ).all()
+        test_rows = session.scalars(
+            select(ParameterSet)
+            .where(
+                ParameterSet.experiment_id == experiment.id,
+                ParameterSet.split == Split.test,
+                ParameterSet.status == RenderStatus.rendered,
+            )
+            .order_by(ParameterSet.id)
+        ).all()
+        seed = int(np.random.SeedSequence([experiment.seed, 7, stage.order, model.increment]).generate_state(1)[0])
+        relative = store.checkpoint_path(experiment.id, model.id)
+
+    try:
+        if not train_rows:
+            raise RuntimeError(f"no rendered training image for stage {stage.order} increment {model.increment}")
+        started = time.perf_counter()
+        stats = train_detector(
+            _samples(train_rows),
+            init=parent_path,
+            iterations=config.active_learning.t,
+            config=config.detector,
+            classes=classes,
+            out=store.resolve(relative),
+            seed=seed,
+        )
+        train_seconds = time.perf_counter() - started
+
+        started = time.perf_counter()
+        detector = load_detector(store.resolve(relative))
+        test_samples = _samples(test_rows)
+        predictions = detect_object(
+            detector, [s.image_path for s in test_samples], batch_size=config.evaluation.batch_size
+        )
+        result = evaluate_predictions(
+            predictions,
+            [{"boxes": s.boxes, "labels": s.labels} for s in test_samples],
+            classes,
+            score_threshold=config.evaluation.score_threshold,
+            iou_threshold=config.evaluation.iou_threshold,
+            groups=[{"condition": s.condition, "difficulty": s.difficulty} for s in test_samples],
+        )
+        eval_seconds = time.perf_counter() - started
+    except Exception as error:  # recorded, then the scheduler fails the experiment with it
+        log.exception("increment of model %s failed", model_id)
+        with session_scope() as session:
+            model = session.get(Model, model_id)
+            model.status = ModelStatus.failed
+            model.error = f"{type(error).__name__}: {error}"
+        return "failed"
+
+    def finite_or_none(value: float) -> float | None:
+        return float(value) if value is not None and math.isfinite(value) else None
+
+    with session_scope() as session:
+        model = session.get(Model, model_id)
+        model.checkpoint_path = relative
+        model.train_seconds = train_seconds
+        model.train_stats = stats.to_dict()
+        model.trained_at = utcnow()
+        model.status = ModelStatus.evaluated
+        evaluation = session.scalar(select(Evaluation).where(Evaluation.model_id == model_id))
+        if evaluation is None:
+            evaluation = Evaluation(model_id=model_id, details={}, eval_seconds=0.0)
+            session.add(evaluation)
+        evaluation.map = finite_or_none(result.map)
+        evaluation.map_unthresholded = finite_or_none(result.map_unthresholded)
+        evaluation.details = result.to_dict()
+        evaluation.eval_seconds = eval_seconds
+    return "evaluated"
+
+
+@app.task(name=TRAIN_TASK, bind=True)
+def train_increment(self, model_id: int) -> str:
+    return run_increment(model_id, task_id=self.request.id or "eager")
