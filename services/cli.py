@@ -1,15 +1,185 @@
 """``foldwise``: the command line of every role.
 
 Sub-commands of the render and train workers live beside their code
-(``workers/render/cli.py``, ``workers/train/cli.py``) and are registered here; each keeps
-its heavy imports (bpy, torch) inside the command so that ``foldwise api`` never loads them.
+(``workers/render/cli.py``, ``workers/train/cli.py``) and are registered here; every command
+keeps its heavy imports (bpy, torch) inside its body so that ``foldwise api`` never loads them.
 """
 
 from __future__ import annotations
 
-import typer
+import logging
+import os
+import sys
+from pathlib import Path
 
-app = typer.Typer(no_args_is_help=True, add_completion=False, help=__doc__.split("\n")[0])
+import typer
+from rich.console import Console
+from rich.table import Table
+
+app = typer.Typer(no_args_is_help=True, add_completion=False, help="foldwise: teach a detector one deformable object.")
+db_app = typer.Typer(no_args_is_help=True, help="Database migrations.")
+app.add_typer(db_app, name="db")
+console = Console()
+
+
+def _fail(message: str, code: int = 2) -> None:
+    console.print(f"[bold red]error:[/] {message}", highlight=False)
+    raise typer.Exit(code)
+
+
+def _load(config_path: Path):
+    from foldwise.config import ConfigError, load_config
+
+    try:
+        return load_config(config_path)
+    except ConfigError as error:
+        _fail(str(error))
+
+
+@app.command()
+def run(
+    config_path: Path = typer.Argument(..., metavar="CONFIG", help="experiment YAML, e.g. configs/quick.yaml"),
+    report_dir: Path | None = typer.Option(None, "--report-dir", help="where to write the PNG/CSV report"),
+) -> None:
+    """Run an experiment end to end in this process (SQLite by default, eager Celery)."""
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    from db.session import session_scope
+    from foldwise.settings import get_settings
+    from services import queries
+    from services.embedded import run_to_completion, start_experiment
+    from services.report import write_report
+
+    config = _load(config_path)
+    settings = get_settings()
+    console.print(
+        f"foldwise: experiment [bold]{config.name}[/] — {len(config.stage_order())} stages, "
+        f"detector {config.detector.family}/{config.detector.backbone}, renderer {config.render.backend}, "
+        f"database {settings.resolved_database_url}",
+        highlight=False,
+    )
+    experiment_id = start_experiment(config)
+    stage_count = len(config.stage_order())
+    with Progress(
+        TextColumn("[progress.description]{task.description}"),
+        BarColumn(),
+        TextColumn("{task.completed}/{task.total} stages"),
+        TimeElapsedColumn(),
+        console=console,
+    ) as progress:
+        task = progress.add_task("starting", total=stage_count)
+
+        def on_step(_experiment_id: int, _decisions) -> None:
+            with session_scope() as session:
+                info = queries.summary(session, experiment_id)
+                done = sum(1 for s in queries.stages(session, experiment_id) if s["status"] == "done")
+            current = info["current_stage"]
+            best = info["best"]["map"] if info["best"] else None
+            description = (
+                f"{current['condition']}/{current['difficulty']} k={current['k'] or 0}" if current else info["status"]
+            )
+            if best is not None:
+                description += f"  best mAP {best:.3f}"
+            progress.update(task, completed=done, description=description)
+
+        try:
+            status = run_to_completion(experiment_id, on_step)
+        except KeyboardInterrupt:
+            _fail(f"interrupted; experiment {experiment_id} stays recorded and can be inspected", code=130)
+
+    with session_scope() as session:
+        info = queries.summary(session, experiment_id)
+        stage_rows = queries.stages(session, experiment_id)
+    table = Table(title=f"experiment {experiment_id} ({config.name}): {status}")
+    for column in ("c", "δ", "increments", "end reason", "best mAP", "time (s)"):
+        table.add_column(column, justify="right" if column not in ("c", "δ", "end reason") else "left")
+    for row in stage_rows:
+        table.add_row(
+            row["condition"],
+            row["difficulty"],
+            str(row["increments"]),
+            row["end_reason"] or row["status"],
+            "—" if row["best_map"] is None else f"{row['best_map']:.3f}",
+            "—" if row["seconds"] is None else f"{row['seconds']:.1f}",
+        )
+    console.print(table)
+    if info["error"]:
+        console.print(f"[red]failed:[/] {info['error']}", highlight=False)
+    files = write_report(experiment_id, report_dir or settings.data_dir / f"experiments/{experiment_id}/report")
+    console.print(f"report: {files.png}  {files.csv}", highlight=False)
+    if status != "finished":
+        raise typer.Exit(1)
+
+
+@app.command()
+def report(
+    experiment_id: int = typer.Argument(..., metavar="EXPERIMENT"),
+    out: Path | None = typer.Option(None, "--out", help="output directory (default: the experiment's report dir)"),
+) -> None:
+    """Plot error (1 − mAP) against cumulative wall time, render/train/eval apart; write PNG and CSV."""
+    from foldwise.settings import get_settings
+    from services.queries import NotFound
+    from services.report import write_report
+
+    try:
+        files = write_report(experiment_id, out or get_settings().data_dir / f"experiments/{experiment_id}/report")
+    except NotFound as error:
+        _fail(str(error))
+    console.print(f"{len(files.rows)} evaluations → {files.png}  {files.csv}", highlight=False)
+
+
+@db_app.command("upgrade")
+def db_upgrade(revision: str = typer.Argument("head")) -> None:
+    """Apply database migrations (FOLDWISE_DATABASE_URL, default SQLite in FOLDWISE_DATA_DIR)."""
+    from db.migrate import upgrade
+    from foldwise.settings import get_settings
+
+    upgrade(revision=revision)
+    console.print(f"database at {revision}: {get_settings().resolved_database_url}", highlight=False)
+
+
+@app.command()
+def scheduler(
+    poll: float | None = typer.Option(None, help="seconds between passes (FOLDWISE_SCHEDULER_POLL_S)"),
+    once: bool = typer.Option(False, help="one pass over live experiments, then exit"),
+) -> None:
+    """Run the scheduler service: reconcile every live experiment until stopped."""
+    from services.scheduler.service import serve
+
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    serve(poll_s=poll, once=once)
+
+
+@app.command()
+def api(
+    host: str = typer.Option("127.0.0.1", help="bind address (0.0.0.0 in a container)"),
+    port: int = typer.Option(8000),
+) -> None:
+    """Serve the REST API (status for everyone; creating or cancelling needs FOLDWISE_API_TOKEN)."""
+    import uvicorn
+
+    uvicorn.run("services.api.app:app", host=host, port=port, log_level="info")
+
+
+@app.command()
+def worker(
+    role: str = typer.Argument(..., metavar="render|train"),
+    concurrency: int = typer.Option(1, help="processes of this worker"),
+    loglevel: str = typer.Option("info"),
+) -> None:
+    """Start a Celery worker on the role's queue (a thin wrapper over `celery worker -Q ROLE`)."""
+    from workers.app import RENDER_QUEUE, TRAIN_QUEUE
+
+    queues = {"render": RENDER_QUEUE, "train": TRAIN_QUEUE}
+    if role not in queues:
+        _fail(f"unknown worker role {role!r}; expected one of: {', '.join(queues)}")
+    argv = [
+        sys.executable, "-m", "celery", "-A", "workers.app:app", "worker",
+        "-Q", queues[role], "--concurrency", str(concurrency), "--loglevel", loglevel,
+        # Unique per process: several workers of a role may share a host (compose --scale, tests).
+        "-n", f"{role}-{os.getpid()}@%h",
+    ]  # fmt: skip
+    os.execv(sys.executable, argv)
 
 
 def _register_worker_commands() -> None:
