@@ -87,14 +87,15 @@ class EvaluationResult:
 
     def to_dict(self) -> dict[str, Any]:
         """A JSON-able dict; NaN (undefined: no ground truth) becomes None."""
-        return _json_safe(asdict(self))
+        return json_safe(asdict(self))
 
 
-def _json_safe(value: Any) -> Any:
+def json_safe(value: Any) -> Any:
+    """Dicts, lists and numbers made JSON-able: NaN and infinities become None, numpy scalars Python's."""
     if isinstance(value, dict):
-        return {str(key): _json_safe(item) for key, item in value.items()}
+        return {str(key): json_safe(item) for key, item in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_json_safe(item) for item in value]
+        return [json_safe(item) for item in value]
     if isinstance(value, (float, np.floating)):
         return None if not math.isfinite(float(value)) else float(value)
     if isinstance(value, np.integer):
@@ -472,3 +473,49 @@ def coco_metrics(*, predictions_flat: _Flat, ground_truth_flat: _Flat, num_image
             "AP50": float(at_50[at_50 > -1].mean()) if (at_50 > -1).any() else float("nan"),
         }
     return {**stats, "per_class": per_class}
+
+
+# --------------------------------------------------------------------------- a detector on a dataset
+
+
+def evaluate_detector(
+    detector: Any,
+    samples: Sequence[Any],
+    classes: Sequence[str],
+    *,
+    score_threshold: float = 0.8,
+    iou_threshold: float = 0.5,
+    batch_size: int = 16,
+    coco: bool = True,
+) -> EvaluationResult:
+    """Run ``detect_object`` on the samples' images and score it against their boxes.
+
+    ``samples`` are ``workers.train.data.Sample`` (labels index ``classes``, the dataset's class
+    names). The detector's own class list (``detector.meta["classes"]``) is the one scored:
+    ground-truth labels are mapped to it by name, so a dataset whose categories come in another
+    order still scores right; a dataset class the detector does not know is an error.
+    Breakdown groups are the samples' condition and difficulty.
+    """
+    from workers.train.checkpoint import detect_object
+
+    model_classes = [str(name) for name in detector.meta.get("classes", classes)]
+    unknown = [name for name in classes if name not in model_classes]
+    if unknown:
+        raise ValueError(
+            f"the dataset has classes the detector was not trained on: {unknown} (detector classes: {model_classes})"
+        )
+    to_model = np.array([model_classes.index(name) for name in classes], dtype=np.int64)
+    predictions = detect_object(detector, [sample.image_path for sample in samples], batch_size=batch_size)
+    ground_truth = [
+        {"boxes": sample.boxes, "labels": to_model[np.asarray(sample.labels, dtype=np.int64)]} for sample in samples
+    ]
+    groups = [{"condition": sample.condition, "difficulty": sample.difficulty} for sample in samples]
+    return evaluate_predictions(
+        predictions,
+        ground_truth,
+        model_classes,
+        score_threshold=score_threshold,
+        iou_threshold=iou_threshold,
+        groups=groups,
+        coco=coco,
+    )

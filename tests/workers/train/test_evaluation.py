@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -521,3 +522,37 @@ def test_average_precision_edges():
     assert average_precision(np.zeros(0, bool), 3) == 0.0
     assert average_precision(np.array([True, True]), 2) == 1.0
     assert average_precision(np.array([False, False]), 2) == 0.0
+
+
+# --------------------------------------------------------------------------- a detector on samples
+
+
+def test_evaluate_detector_maps_labels_by_class_name(monkeypatch, tmp_path):
+    """The dataset lists classes in another order than the detector: ground truth is renamed to
+    the detector's indices, so a perfect detector scores 1, and an unknown class is an error."""
+    import sys
+    import types
+
+    from workers.train.data import Sample
+    from workers.train.evaluation import evaluate_detector
+
+    detector_classes = ["a", "b"]
+    outputs = {  # the detector's answers per image, in its own class indices
+        "0.png": {"boxes": np.array([[0, 0, 10, 10]], np.float32), "scores": np.array([0.9], np.float32), "labels": np.array([0])},
+        "1.png": {"boxes": np.array([[5, 5, 20, 20]], np.float32), "scores": np.array([0.95], np.float32), "labels": np.array([1])},
+    }
+    fake = types.ModuleType("workers.train.checkpoint")
+    fake.detect_object = lambda detector, images, batch_size=8: [outputs[Path(p).name] for p in images]
+    monkeypatch.setitem(sys.modules, "workers.train.checkpoint", fake)
+    detector = types.SimpleNamespace(meta={"classes": detector_classes})
+    dataset_classes = ["b", "a"]  # category order of the dataset differs
+    samples = [
+        Sample(tmp_path / "0.png", [[0, 0, 10, 10]], [1], condition="fb", difficulty="easy"),
+        Sample(tmp_path / "1.png", [[5, 5, 20, 20]], [0], condition="po", difficulty="hard"),
+    ]
+    result = evaluate_detector(detector, samples, dataset_classes)
+    assert result.classes == detector_classes
+    assert result.map == 1.0
+    assert result.breakdown["condition/difficulty"]["po/hard"].map == 1.0
+    with pytest.raises(ValueError, match=r"not trained on: \['c'\]"):
+        evaluate_detector(detector, samples, ["b", "a", "c"])

@@ -1,0 +1,291 @@
+"""Detector families side by side: training and inference speed, and mAP after a fixed budget or to a target.
+
+Two modes, each printing one JSON document (also written to ``--out``):
+
+* fixed budget (default): per family (faster_rcnn, fast_rcnn, yolo), train ``--iterations`` from
+  random initialisation on ``--train-size`` rendered canonical images, then report training
+  images/s, inference images/s (``detect_object`` over the test images, reading included) and the
+  mAP reached on a fixed canonical test set of ``--test-size`` images;
+* target (``--target-map 0.9 --time-budget 1800 --test-size 150``): per family, train from random
+  initialisation in chunks of ``--eval-every`` iterations (each chunk warm-starts from the last
+  checkpoint, as an increment of Algorithm 1 does), evaluate after each chunk on the held-out
+  canonical set, stop when mAP@0.5 under the paper's protocol (score ≥ 0.8) reaches the target or
+  the time budget (training + evaluation, rendering excluded) is spent; report the iterations and
+  seconds it took, or where it got.
+
+Families run one after another, never in parallel. Images are rendered with the raster backend
+(``generate_parameters(..., "canonical")`` + ``render_with_resample``) and cached as dataset
+folders under ``bench/results/cache/`` (git-ignored), in ``foldwise render``'s COCO layout.
+
+    python bench/train.py --iterations 100 --threads 2 --out bench/results/train_fixed.json
+    python bench/train.py --target-map 0.9 --time-budget 1800 --test-size 150 --out bench/results/train_target.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "bench" / "results"
+FAMILIES = ("faster_rcnn", "fast_rcnn", "yolo")
+# Different seeds keep the training and test θ disjoint.
+TRAIN_SEED, TEST_SEED = 1001, 2002
+
+
+def quick_settings() -> dict[str, Any]:
+    """Input size and detector settings of configs/quick.yaml when it exists, else the defaults."""
+    from foldwise.config import DetectorConfig, load_config
+
+    path = REPO / "configs" / "quick.yaml"
+    if path.is_file():
+        config = load_config(path)
+        return {"detector": config.detector, "image_size": config.render.image_size, "source": str(path.relative_to(REPO))}
+    return {"detector": DetectorConfig(), "image_size": 128, "source": "DetectorConfig defaults (no configs/quick.yaml)"}
+
+
+def render_canonical_set(name: str, n: int, seed: int, image_size: int) -> Path:
+    """A cached dataset folder of n canonical images (COCO JSON as `foldwise render` writes it)."""
+    import cv2
+
+    from workers.render.assets import load_assets
+    from workers.render.parameters import generate_parameters
+    from workers.render.pipeline import render_with_resample
+
+    folder = RESULTS / "cache" / f"{name}-canonical-n{n}-s{seed}-px{image_size}"
+    annotations_path = folder / "annotations.json"
+    if annotations_path.is_file():
+        return folder
+    assets = load_assets()
+    thetas = generate_parameters("fb", "canonical", n, seed, image_size=image_size, assets=assets)
+    (folder / "images").mkdir(parents=True, exist_ok=True)
+    images, annotations = [], []
+    started = time.perf_counter()
+    for index, theta in enumerate(thetas):
+        result, rendered_theta, _reasons = render_with_resample(theta, backend="raster", assets=assets)
+        file_name = f"images/{index:05d}.png"
+        cv2.imwrite(str(folder / file_name), cv2.cvtColor(result.image, cv2.COLOR_RGB2BGR))
+        height, width = result.image.shape[:2]
+        x0, y0, x1, y1 = (float(v) for v in result.box)
+        ax0, ay0, ax1, ay1 = (float(v) for v in result.amodal_box)
+        images.append(
+            {
+                "id": index + 1,
+                "file_name": file_name,
+                "width": width,
+                "height": height,
+                "condition": rendered_theta["condition"],
+                "difficulty": rendered_theta["difficulty"],
+                "theta": rendered_theta,
+            }
+        )
+        annotations.append(
+            {
+                "id": index + 1,
+                "image_id": index + 1,
+                "category_id": int(result.label) + 1,
+                "bbox": [x0, y0, x1 - x0, y1 - y0],
+                "area": (x1 - x0) * (y1 - y0),
+                "iscrowd": 0,
+                "amodal_bbox": [ax0, ay0, ax1 - ax0, ay1 - ay0],
+                "visible_fraction": float(result.visible_fraction),
+            }
+        )
+    categories = [{"id": k + 1, "name": asset.name} for k, asset in enumerate(assets.objects)]
+    temporary = annotations_path.with_suffix(".tmp")
+    temporary.write_text(json.dumps({"images": images, "annotations": annotations, "categories": categories}))
+    temporary.replace(annotations_path)  # the cache is complete only once this file exists
+    print(f"rendered {n} {name} images in {time.perf_counter() - started:.1f} s -> {folder}", file=sys.stderr)
+    return folder
+
+
+def family_config(base, family: str, input_size: int, threads: int, batch_size: int | None):
+    from foldwise.config import DetectorConfig
+
+    updates: dict[str, Any] = {"family": family, "input_size": input_size, "num_threads": threads, "pretrained": "none"}
+    if batch_size:
+        updates["batch_size"] = batch_size
+    return DetectorConfig.model_validate({**base.model_dump(), **updates})
+
+
+def score(checkpoint: Path, test_samples, classes, batch_size: int) -> dict[str, Any]:
+    from workers.train.checkpoint import load_detector
+    from workers.train.evaluation import evaluate_detector
+
+    started = time.perf_counter()
+    detector = load_detector(checkpoint)
+    result = evaluate_detector(detector, test_samples, classes, batch_size=batch_size, coco=True)
+    seconds = time.perf_counter() - started
+    return {
+        "map": result.map,
+        "map_unthresholded": result.map_unthresholded,
+        "coco_ap50": result.coco.get("AP50"),
+        "coco_ap": result.coco.get("AP"),
+        "per_class": {name: item.ap for name, item in result.per_class.items()},
+        "eval_seconds": seconds,
+        "inference_images_per_s": len(test_samples) / seconds if seconds > 0 else None,
+    }
+
+
+def fixed_budget(args, base, input_size: int, train_samples, test_samples, classes) -> dict[str, Any]:
+    from workers.train.training import train_detector
+
+    families = {}
+    for family in args.families:
+        config = family_config(base, family, input_size, args.threads, args.batch_size)
+        checkpoint = RESULTS / "checkpoints" / f"fixed-{family}.pt"
+        checkpoint.parent.mkdir(parents=True, exist_ok=True)
+        print(f"[{family}] training {args.iterations} iterations", file=sys.stderr)
+        stats = train_detector(train_samples, None, args.iterations, config, classes, checkpoint, seed=args.seed)
+        scores = score(checkpoint, test_samples, classes, args.eval_batch_size)
+        families[family] = {
+            "config": config.model_dump(mode="json"),
+            "train": stats.to_dict(),
+            "train_images_per_s": stats.images_seen / stats.seconds if stats.seconds > 0 else None,
+            **scores,
+        }
+        print(f"[{family}] {json.dumps({k: families[family][k] for k in ('train_images_per_s', 'inference_images_per_s', 'map', 'map_unthresholded')})}", file=sys.stderr)
+    return families
+
+
+def to_target(args, base, input_size: int, train_samples, test_samples, classes) -> dict[str, Any]:
+    from workers.train.training import train_detector
+
+    families = {}
+    for family in args.families:
+        config = family_config(base, family, input_size, args.threads, args.batch_size)
+        checkpoint = RESULTS / "checkpoints" / f"target-{family}.pt"
+        checkpoint.parent.mkdir(parents=True, exist_ok=True)
+        history, iterations, train_seconds, images_seen = [], 0, 0.0, 0
+        started = time.perf_counter()
+        reached = False
+        chunk = 0
+        while True:
+            stats = train_detector(
+                train_samples,
+                checkpoint if iterations else None,
+                args.eval_every,
+                config,
+                classes,
+                checkpoint,
+                seed=args.seed + chunk,
+            )
+            chunk += 1
+            iterations += stats.iterations
+            train_seconds += stats.seconds
+            images_seen += stats.images_seen
+            scores = score(checkpoint, test_samples, classes, args.eval_batch_size)
+            elapsed = time.perf_counter() - started
+            point = {
+                "iterations": iterations,
+                "seconds": elapsed,
+                "train_seconds": train_seconds,
+                "final_loss": stats.final_loss,
+                "nonfinite_steps": len(stats.nonfinite_steps),
+                **{k: scores[k] for k in ("map", "map_unthresholded", "coco_ap50", "per_class")},
+            }
+            history.append(point)
+            print(f"[{family}] {json.dumps({k: point[k] for k in ('iterations', 'seconds', 'map', 'map_unthresholded', 'final_loss')})}", file=sys.stderr)
+            current = scores["map"]
+            if current is not None and not math.isnan(current) and current >= args.target_map:
+                reached = True
+                break
+            if elapsed >= args.time_budget:
+                break
+        best = max(history, key=lambda p: -1.0 if math.isnan(p["map"]) else p["map"])
+        families[family] = {
+            "config": config.model_dump(mode="json"),
+            "reached": reached,
+            "iterations": iterations,
+            "seconds": time.perf_counter() - started,
+            "train_seconds": train_seconds,
+            "train_images_per_s": images_seen / train_seconds if train_seconds > 0 else None,
+            "final_map": history[-1]["map"],
+            "best_map": best["map"],
+            "best_at_iterations": best["iterations"],
+            "history": history,
+        }
+    return families
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--families", default=",".join(FAMILIES), help="comma-separated detector families")
+    parser.add_argument("--iterations", type=int, default=200, help="fixed-budget mode: training iterations")
+    parser.add_argument("--train-size", type=int, default=300, help="canonical training images")
+    parser.add_argument("--test-size", type=int, default=150, help="canonical test images")
+    parser.add_argument("--input-size", type=int, default=None, help="default: configs/quick.yaml's (128 px)")
+    parser.add_argument("--batch-size", type=int, default=None, help="training images per iteration (default: config's)")
+    parser.add_argument("--eval-batch-size", type=int, default=16)
+    parser.add_argument("--threads", type=int, default=2, help="torch threads (the machine is shared)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--target-map", type=float, default=None, help="target mode: stop at this mAP (paper protocol)")
+    parser.add_argument("--time-budget", type=float, default=1800.0, help="target mode: seconds per family")
+    parser.add_argument("--eval-every", type=int, default=100, help="target mode: iterations between evaluations")
+    parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
+    args = parser.parse_args(argv)
+    args.families = [f.strip() for f in args.families.split(",") if f.strip()]
+    unknown = [f for f in args.families if f not in FAMILIES]
+    if unknown:
+        parser.error(f"unknown families {unknown}; known: {', '.join(FAMILIES)}")
+
+    import torch
+
+    torch.set_num_threads(args.threads)
+    from workers.train.data import load_coco_dataset
+
+    quick = quick_settings()
+    base = quick["detector"]
+    input_size = args.input_size or base.input_size
+    image_size = quick["image_size"]
+    train_dir = render_canonical_set("train", args.train_size, TRAIN_SEED, image_size)
+    test_dir = render_canonical_set("test", args.test_size, TEST_SEED, image_size)
+    train_samples, classes = load_coco_dataset(train_dir)
+    test_samples, test_classes = load_coco_dataset(test_dir)
+    if test_classes != classes:
+        raise SystemExit(f"train and test sets disagree on classes: {classes} vs {test_classes}")
+
+    mode = "target" if args.target_map is not None else "fixed_budget"
+    runner = to_target if mode == "target" else fixed_budget
+    report = {
+        "bench": "train",
+        "mode": mode,
+        "settings": {
+            "source": quick["source"],
+            "input_size": input_size,
+            "image_size": image_size,
+            "train_images": len(train_samples),
+            "test_images": len(test_samples),
+            "classes": classes,
+            "threads": args.threads,
+            "seed": args.seed,
+            **({"iterations": args.iterations} if mode == "fixed_budget" else {}),
+            **(
+                {"target_map": args.target_map, "time_budget_s": args.time_budget, "eval_every": args.eval_every}
+                if mode == "target"
+                else {}
+            ),
+            "score_threshold": 0.8,
+            "iou_threshold": 0.5,
+        },
+        "machine": {"python": platform.python_version(), "torch": torch.__version__, "cuda": torch.cuda.is_available()},
+        "families": runner(args, base, input_size, train_samples, test_samples, classes),
+    }
+    from workers.train.evaluation import json_safe
+
+    text = json.dumps(json_safe(report), indent=2, allow_nan=False)
+    print(text)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
+    return report
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,270 @@
+"""foldwise train / evaluate / detect on a tiny COCO dataset written here (no renderer needed)."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from workers.train.cli import draw_detections, register
+
+cv2 = pytest.importorskip("cv2")
+
+CLASSES = ["red_card", "blue_card"]
+COLOURS = [(220, 40, 40), (40, 60, 220)]
+IMAGE_SIZE = 96
+
+
+def make_app() -> typer.Typer:
+    app = typer.Typer()
+    register(app)
+    return app
+
+
+runner = CliRunner()
+
+
+def write_dataset(directory: Path, n_images: int = 6, seed: int = 0, category_order=(1, 2)) -> Path:
+    """A dataset folder in `foldwise render`'s layout: noisy backgrounds, one striped card each."""
+    rng = np.random.default_rng(seed)
+    (directory / "images").mkdir(parents=True, exist_ok=True)
+    images, annotations = [], []
+    conditions = ["fb", "po"]
+    for i in range(n_images):
+        picture = rng.integers(0, 256, (IMAGE_SIZE, IMAGE_SIZE, 3), dtype=np.uint8)
+        label = i % 2
+        w, h = rng.integers(30, 60, 2)
+        x, y = rng.integers(0, IMAGE_SIZE - w), rng.integers(0, IMAGE_SIZE - h)
+        picture[y : y + h, x : x + w] = COLOURS[label]
+        picture[y : y + h : 4, x : x + w] = 255  # stripes: some texture
+        name = f"images/{i:03d}.png"
+        cv2.imwrite(str(directory / name), cv2.cvtColor(picture, cv2.COLOR_RGB2BGR))
+        images.append(
+            {
+                "id": i + 1,
+                "file_name": name,
+                "width": IMAGE_SIZE,
+                "height": IMAGE_SIZE,
+                "condition": conditions[(i // 2) % 2],
+                "difficulty": "easy",
+                "theta": {"seed": i},
+            }
+        )
+        annotations.append(
+            {
+                "id": i + 1,
+                "image_id": i + 1,
+                "category_id": category_order[label],
+                "bbox": [float(x), float(y), float(w), float(h)],
+                "area": float(w * h),
+                "iscrowd": 0,
+                "amodal_bbox": [float(x), float(y), float(w), float(h)],
+                "visible_fraction": 1.0,
+            }
+        )
+    categories = [{"id": category_order[k], "name": CLASSES[k]} for k in range(len(CLASSES))]
+    document = {"images": images, "annotations": annotations, "categories": categories}
+    (directory / "annotations.json").write_text(json.dumps(document))
+    return directory
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    return write_dataset(tmp_path_factory.mktemp("data"))
+
+
+# --------------------------------------------------------------------------- clear errors (no training)
+
+
+def test_missing_dataset_folder_is_a_clear_error(tmp_path):
+    missing = tmp_path / "nowhere"
+    for args in (
+        ["train", "--detector", "yolo", "--data", str(missing), "--iterations", "1", "--out", str(tmp_path / "m.pt")],
+        ["evaluate", "--model", str(tmp_path / "m.pt"), "--data", str(missing)],
+    ):
+        result = runner.invoke(make_app(), args)
+        assert result.exit_code == 1
+        assert f"dataset folder {missing} does not exist" in result.output
+
+
+def test_folder_without_annotations_is_a_clear_error(tmp_path):
+    result = runner.invoke(
+        make_app(),
+        ["train", "--detector", "yolo", "--data", str(tmp_path), "--iterations", "1", "--out", str(tmp_path / "m.pt")],
+    )
+    assert result.exit_code == 1
+    assert "no annotations.json" in result.output
+
+
+def test_empty_dataset_is_a_clear_error(tmp_path):
+    (tmp_path / "annotations.json").write_text(
+        json.dumps({"images": [], "annotations": [], "categories": [{"id": 1, "name": "a"}]})
+    )
+    result = runner.invoke(
+        make_app(),
+        ["train", "--detector", "faster_rcnn", "--data", str(tmp_path), "--iterations", "1", "--out", str(tmp_path / "m.pt")],
+    )
+    assert result.exit_code == 1
+    assert "is empty" in result.output
+
+
+def test_unknown_detector_family_is_rejected(tmp_path, dataset):
+    result = runner.invoke(
+        make_app(),
+        ["train", "--detector", "ssd", "--data", str(dataset), "--iterations", "1", "--out", str(tmp_path / "m.pt")],
+    )
+    assert result.exit_code == 2
+    assert "ssd" in result.output
+
+
+def test_missing_init_checkpoint_is_a_clear_error(tmp_path, dataset):
+    result = runner.invoke(
+        make_app(),
+        [
+            "train", "--detector", "yolo", "--data", str(dataset), "--iterations", "1",
+            "--init", str(tmp_path / "absent.pt"), "--out", str(tmp_path / "m.pt"),
+        ],
+    )
+    assert result.exit_code == 1
+    assert "--init checkpoint" in result.output and "does not exist" in result.output
+
+
+def test_unreadable_checkpoint_is_a_clear_error(tmp_path, dataset):
+    pytest.importorskip("workers.train.checkpoint")
+    garbage = tmp_path / "garbage.pt"
+    garbage.write_bytes(b"this is not a checkpoint")
+    result = runner.invoke(make_app(), ["evaluate", "--model", str(garbage), "--data", str(dataset)])
+    assert result.exit_code == 1
+    assert f"cannot load checkpoint {garbage}" in result.output
+    missing = runner.invoke(make_app(), ["evaluate", "--model", str(tmp_path / "nope.pt"), "--data", str(dataset)])
+    assert missing.exit_code == 1 and "does not exist" in missing.output
+    image = next((dataset / "images").iterdir())
+    drawn = runner.invoke(make_app(), ["detect", "--model", str(garbage), str(image), "--out-dir", str(tmp_path / "d")])
+    assert drawn.exit_code == 1 and "cannot load checkpoint" in drawn.output
+
+
+def test_detect_missing_or_unreadable_image_is_a_clear_error(tmp_path):
+    not_an_image = tmp_path / "notes.png"
+    not_an_image.write_text("hello")
+    result = runner.invoke(make_app(), ["detect", "--model", str(tmp_path / "m.pt"), str(tmp_path / "x.png")])
+    assert result.exit_code == 1 and "not found" in result.output
+    result = runner.invoke(make_app(), ["detect", "--model", str(tmp_path / "m.pt"), str(not_an_image)])
+    assert result.exit_code == 1 and "cannot read image" in result.output
+
+
+def test_draw_detections_boxes_and_labels_only_above_threshold():
+    image = np.zeros((64, 64, 3), np.uint8)
+    found = {
+        "boxes": np.array([[10, 20, 40, 50], [2, 2, 8, 8]], np.float32),
+        "scores": np.array([0.9, 0.3], np.float32),
+        "labels": np.array([1, 0], np.int64),
+    }
+    drawn = draw_detections(image, found, CLASSES, score_threshold=0.8)
+    assert drawn.shape == image.shape and drawn.dtype == np.uint8
+    assert image.sum() == 0  # the input is not drawn on
+    assert drawn[35, 10].any() and drawn[50, 25].any()  # left and bottom edges of the kept box
+    assert not drawn[5, 5].any() and not drawn[2, 5].any()  # the 0.3 detection is not drawn
+    assert not drawn[35, 25].any()  # inside the box stays untouched
+    everything = draw_detections(image, found, CLASSES, score_threshold=0.0)
+    assert everything[2, 5].any()
+
+
+# --------------------------------------------------------------------------- train → evaluate → detect
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory, dataset) -> dict[str, Path]:
+    """One tiny checkpoint per detector family, two iterations each."""
+    pytest.importorskip("workers.train.training")
+    out = tmp_path_factory.mktemp("models")
+    checkpoints, outputs = {}, {}
+    for family in ("faster_rcnn", "fast_rcnn", "yolo"):
+        path = out / f"{family}.pt"
+        result = runner.invoke(
+            make_app(),
+            [
+                "train", "--detector", family, "--data", str(dataset), "--iterations", "2",
+                "--input-size", "96", "--batch-size", "2", "--seed", "1", "--threads", "2", "--out", str(path),
+            ],
+        )
+        assert result.exit_code == 0, result.output
+        checkpoints[family] = path
+        outputs[family] = result.output
+    return {"checkpoints": checkpoints, "outputs": outputs}
+
+
+@pytest.mark.parametrize("family", ["faster_rcnn", "fast_rcnn", "yolo"])
+def test_train_writes_checkpoint_and_reports_throughput_and_loss(trained, family):
+    path = trained["checkpoints"][family]
+    output = trained["outputs"][family]
+    assert path.is_file() and path.stat().st_size > 0
+    assert "2 iterations" in output
+    assert "images/s" in output
+    loss = float(output.split("final loss ")[1].split()[0])
+    assert math.isfinite(loss)
+
+
+def test_train_warm_start_from_checkpoint(trained, dataset, tmp_path):
+    result = runner.invoke(
+        make_app(),
+        [
+            "train", "--detector", "yolo", "--data", str(dataset), "--iterations", "1", "--input-size", "96",
+            "--init", str(trained["checkpoints"]["yolo"]), "--threads", "2", "--out", str(tmp_path / "next.pt"),
+        ],
+    )
+    assert result.exit_code == 0, result.output
+    assert (tmp_path / "next.pt").is_file()
+
+
+def test_evaluate_prints_tables_and_writes_json(trained, dataset, tmp_path):
+    target = tmp_path / "eval" / "result.json"
+    result = runner.invoke(
+        make_app(),
+        ["evaluate", "--model", str(trained["checkpoints"]["faster_rcnn"]), "--data", str(dataset), "--json", str(target), "--threads", "2"],
+    )
+    assert result.exit_code == 0, result.output
+    for text in ("Per class", "Per condition", "Per difficulty", "mAP (paper protocol", "mAP (unthresholded)", *CLASSES):
+        assert text in result.output
+    payload = json.loads(target.read_text())
+    assert payload["num_images"] == 6 and payload["num_ground_truth"] == 6
+    assert payload["classes"] == CLASSES
+    assert set(payload["breakdown"]["condition"]) == {"fb", "po"}
+    assert payload["breakdown"]["condition/difficulty"]["fb/easy"]["num_images"] == 4
+    assert payload["map"] is None or 0.0 <= payload["map"] <= 1.0
+    assert payload["map"] is None or payload["map"] <= payload["map_unthresholded"] + 1e-12
+    assert "AP50" in payload["coco"]
+
+
+def test_evaluate_maps_dataset_classes_by_name(trained, tmp_path):
+    """The same images with category ids swapped give the same score: labels follow names."""
+    model = trained["checkpoints"]["yolo"]
+    scores = []
+    for order in ((1, 2), (2, 1)):
+        data = write_dataset(tmp_path / f"order{order[0]}", category_order=order)
+        target = tmp_path / f"order{order[0]}.json"
+        result = runner.invoke(
+            make_app(), ["evaluate", "--model", str(model), "--data", str(data), "--json", str(target), "--threshold", "0"]
+        )
+        assert result.exit_code == 0, result.output
+        payload = json.loads(target.read_text())
+        scores.append((payload["map_unthresholded"], payload["per_class"]))
+    assert scores[0] == scores[1]
+
+
+def test_detect_writes_annotated_copies(trained, dataset, tmp_path):
+    images = sorted((dataset / "images").iterdir())[:2]
+    out_dir = tmp_path / "drawn"
+    result = runner.invoke(
+        make_app(),
+        ["detect", "--model", str(trained["checkpoints"]["yolo"]), *map(str, images), "--out-dir", str(out_dir), "--threshold", "0.0"],
+    )
+    assert result.exit_code == 0, result.output
+    for image in images:
+        written = cv2.imread(str(out_dir / image.name))
+        assert written is not None and written.shape == (IMAGE_SIZE, IMAGE_SIZE, 3)
+        assert f"{image} -> " in result.output

@@ -1,0 +1,320 @@
+"""``foldwise train``, ``foldwise evaluate``, ``foldwise detect``: the train worker's commands.
+
+Each command imports torch, OpenCV and the detectors inside its body, so that registering them
+on the root ``foldwise`` app (``services/cli.py``) keeps ``foldwise --help`` light.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Any, NoReturn, Optional
+
+import typer
+
+
+class Family(str, Enum):
+    faster_rcnn = "faster_rcnn"
+    fast_rcnn = "fast_rcnn"
+    yolo = "yolo"
+
+
+def _fail(message: str) -> NoReturn:
+    typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+    raise typer.Exit(code=1)
+
+
+def _set_threads(threads: int) -> None:
+    if threads > 0:
+        import torch
+
+        torch.set_num_threads(threads)
+
+
+def _load_samples(data: Path):
+    """The dataset at ``data`` (a folder written by ``foldwise render``), or a clear exit."""
+    from workers.train.data import DatasetError, load_coco_dataset
+
+    if not data.exists():
+        _fail(f"dataset folder {data} does not exist")
+    if not data.is_dir():
+        _fail(f"{data} is not a folder (expected a dataset folder written by `foldwise render --out DIR`)")
+    try:
+        samples, classes = load_coco_dataset(data)
+    except (DatasetError, KeyError, TypeError, ValueError) as error:
+        detail = f"missing field {error}" if isinstance(error, KeyError) else str(error)
+        _fail(f"cannot read dataset {data}: {detail}")
+    if not samples:
+        _fail(f"dataset {data} is empty: annotations.json lists no images")
+    return samples, classes
+
+
+def _load_model(path: Path, device: Optional[str] = None):
+    """A trained detector, or a clear exit for a missing or unreadable checkpoint."""
+    from workers.train.checkpoint import load_detector
+
+    if not path.is_file():
+        _fail(f"checkpoint {path} does not exist")
+    try:
+        return load_detector(path, device=device)
+    except Exception as error:  # torch.load and the model builders raise many kinds; all mean "unusable"
+        _fail(f"cannot load checkpoint {path}: {type(error).__name__}: {error}")
+
+
+def _fmt(value: Any, digits: int = 4) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "–"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+# --------------------------------------------------------------------------- train
+
+
+def train(
+    detector: Annotated[Family, typer.Option("--detector", help="Detector family.")],
+    data: Annotated[Path, typer.Option("--data", help="Dataset folder written by `foldwise render --out DIR`.")],
+    iterations: Annotated[int, typer.Option("--iterations", min=1, help="Training iterations (mini-batches).")],
+    out: Annotated[Path, typer.Option("--out", help="Checkpoint to write.")],
+    init: Annotated[
+        Optional[Path], typer.Option("--init", help="Warm start from this checkpoint (ω_in); default: fresh weights.")
+    ] = None,
+    input_size: Annotated[Optional[int], typer.Option("--input-size", min=32, max=2048, help="Network input side, px.")] = None,
+    backbone: Annotated[Optional[str], typer.Option("--backbone", help="Backbone name (default: the config's).")] = None,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of weights init and batch order.")] = 0,
+    config: Annotated[
+        Optional[Path], typer.Option("--config", help="Experiment YAML whose `detector` section is the base settings.")
+    ] = None,
+    batch_size: Annotated[Optional[int], typer.Option("--batch-size", min=1, help="Images per iteration.")] = None,
+    threads: Annotated[int, typer.Option("--threads", min=0, help="Torch CPU threads (0: torch decides).")] = 0,
+) -> None:
+    """Train a detector on a rendered dataset and write a self-describing checkpoint."""
+    from foldwise.config import ConfigError, DetectorConfig, load_config
+
+    base = DetectorConfig()
+    if config is not None:
+        try:
+            base = load_config(config).detector
+        except ConfigError as error:
+            _fail(str(error))
+    updates: dict[str, Any] = {"family": detector.value}
+    for key, value in (("input_size", input_size), ("backbone", backbone), ("batch_size", batch_size)):
+        if value is not None:
+            updates[key] = value
+    if threads:
+        updates["num_threads"] = threads
+    try:
+        detector_config = DetectorConfig.model_validate({**base.model_dump(), **updates})
+    except Exception as error:
+        _fail(f"invalid detector settings: {error}")
+    if init is not None and not init.is_file():
+        _fail(f"--init checkpoint {init} does not exist")
+    samples, classes = _load_samples(data)
+    if not any(len(sample.boxes) for sample in samples):
+        _fail(f"dataset {data} has no annotated box: nothing to train on")
+    _set_threads(threads)
+
+    from workers.train.training import train_detector
+
+    out.parent.mkdir(parents=True, exist_ok=True)
+    typer.echo(
+        f"training {detector.value} ({detector_config.backbone}, {detector_config.input_size} px) on "
+        f"{len(samples)} images of {len(classes)} classes for {iterations} iterations"
+    )
+    try:
+        stats = train_detector(
+            samples, init=init, iterations=iterations, config=detector_config, classes=classes, out=out, seed=seed
+        )
+    except Exception as error:
+        _fail(f"training failed: {type(error).__name__}: {error}")
+    throughput = stats.images_seen / stats.seconds if stats.seconds > 0 else float("nan")
+    typer.echo(
+        f"done: {stats.iterations} iterations in {stats.seconds:.1f} s on {stats.device}, "
+        f"{throughput:.2f} images/s, final loss {stats.final_loss:.4f}"
+    )
+    if stats.nonfinite_steps:
+        typer.secho(f"{len(stats.nonfinite_steps)} non-finite loss steps were skipped", fg=typer.colors.YELLOW)
+    typer.echo(f"checkpoint: {out}")
+
+
+# --------------------------------------------------------------------------- evaluate
+
+
+def _result_tables(result) -> list:
+    from rich.table import Table
+
+    threshold = f"score ≥ {result.score_threshold:g}"
+    per_class = Table(title=f"Per class (VOC AP, IoU ≥ {result.iou_threshold:g})")
+    for column in ("class", "GT", "detections", f"kept ({threshold})", "TP", "AP (paper)", "AP (all)", "COCO AP50"):
+        per_class.add_column(column, justify="left" if column == "class" else "right")
+    coco_per_class = result.coco.get("per_class", {}) if result.coco else {}
+    for name, item in result.per_class.items():
+        per_class.add_row(
+            name,
+            str(item.num_ground_truth),
+            str(item.num_detections),
+            str(item.num_detections_kept),
+            str(item.true_positives),
+            _fmt(item.ap),
+            _fmt(item.ap_unthresholded),
+            _fmt(coco_per_class.get(name, {}).get("AP50")),
+        )
+    per_class.add_section()
+    per_class.add_row(
+        "mAP", str(result.num_ground_truth), str(result.num_detections), "", "",
+        _fmt(result.map), _fmt(result.map_unthresholded), _fmt(result.coco.get("AP50") if result.coco else None),
+    )
+    tables = [per_class]
+    titles = {"condition": "Per condition", "difficulty": "Per difficulty", "condition/difficulty": "Per stage (c/δ)"}
+    for field, groups in result.breakdown.items():
+        if not groups:
+            continue
+        table = Table(title=titles.get(field, f"Per {field}"))
+        for column in (field, "images", "GT", f"mAP ({threshold})", "mAP (all)"):
+            table.add_column(column, justify="left" if column == field else "right")
+        for value, group in groups.items():
+            table.add_row(value, str(group.num_images), str(group.num_ground_truth), _fmt(group.map), _fmt(group.map_unthresholded))
+        tables.append(table)
+    return tables
+
+
+def evaluate(
+    model: Annotated[Path, typer.Option("--model", help="Checkpoint written by `foldwise train`.")],
+    data: Annotated[Path, typer.Option("--data", help="Dataset folder written by `foldwise render --out DIR`.")],
+    json_out: Annotated[Optional[Path], typer.Option("--json", help="Also write the full result as JSON here.")] = None,
+    score_threshold: Annotated[
+        float, typer.Option("--threshold", min=0.0, max=1.0, help="The paper's confidence cut.")
+    ] = 0.8,
+    iou_threshold: Annotated[float, typer.Option("--iou", min=0.01, max=1.0, help="IoU for a match.")] = 0.5,
+    batch_size: Annotated[int, typer.Option("--batch-size", min=1, help="Images per forward pass.")] = 16,
+    device: Annotated[Optional[str], typer.Option("--device", help="cpu or cuda (default: the checkpoint's choice).")] = None,
+    threads: Annotated[int, typer.Option("--threads", min=0, help="Torch CPU threads (0: torch decides).")] = 0,
+) -> None:
+    """Score a checkpoint on a dataset: VOC mAP (paper protocol and unthresholded), COCO metrics."""
+    import time
+
+    from rich.console import Console
+
+    samples, classes = _load_samples(data)
+    _set_threads(threads)
+    detector = _load_model(model, device)
+
+    from workers.train.evaluation import evaluate_detector
+
+    started = time.perf_counter()
+    try:
+        result = evaluate_detector(
+            detector, samples, classes, score_threshold=score_threshold, iou_threshold=iou_threshold, batch_size=batch_size
+        )
+    except ValueError as error:
+        _fail(str(error))
+    seconds = time.perf_counter() - started
+    console = Console()
+    for table in _result_tables(result):
+        console.print(table)
+    console.print(
+        f"mAP (paper protocol: score ≥ {score_threshold:g}, IoU ≥ {iou_threshold:g}): {_fmt(result.map)}   "
+        f"mAP (unthresholded): {_fmt(result.map_unthresholded)}   "
+        f"COCO AP: {_fmt(result.coco.get('AP'))}   COCO AP50: {_fmt(result.coco.get('AP50'))}"
+    )
+    console.print(f"{len(samples)} images in {seconds:.1f} s ({len(samples) / max(seconds, 1e-9):.1f} images/s)")
+    if result.num_ground_truth == 0:
+        typer.secho("warning: the dataset has no annotated box; mAP is undefined", fg=typer.colors.YELLOW, err=True)
+    if json_out is not None:
+        payload = {"model": str(model), "data": str(data), "seconds": seconds, **result.to_dict()}
+        json_out.parent.mkdir(parents=True, exist_ok=True)
+        json_out.write_text(json.dumps(payload, indent=2, allow_nan=False))
+        console.print(f"wrote {json_out}")
+
+
+# --------------------------------------------------------------------------- detect
+
+# Distinct BGR colours per class (OpenCV draws in BGR).
+_PALETTE = [(48, 48, 255), (48, 200, 48), (255, 128, 0), (0, 200, 255), (200, 0, 200), (255, 255, 0), (128, 0, 255)]
+
+
+def draw_detections(image_rgb, detections: dict, classes: list[str], score_threshold: float):
+    """A copy of the image (RGB) with every detection at or above the threshold boxed and labelled."""
+    import cv2
+    import numpy as np
+
+    canvas = cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2BGR)
+    height, width = canvas.shape[:2]
+    thickness = max(1, round(min(height, width) / 200))
+    font_scale = max(0.3, min(height, width) / 500)
+    keep = np.asarray(detections["scores"]) >= score_threshold
+    for box, score, label in zip(
+        np.asarray(detections["boxes"])[keep], np.asarray(detections["scores"])[keep], np.asarray(detections["labels"])[keep]
+    ):
+        colour = _PALETTE[int(label) % len(_PALETTE)]
+        x0, y0, x1, y1 = (int(round(float(v))) for v in box)
+        cv2.rectangle(canvas, (x0, y0), (x1, y1), colour, thickness)
+        name = classes[int(label)] if 0 <= int(label) < len(classes) else str(int(label))
+        text = f"{name} {float(score):.2f}"
+        (text_w, text_h), baseline = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font_scale, 1)
+        top = max(0, y0 - text_h - baseline)
+        cv2.rectangle(canvas, (x0, top), (x0 + text_w, top + text_h + baseline), colour, -1)
+        cv2.putText(canvas, text, (x0, top + text_h), cv2.FONT_HERSHEY_SIMPLEX, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
+    return cv2.cvtColor(canvas, cv2.COLOR_BGR2RGB)
+
+
+def detect(
+    model: Annotated[Path, typer.Option("--model", help="Checkpoint written by `foldwise train`.")],
+    images: Annotated[list[Path], typer.Argument(help="Image files to run the detector on.")],
+    out_dir: Annotated[Path, typer.Option("--out-dir", help="Where the annotated copies go.")] = Path("detections"),
+    score_threshold: Annotated[
+        float, typer.Option("--threshold", min=0.0, max=1.0, help="Draw detections at or above this score.")
+    ] = 0.8,
+    batch_size: Annotated[int, typer.Option("--batch-size", min=1)] = 8,
+    device: Annotated[Optional[str], typer.Option("--device", help="cpu or cuda (default: the checkpoint's choice).")] = None,
+    threads: Annotated[int, typer.Option("--threads", min=0, help="Torch CPU threads (0: torch decides).")] = 0,
+) -> None:
+    """Detect the object in images; write copies with boxes, class names and scores drawn."""
+    import cv2
+
+    from workers.train.data import DatasetError, read_image_rgb
+
+    missing = [str(path) for path in images if not path.is_file()]
+    if missing:
+        _fail(f"image file(s) not found: {', '.join(missing)}")
+    pictures = []
+    for path in images:
+        try:
+            pictures.append(read_image_rgb(path))
+        except DatasetError as error:
+            _fail(str(error))
+    _set_threads(threads)
+    detector = _load_model(model, device)
+    classes = [str(name) for name in detector.meta.get("classes", [])]
+
+    from workers.train.checkpoint import detect_object
+
+    detections = detect_object(detector, pictures, batch_size=batch_size)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    used: set[str] = set()
+    for path, picture, found in zip(images, pictures, detections):
+        name = f"{path.stem}.png"
+        counter = 1
+        while name in used:  # same file name from two folders: keep both
+            name = f"{path.stem}_{counter}.png"
+            counter += 1
+        used.add(name)
+        drawn = draw_detections(picture, found, classes, score_threshold)
+        target = out_dir / name
+        if not cv2.imwrite(str(target), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR)):
+            _fail(f"cannot write {target}")
+        kept = [
+            f"{classes[int(label)] if 0 <= int(label) < len(classes) else int(label)} {float(score):.2f}"
+            for score, label in zip(found["scores"], found["labels"])
+            if float(score) >= score_threshold
+        ]
+        typer.echo(f"{path} -> {target}: {len(kept)} detection(s){': ' + ', '.join(kept) if kept else ''}")
+
+
+def register(app: typer.Typer) -> None:
+    app.command("train")(train)
+    app.command("evaluate")(evaluate)
+    app.command("detect")(detect)
