@@ -1,0 +1,784 @@
+"""Random isometric deformations of a rectangular sheet (Perriollat & Bartoli 2013).
+
+A developable sheet bends only along straight *rulings*: segments with both ends on the
+border, on two different sides, never crossing one another. The rulings cut the W×H
+rectangle into convex regions; each region moves rigidly, by the product of the rotations
+about the rulings on its path from the *reference* region (the one holding the sheet centre,
+which stays fixed). Two regions that share a ruling apply the same transform to it, so the
+bent surface is exactly isometric to the flat sheet -- provided the mesh has its vertices ON
+the rulings and no triangle straddles one. That is why every region is triangulated on its
+own (boundary vertices shared along rulings and border, interior points from a grid): a
+regular grid pushed through the region transforms would shorten every edge crossing a fold.
+
+Conventions (see ``SheetMesh``): flat coordinates in metres in ``[0, W] x [0, H]`` (x right,
+y up); the 3D sheet frame puts the flat point (x, y) at (x - W/2, y - H/2, 0) before
+bending; faces are counter-clockwise in the flat frame, so normals point to +z. A positive
+bending angle is a valley fold seen from +z: the sheet on both sides of the ruling turns
+towards +z (with the reference region fixed, the far side lifts).
+
+Guiding rulings: ``n`` of them (canonical 2, easy 3, medium 5, hard 8). A smooth bend rather
+than a crease splits each guiding ruling into ``smooth_steps`` interpolated rulings whose end
+points step along the border (a nested family, so they never cross), each carrying an equal
+share of the guiding angle.
+
+Sampling never produces crossing rulings by construction: two sheet corners split the border
+into arcs A and B; the guiding rulings' ends are drawn as increasing positions along A and
+along B and the i-th of A is paired with the i-th of B (nested chords never alternate along
+the perimeter). Arcs A and B share no side, so both ends of a ruling are on different sides.
+Every chain of non-crossing rulings arises this way for some pair of corners.
+"""
+
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from os import PathLike
+from typing import Any, Sequence
+
+import numpy as np
+
+Point = tuple[float, float]
+Ruling = tuple[Point, Point, float]
+
+# Relative outward bulge given to boundary points before Delaunay triangulation: it makes
+# collinear boundary points strictly convex, so Qhull keeps every one of them as a hull vertex
+# and never builds a triangle from three points of one straight edge (its circumcircle, of
+# radius ~600 edge lengths, always holds another point of the region).
+_BULGE = 2e-4
+
+_OPTION_NAMES = {
+    "mesh_step",
+    "smooth_steps",
+    "bend_spacing",
+    "min_gap",
+    "corner_gap",
+    "min_strip",
+    "max_total_bend",
+    "clearance",
+    "check_self_intersection",
+    "min_angle",
+    "max_angle",
+    "max_tries",
+}
+
+
+class SelfIntersection(ValueError):
+    """The bent sheet passes through itself (or curls further than a sheet plausibly does).
+
+    ``reason`` says why; the caller resamples the deformation and records it.
+    """
+
+    def __init__(self, reason: str):
+        super().__init__(reason)
+        self.reason = reason
+
+
+class RulingLayoutError(ValueError):
+    """Rulings that cannot make a valid sheet (crossing, on one side, too close, ...)."""
+
+
+@dataclass(frozen=True, eq=False)
+class SheetMesh:
+    """A bent sheet: the flat mesh and its isometric image.
+
+    ``flat``: (V, 2) float64 vertex positions on the flat sheet, metres, in [0, W] x [0, H].
+    ``vertices``: (V, 3) float64 deformed positions in the sheet frame (flat point (x, y)
+    sits at (x - W/2, y - H/2, 0) before bending; the region holding the centre is fixed).
+    ``faces``: (F, 3) int64, counter-clockwise in the flat frame (normals +z before bending).
+    ``uv``: (V, 2) = flat / (W, H). ``rulings``: the guiding rulings ``(p0, p1, angle)``
+    (flat end points, bending angle in radians, positive = valley fold seen from +z).
+    ``fold_lines``: every ruling the mesh actually folds along (interpolated ones included),
+    same format. ``face_regions``: (F,) index of the rigid region each face belongs to.
+    """
+
+    flat: np.ndarray
+    vertices: np.ndarray
+    faces: np.ndarray
+    uv: np.ndarray
+    width: float
+    height: float
+    rulings: list[Ruling]
+    fold_lines: list[Ruling] = field(default_factory=list)
+    face_regions: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+
+
+# -- the border as a closed curve -----------------------------------------------------------
+
+
+class _Border:
+    """Perimeter coordinate ``s`` in [0, 2(W+H)), counter-clockwise from the corner (0, 0)."""
+
+    def __init__(self, width: float, height: float):
+        self.width = width
+        self.height = height
+        self.length = 2.0 * (width + height)
+        self.corners = np.array([0.0, width, width + height, 2.0 * width + height])
+
+    def point(self, s: float) -> Point:
+        w, h = self.width, self.height
+        s = s % self.length
+        if s <= w:
+            return (s, 0.0)
+        if s <= w + h:
+            return (w, s - w)
+        if s <= 2 * w + h:
+            return (w - (s - w - h), h)
+        return (0.0, h - (s - 2 * w - h))
+
+    def position(self, point: Sequence[float], tol: float) -> float:
+        """``s`` of a border point; RulingLayoutError when the point is off the border."""
+        x, y = float(point[0]), float(point[1])
+        w, h = self.width, self.height
+        if not (-tol <= x <= w + tol and -tol <= y <= h + tol):
+            raise RulingLayoutError(f"ruling end ({x:.6g}, {y:.6g}) lies outside the {w:g} x {h:g} sheet")
+        distances = [abs(y), abs(x - w), abs(y - h), abs(x)]
+        side = int(np.argmin(distances))
+        if distances[side] > tol:
+            raise RulingLayoutError(f"ruling end ({x:.6g}, {y:.6g}) is not on the sheet border")
+        x, y = min(max(x, 0.0), w), min(max(y, 0.0), h)
+        return [x, w + y, w + h + (w - x), 2 * w + h + (h - y)][side] % self.length
+
+    def side(self, s: float) -> int:
+        """0 bottom, 1 right, 2 top, 3 left (a corner belongs to the side it starts)."""
+        return int(np.searchsorted(self.corners, s % self.length, side="right") - 1)
+
+    def corner_distance(self, s: float) -> float:
+        d = np.abs(self.corners - (s % self.length))
+        return float(np.min(np.minimum(d, self.length - d)))
+
+
+def _cyclic_distance(a: float, b: float, length: float) -> float:
+    d = abs(a - b) % length
+    return min(d, length - d)
+
+
+def _ccw_between(start: float, point: float, end: float, length: float) -> bool:
+    """Whether ``point`` lies strictly inside the counter-clockwise arc from ``start`` to ``end``."""
+    return 0.0 < (point - start) % length < (end - start) % length
+
+
+# -- options ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Options:
+    mesh_step: float
+    smooth_steps: int
+    bend_spacing: float
+    min_gap: float
+    corner_gap: float
+    min_strip: float
+    max_total_bend: float
+    clearance: float
+    check_self_intersection: bool
+    min_angle: float
+    max_angle: float
+    max_tries: int
+
+
+def _positive(name: str, value: Any) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise TypeError(f"{name} must be a number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a positive finite number, got {value!r}")
+    return value
+
+
+def _options(width: float, height: float, opts: dict) -> _Options:
+    unknown = sorted(set(opts) - _OPTION_NAMES)
+    if unknown:
+        raise TypeError(f"unknown paper model option(s) {', '.join(unknown)}; known: {', '.join(sorted(_OPTION_NAMES))}")
+
+    def get(name: str, default: Any) -> Any:
+        value = opts.get(name)
+        return default if value is None else value
+
+    mesh_step = _positive("mesh_step", get("mesh_step", max(width, height) / 20.0))
+    if mesh_step > min(width, height):
+        raise ValueError(f"mesh_step {mesh_step:g} is larger than the sheet's short side {min(width, height):g}")
+    smooth_steps = get("smooth_steps", 3)
+    if isinstance(smooth_steps, bool) or not isinstance(smooth_steps, (int, np.integer)) or smooth_steps < 1:
+        raise ValueError(f"smooth_steps must be an integer >= 1 (1 = sharp crease), got {smooth_steps!r}")
+    min_angle = float(get("min_angle", math.radians(10.0)))
+    max_angle = float(get("max_angle", math.radians(50.0)))
+    if not (0.0 <= min_angle <= max_angle < math.pi):
+        raise ValueError(f"need 0 <= min_angle <= max_angle < pi, got min_angle={min_angle!r}, max_angle={max_angle!r}")
+    max_tries = get("max_tries", 200)
+    if isinstance(max_tries, bool) or not isinstance(max_tries, (int, np.integer)) or max_tries < 1:
+        raise ValueError(f"max_tries must be an integer >= 1, got {max_tries!r}")
+    clearance = float(get("clearance", 2e-3 * max(width, height)))
+    if not (math.isfinite(clearance) and clearance >= 0):
+        raise ValueError(f"clearance must be a non-negative finite number, got {clearance!r}")
+    options = _Options(
+        mesh_step=mesh_step,
+        smooth_steps=int(smooth_steps),
+        bend_spacing=_positive("bend_spacing", get("bend_spacing", 0.75 * mesh_step)),
+        min_gap=_positive("min_gap", get("min_gap", mesh_step)),
+        corner_gap=_positive("corner_gap", get("corner_gap", 0.5 * mesh_step)),
+        min_strip=_positive("min_strip", get("min_strip", 0.3 * mesh_step)),
+        max_total_bend=_positive("max_total_bend", get("max_total_bend", 1.5 * math.pi)),
+        clearance=clearance,
+        check_self_intersection=bool(get("check_self_intersection", True)),
+        min_angle=min_angle,
+        max_angle=max_angle,
+        max_tries=int(max_tries),
+    )
+    if options.smooth_steps > 1 and options.bend_spacing < options.min_strip:
+        raise ValueError(
+            f"bend_spacing {options.bend_spacing:g} is below min_strip {options.min_strip:g}: "
+            "the interpolated rulings of one bend would always be too close"
+        )
+    return options
+
+
+def _check_sheet_size(width: Any, height: Any) -> tuple[float, float]:
+    return _positive("width", width), _positive("height", height)
+
+
+# -- rulings ---------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Chord:
+    s0: float  # perimeter positions of the two ends
+    s1: float
+    p0: np.ndarray  # flat end points
+    p1: np.ndarray
+    angle: float
+    guide: int  # index of the guiding ruling it comes from
+
+
+def _expand(border: _Border, guides: list[tuple[float, float, float]], options: _Options) -> list[_Chord]:
+    """Interpolated rulings: each guiding ruling (s0, s1, angle) becomes a nested family
+    (s0 + o, s1 - o) of ``smooth_steps`` rulings sharing its angle equally."""
+    m = options.smooth_steps
+    offsets = (np.arange(m) - (m - 1) / 2.0) * options.bend_spacing
+    chords = []
+    for index, (s0, s1, angle) in enumerate(guides):
+        for offset in offsets:
+            a, b = (s0 + offset) % border.length, (s1 - offset) % border.length
+            chords.append(
+                _Chord(a, b, np.array(border.point(a)), np.array(border.point(b)), angle / m, index)
+            )
+    return chords
+
+
+def _segment_distance(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> float:
+    """Distance between two 2D segments that do not cross: attained at an end point."""
+
+    def point_segment(p, a, b):
+        ab = b - a
+        t = np.clip(np.dot(p - a, ab) / np.dot(ab, ab), 0.0, 1.0)
+        return float(np.linalg.norm(p - (a + t * ab)))
+
+    return min(point_segment(p0, q0, q1), point_segment(p1, q0, q1), point_segment(q0, p0, p1), point_segment(q1, p0, p1))
+
+
+def _validate_layout(border: _Border, chords: list[_Chord], options: _Options) -> None:
+    """RulingLayoutError naming the first problem: ends at corners or on one side, crossing
+    rulings, ends nearly shared, strips narrower than ``min_strip``."""
+    length = border.length
+    for c in chords:
+        for s in (c.s0, c.s1):
+            if border.corner_distance(s) < options.corner_gap:
+                x, y = border.point(s)
+                raise RulingLayoutError(
+                    f"ruling end ({x:.4g}, {y:.4g}) is within {options.corner_gap:.3g} of a sheet corner"
+                )
+        if border.side(c.s0) == border.side(c.s1):
+            names = ["bottom", "right", "top", "left"]
+            raise RulingLayoutError(f"a ruling has both ends on the {names[border.side(c.s0)]} side")
+    for i, a in enumerate(chords):
+        for b in chords[i + 1 :]:
+            gap = min(_cyclic_distance(sa, sb, length) for sa in (a.s0, a.s1) for sb in (b.s0, b.s1))
+            if gap < options.min_strip:
+                raise RulingLayoutError(f"two rulings have ends only {gap:.3g} apart (min_strip {options.min_strip:.3g})")
+            if _ccw_between(a.s0, b.s0, a.s1, length) != _ccw_between(a.s0, b.s1, a.s1, length):
+                raise RulingLayoutError("two rulings cross inside the sheet")
+            distance = _segment_distance(a.p0, a.p1, b.p0, b.p1)
+            if distance < options.min_strip:
+                raise RulingLayoutError(
+                    f"two rulings come within {distance:.3g} of each other (min_strip {options.min_strip:.3g})"
+                )
+
+
+def _sample_guides(
+    n: int, rng: np.random.Generator, border: _Border, options: _Options
+) -> list[tuple[float, float, float]] | None:
+    """Guiding rulings as (s0, s1, angle) with nested ends on two arcs split by two corners,
+    or None when no pair of corners leaves room for ``n`` rulings."""
+    half_band = (options.smooth_steps - 1) / 2.0 * options.bend_spacing
+    end_margin = options.corner_gap + half_band
+    spacing = 2.0 * half_band + options.min_gap  # between neighbouring guiding rulings' centres
+    corners = border.corners
+    pairs = []
+    for i in range(4):
+        for j in range(i + 1, 4):
+            arc_a = corners[j] - corners[i]
+            arc_b = border.length - arc_a
+            if min(arc_a, arc_b) - 2 * end_margin - (n - 1) * spacing > 0:
+                pairs.append((i, j, arc_a, arc_b))
+    if not pairs:
+        return None
+    i, _, arc_a, arc_b = pairs[int(rng.integers(len(pairs)))]
+
+    def increasing(arc: float) -> np.ndarray:
+        # Uniform among positions at least `spacing` apart: sorted uniforms on the shortened arc.
+        free = arc - 2 * end_margin - (n - 1) * spacing
+        return end_margin + np.sort(rng.uniform(0.0, free, n)) + spacing * np.arange(n)
+
+    along_a, along_b = increasing(arc_a), increasing(arc_b)
+    magnitudes = rng.uniform(options.min_angle, options.max_angle, n)
+    signs = rng.choice([-1.0, 1.0], n)
+    start = corners[i]
+    return [
+        ((start + along_a[k]) % border.length, (start - along_b[k]) % border.length, float(signs[k] * magnitudes[k]))
+        for k in range(n)
+    ]
+
+
+# -- regions and mesh -------------------------------------------------------------------------
+
+
+@dataclass
+class _Region:
+    chain: list[int]  # boundary vertex ids, counter-clockwise
+    corner_ids: list[int]  # the polygon's corners (sheet corners and ruling ends), counter-clockwise
+    crossings: list[tuple[int, int, int]]  # (chord index, vertex id at start, vertex id at end) as traversed
+    faces: np.ndarray | None = None
+
+
+def _subdivide(a: np.ndarray, b: np.ndarray, step: float) -> np.ndarray:
+    """Points strictly between a and b at spacing at most ``step``."""
+    n = max(1, math.ceil(np.linalg.norm(b - a) / step - 1e-9))
+    t = np.arange(1, n)[:, None] / n
+    return a + t * (b - a)
+
+
+class _MeshBuilder:
+    def __init__(self, border: _Border, chords: list[_Chord], options: _Options):
+        self.border = border
+        self.chords = chords
+        self.options = options
+        self.points: list[np.ndarray] = []
+        self.is_corner: list[bool] = []
+
+    def _add(self, points: np.ndarray, corner: bool) -> list[int]:
+        start = len(self.points)
+        for p in np.atleast_2d(points):
+            self.points.append(np.asarray(p, np.float64))
+            self.is_corner.append(corner)
+        return list(range(start, len(self.points)))
+
+    def build(self) -> tuple[np.ndarray, list[_Region]]:
+        border, chords, step = self.border, self.chords, self.options.mesh_step
+        # Border: corners and ruling ends in perimeter order, subdivided between them.
+        breaks = [(float(s), ("corner", k)) for k, s in enumerate(border.corners)]
+        for c_index, c in enumerate(chords):
+            breaks += [(c.s0, ("end", 2 * c_index)), (c.s1, ("end", 2 * c_index + 1))]
+        breaks.sort(key=lambda item: item[0])
+        end_vertex: dict[int, int] = {}
+        border_ids: list[int] = []
+        for k, (s, (kind, key)) in enumerate(breaks):
+            if kind == "end":
+                chord = chords[key // 2]
+                point = chord.p0 if key % 2 == 0 else chord.p1
+            else:
+                point = np.array(border.point(s))
+            (vertex,) = self._add(point, corner=True)
+            border_ids.append(vertex)
+            if kind == "end":
+                end_vertex[key] = vertex
+            s_next = breaks[(k + 1) % len(breaks)][0]
+            if k + 1 == len(breaks):
+                s_next += border.length
+            next_point = np.array(border.point(s_next))
+            # Subdivide along the border (one side between two breaks: corners are breaks).
+            border_ids += self._add(_subdivide(point, next_point, step), corner=False) if s_next - s > 0 else []
+        position_in_border = {v: i for i, v in enumerate(border_ids)}
+        # Rulings: interior vertices, in the direction p0 -> p1.
+        ruling_inner = []
+        for c_index, c in enumerate(chords):
+            inner = _subdivide(c.p0, c.p1, step)
+            ruling_inner.append(self._add(inner, corner=False) if len(inner) else [])
+
+        regions = self._trace_regions(border_ids, position_in_border, end_vertex, ruling_inner)
+        return np.array(self.points), regions
+
+    def _trace_regions(self, border_ids, position_in_border, end_vertex, ruling_inner) -> list[_Region]:
+        n_border = len(border_ids)
+        if not self.chords:
+            chain = list(border_ids)
+            return [_Region(chain, [v for v in chain if self.is_corner[v]], [])]
+        ends = sorted(end_vertex, key=lambda e: position_in_border[end_vertex[e]])
+        following = {e: ends[(i + 1) % len(ends)] for i, e in enumerate(ends)}
+        visited: set[int] = set()
+        regions = []
+        for first in ends:
+            if first in visited:
+                continue
+            chain: list[int] = []
+            crossings = []
+            current = first
+            while True:
+                visited.add(current)
+                nxt = following[current]
+                # Border arc from `current` to `nxt`, counter-clockwise (end excluded).
+                i, j = position_in_border[end_vertex[current]], position_in_border[end_vertex[nxt]]
+                span = (j - i) % n_border
+                chain += [border_ids[(i + k) % n_border] for k in range(span)]
+                # Then along the ruling from `nxt` to its other end (end excluded).
+                chord_index, partner = nxt // 2, nxt ^ 1
+                inner = ruling_inner[chord_index] if nxt % 2 == 0 else ruling_inner[chord_index][::-1]
+                chain += [end_vertex[nxt]] + inner
+                crossings.append((chord_index, end_vertex[nxt], end_vertex[partner]))
+                current = partner
+                if current == first:
+                    break
+            regions.append(_Region(chain, [v for v in chain if self.is_corner[v]], crossings))
+        return regions
+
+
+def _edge_frames(polygon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Unit outward normals and offsets of a counter-clockwise convex polygon's edges."""
+    edges = np.roll(polygon, -1, axis=0) - polygon
+    normals = np.stack([edges[:, 1], -edges[:, 0]], axis=1)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return normals, np.einsum("ij,ij->i", normals, polygon)
+
+
+def _polygon_area(polygon: np.ndarray) -> float:
+    x, y = polygon[:, 0], polygon[:, 1]
+    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
+
+
+def _triangulate_region(region: _Region, points: np.ndarray, grid: np.ndarray, options: _Options) -> tuple[np.ndarray, np.ndarray]:
+    """Faces (global ids, ccw) and the interior grid points used, for one convex region."""
+    from scipy.spatial import Delaunay  # noqa: PLC0415 - scipy comes with scikit-image (render extra)
+
+    polygon = points[region.corner_ids]
+    normals, offsets = _edge_frames(polygon)
+    margin = 0.35 * options.mesh_step
+    inside = np.all(grid @ normals.T - offsets <= -margin, axis=1)
+    interior = grid[inside]
+
+    # Bulge the boundary points of every straight edge outward (see _BULGE).
+    chain = np.array(region.chain)
+    bulged = points[chain].copy()
+    corner_positions = [k for k, v in enumerate(region.chain) if v in set(region.corner_ids)]
+    n_chain = len(chain)
+    for e, start in enumerate(corner_positions):
+        stop = corner_positions[(e + 1) % len(corner_positions)]
+        count = (stop - start) % n_chain
+        if count < 2:
+            continue
+        a, b = points[chain[start]], points[chain[stop]]
+        length = float(np.linalg.norm(b - a))
+        for k in range(1, count):
+            idx = (start + k) % n_chain
+            t = float(np.dot(points[chain[idx]] - a, b - a)) / length**2
+            bulged[idx] = points[chain[idx]] + normals[e] * (_BULGE * length * 4.0 * t * (1.0 - t))
+
+    local = np.vstack([bulged, interior])
+    triangulation = Delaunay(local)
+    if len(triangulation.coplanar):
+        raise RuntimeError("paper model: Delaunay dropped boundary points of a region (please report)")
+    simplices = triangulation.simplices.astype(np.int64)
+    true_local = np.vstack([points[chain], interior])
+    tri = true_local[simplices]
+    areas = 0.5 * (
+        (tri[:, 1, 0] - tri[:, 0, 0]) * (tri[:, 2, 1] - tri[:, 0, 1])
+        - (tri[:, 1, 1] - tri[:, 0, 1]) * (tri[:, 2, 0] - tri[:, 0, 0])
+    )
+    simplices[areas < 0] = simplices[areas < 0][:, [0, 2, 1]]
+    region_area = _polygon_area(polygon)
+    if np.min(np.abs(areas)) <= 1e-9 * options.mesh_step**2 or not math.isclose(
+        float(np.abs(areas).sum()), region_area, rel_tol=1e-9
+    ):
+        raise RuntimeError("paper model: degenerate triangulation of a region (please report)")
+    return simplices, interior
+
+
+def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
+    """Rodrigues: rotation by ``angle`` about the unit ``axis``."""
+    x, y, z = axis
+    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+
+
+# -- self-intersection ----------------------------------------------------------------------
+
+
+def _points_in_triangles(points: np.ndarray, tri: np.ndarray, normals: np.ndarray, tol: float) -> np.ndarray:
+    """Whether each point (n, 3), projected on its triangle's plane, falls inside it (inclusive)."""
+    inside = np.ones(len(points), bool)
+    for k in range(3):
+        a, b = tri[:, k], tri[:, (k + 1) % 3]
+        side = np.einsum("ij,ij->i", np.cross(b - a, points - a), normals)
+        inside &= side >= -tol * np.linalg.norm(b - a, axis=1)
+    return inside
+
+
+def _edges_hit(first: np.ndarray, second: np.ndarray, clearance: float, tol: float) -> np.ndarray:
+    """Per pair: an edge of ``first`` pierces ``second``, or a vertex of ``first`` lies within
+    ``clearance`` of ``second``'s face. Triangles are (n, 3, 3)."""
+    normals = np.cross(second[:, 1] - second[:, 0], second[:, 2] - second[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    heights = np.einsum("nkj,nj->nk", first - second[:, :1], normals)
+    hit = np.zeros(len(first), bool)
+    for k in range(3):
+        near = np.abs(heights[:, k]) <= clearance + tol
+        if near.any():
+            foot = first[:, k] - heights[:, k : k + 1] * normals
+            hit |= near & _points_in_triangles(foot, second, normals, tol)
+        h0, h1 = heights[:, k], heights[:, (k + 1) % 3]
+        crossing = h0 * h1 < 0
+        if crossing.any():
+            t = (h0 / np.where(crossing, h0 - h1, 1.0))[:, None]
+            point = first[:, k] + t * (first[:, (k + 1) % 3] - first[:, k])
+            hit |= crossing & _points_in_triangles(point, second, normals, tol)
+    return hit
+
+
+def _find_self_intersection(
+    vertices: np.ndarray, faces: np.ndarray, face_regions: np.ndarray, adjacent: np.ndarray, clearance: float, scale: float
+) -> tuple[int, int] | None:
+    """The first pair of non-adjacent regions whose triangles intersect (or come within
+    ``clearance``), or None. Regions sharing a ruling meet along it by construction and bend
+    by less than pi there, so only non-adjacent pairs can cross."""
+    tri = vertices[faces]
+    lo, hi = tri.min(axis=1) - clearance, tri.max(axis=1) + clearance
+    n_regions = adjacent.shape[0]
+    members = [np.flatnonzero(face_regions == r) for r in range(n_regions)]
+    region_lo = np.array([lo[m].min(axis=0) for m in members])
+    region_hi = np.array([hi[m].max(axis=0) for m in members])
+    tol = 1e-12 * scale
+    for a in range(n_regions):
+        for b in range(a + 1, n_regions):
+            if adjacent[a, b] or np.any(region_lo[a] > region_hi[b]) or np.any(region_lo[b] > region_hi[a]):
+                continue
+            fa, fb = members[a], members[b]
+            overlap = np.all((lo[fa][:, None] <= hi[fb][None]) & (lo[fb][None] <= hi[fa][:, None]), axis=2)
+            ia, ib = np.nonzero(overlap)
+            if not len(ia):
+                continue
+            first, second = tri[fa[ia]], tri[fb[ib]]
+            if np.any(_edges_hit(first, second, clearance, tol)) or np.any(_edges_hit(second, first, clearance, tol)):
+                return a, b
+    return None
+
+
+# -- public API ------------------------------------------------------------------------------
+
+
+def _assemble(width: float, height: float, border: _Border, chords: list[_Chord], guides: list[Ruling], options: _Options) -> SheetMesh:
+    builder = _MeshBuilder(border, chords, options)
+    points, regions = builder.build()
+
+    # Region graph: each ruling borders exactly two regions.
+    sides: dict[int, list[tuple[int, int, int]]] = {}
+    for r, region in enumerate(regions):
+        for chord_index, start, end in region.crossings:
+            sides.setdefault(chord_index, []).append((r, start, end))
+    n_regions = len(regions)
+    adjacent = np.zeros((n_regions, n_regions), bool)
+    neighbours: list[list[tuple[int, int, int, int]]] = [[] for _ in regions]
+    for chord_index, ((r0, s0, e0), (r1, s1, e1)) in sides.items():
+        adjacent[r0, r1] = adjacent[r1, r0] = True
+        neighbours[r0].append((r1, chord_index, s1, e1))
+        neighbours[r1].append((r0, chord_index, s0, e0))
+
+    # Reference region: the one holding the sheet centre (the deepest inside, if on a ruling).
+    centre = np.array([width / 2.0, height / 2.0])
+    depth_inside = []
+    for region in regions:
+        normals, offsets = _edge_frames(points[region.corner_ids])
+        depth_inside.append(float(np.min(offsets - normals @ centre)))
+    reference = int(np.argmax(depth_inside))
+
+    # Bends adding up along a path: a sheet curled past max_total_bend is rejected.
+    bend_from = np.zeros((n_regions, n_regions))
+    for source in range(n_regions):
+        seen = {source}
+        queue = deque([source])
+        while queue:
+            r = queue.popleft()
+            for other, chord_index, _, _ in neighbours[r]:
+                if other not in seen:
+                    seen.add(other)
+                    bend_from[source, other] = bend_from[source, r] + chords[chord_index].angle
+                    queue.append(other)
+    worst = float(np.max(np.abs(bend_from)))
+    if options.check_self_intersection and worst > options.max_total_bend + 1e-12:
+        raise SelfIntersection(
+            f"bends add up to {math.degrees(worst):.0f} degrees between two regions "
+            f"(limit {math.degrees(options.max_total_bend):.0f}): the sheet would curl into itself"
+        )
+
+    # Rigid transforms, breadth first from the reference region: T_child = T_parent o Rot(ruling).
+    origin = np.array([width / 2.0, height / 2.0, 0.0])
+    rotations = [np.eye(3)] * n_regions
+    translations = [np.zeros(3)] * n_regions
+    order = [reference]
+    seen = {reference}
+    queue = deque([reference])
+    while queue:
+        parent = queue.popleft()
+        for child, chord_index, start, end in neighbours[parent]:
+            if child in seen:
+                continue
+            seen.add(child)
+            order.append(child)
+            queue.append(child)
+            # The child traverses the ruling start -> end with itself on the left, so a
+            # rotation by +angle about that direction lifts it towards +z (valley fold).
+            a = np.append(points[start], 0.0) - origin
+            b = np.append(points[end], 0.0) - origin
+            axis = (b - a) / np.linalg.norm(b - a)
+            local = _rotation(axis, chords[chord_index].angle)
+            rotations[child] = rotations[parent] @ local
+            translations[child] = rotations[parent] @ (a - local @ a) + translations[parent]
+
+    # Triangulate each region; vertices on rulings are shared by both neighbours.
+    nx = max(1, round(width / options.mesh_step))
+    ny = max(1, round(height / options.mesh_step))
+    gx, gy = np.meshgrid((np.arange(nx) + 0.5) * width / nx, (np.arange(ny) + 0.5) * height / ny)
+    grid = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    all_points = list(points)
+    faces, face_regions = [], []
+    region_vertices = []
+    for r, region in enumerate(regions):
+        local_faces, interior = _triangulate_region(region, points, grid, options)
+        interior_ids = np.arange(len(all_points), len(all_points) + len(interior))
+        all_points += list(interior)
+        ids = np.concatenate([np.array(region.chain, np.int64), interior_ids])
+        faces.append(ids[local_faces])
+        face_regions.append(np.full(len(local_faces), r, np.int64))
+        region_vertices.append(ids)
+    flat = np.array(all_points, np.float64)
+    faces_arr = np.concatenate(faces)
+    face_regions_arr = np.concatenate(face_regions)
+
+    flat3 = np.column_stack([flat, np.zeros(len(flat))]) - origin
+    vertices = np.empty_like(flat3)
+    placed = np.zeros(len(flat), bool)
+    for r in order:  # parents first: a vertex on a ruling takes its parent's transform
+        ids = region_vertices[r][~placed[region_vertices[r]]]
+        vertices[ids] = flat3[ids] @ rotations[r].T + translations[r]
+        placed[ids] = True
+
+    if options.check_self_intersection:
+        found = _find_self_intersection(
+            vertices, faces_arr, face_regions_arr, adjacent, options.clearance, max(width, height)
+        )
+        if found is not None:
+            raise SelfIntersection(
+                f"regions {found[0]} and {found[1]} of the bent sheet pass through each other "
+                f"(or come within {options.clearance:.3g} m)"
+            )
+
+    fold_lines = [(tuple(map(float, c.p0)), tuple(map(float, c.p1)), float(c.angle)) for c in chords]
+    return SheetMesh(
+        flat=flat,
+        vertices=vertices,
+        faces=faces_arr,
+        uv=flat / np.array([width, height]),
+        width=float(width),
+        height=float(height),
+        rulings=list(guides),
+        fold_lines=fold_lines,
+        face_regions=face_regions_arr,
+    )
+
+
+def build_sheet(width: float, height: float, rulings: Sequence[tuple[Sequence[float], Sequence[float], float]], **opts) -> SheetMesh:
+    """A bent sheet from given guiding rulings ``(p0, p1, angle)`` (flat end points on the
+    border, radians, positive = valley fold seen from +z).
+
+    Options (all keyword, lengths in metres): ``mesh_step`` (target edge length, default
+    max(W, H)/20), ``smooth_steps`` (interpolated rulings per guiding ruling, default 3; 1 is a
+    sharp crease), ``bend_spacing`` (border distance between them, default 0.75 mesh_step),
+    ``corner_gap`` (ruling ends kept this far from corners, default 0.5 mesh_step),
+    ``min_strip`` (least distance between rulings, default 0.3 mesh_step),
+    ``max_total_bend`` (radians, default 3π/2), ``clearance`` (non-neighbouring regions
+    closer than this count as touching, default 0.002 max(W, H)),
+    ``check_self_intersection`` (default True).
+
+    Raises RulingLayoutError (a ValueError) for rulings that cannot make a sheet and
+    SelfIntersection when the bent sheet passes through itself.
+    """
+    width, height = _check_sheet_size(width, height)
+    options = _options(width, height, opts)
+    border = _Border(width, height)
+    tol = 1e-9 * max(width, height)
+    guides = []
+    for index, ruling in enumerate(rulings):
+        try:
+            p0, p1, angle = ruling
+        except (TypeError, ValueError):
+            raise RulingLayoutError(f"ruling {index} must be (p0, p1, angle), got {ruling!r}") from None
+        angle = float(angle)
+        if not math.isfinite(angle) or abs(angle) >= math.pi:
+            raise RulingLayoutError(f"ruling {index}: bending angle {angle!r} must be finite and below pi in magnitude")
+        guides.append((border.position(p0, tol), border.position(p1, tol), angle))
+    chords = _expand(border, guides, options)
+    _validate_layout(border, chords, options)
+    guide_rulings = [(border.point(s0), border.point(s1), angle) for s0, s1, angle in guides]
+    return _assemble(width, height, border, chords, guide_rulings, options)
+
+
+def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height: float, **opts) -> SheetMesh:
+    """A randomly bent W×H sheet with ``n_rulings`` guiding rulings (0 gives the flat sheet).
+
+    Bending angles are uniform in [min_angle, max_angle] (default 10°–50°) with a random sign.
+    Deterministic for the same ``rng`` state. Raises SelfIntersection (with ``.reason``) when
+    the sampled sheet passes through itself: the caller resamples. Other options as in
+    ``build_sheet``, plus ``min_gap`` (border distance between the interpolated families of
+    two guiding rulings, default mesh_step) and ``max_tries`` (layouts drawn before giving up
+    on the geometric constraints, default 200).
+    """
+    if isinstance(n_rulings, bool) or not isinstance(n_rulings, (int, np.integer)):
+        raise TypeError(f"n_rulings must be an integer, got {n_rulings!r}")
+    if n_rulings < 0:
+        raise ValueError(f"n_rulings must be >= 0, got {n_rulings}")
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError(f"rng must be a numpy.random.Generator (numpy.random.default_rng(seed)), got {type(rng).__name__}")
+    width, height = _check_sheet_size(width, height)
+    options = _options(width, height, opts)
+    border = _Border(width, height)
+    if n_rulings == 0:
+        return _assemble(width, height, border, [], [], options)
+    last_problem = None
+    for _ in range(options.max_tries):
+        guides = _sample_guides(int(n_rulings), rng, border, options)
+        if guides is None:
+            raise ValueError(
+                f"{n_rulings} guiding rulings do not fit on a {width:g} x {height:g} sheet with mesh_step "
+                f"{options.mesh_step:g} (each needs about {(options.smooth_steps - 1) * options.bend_spacing + options.min_gap:.3g} "
+                "of border on both ends): use fewer rulings, fewer smooth_steps or a smaller mesh_step"
+            )
+        chords = _expand(border, guides, options)
+        try:
+            _validate_layout(border, chords, options)
+        except RulingLayoutError as problem:
+            last_problem = problem
+            continue
+        guide_rulings = [(border.point(s0), border.point(s1), angle) for s0, s1, angle in guides]
+        return _assemble(width, height, border, chords, guide_rulings, options)
+    raise ValueError(f"no valid layout of {n_rulings} rulings in {options.max_tries} tries; last problem: {last_problem}")
+
+
+def write_obj(mesh: SheetMesh, path: str | PathLike) -> None:
+    """Wavefront OBJ of the bent sheet: ``v`` (sheet frame), ``vt`` (uv), ``f v/vt`` (1-based)."""
+    lines = [
+        "# foldwise paper model: isometrically bent sheet",
+        f"# width {mesh.width:.9g} m, height {mesh.height:.9g} m, {len(mesh.rulings)} guiding rulings",
+        "o sheet",
+    ]
+    lines += [f"v {x:.12g} {y:.12g} {z:.12g}" for x, y, z in mesh.vertices]
+    lines += [f"vt {u:.12g} {v:.12g}" for u, v in mesh.uv]
+    lines += [f"f {a}/{a} {b}/{b} {c}/{c}" for a, b, c in (mesh.faces + 1)]
+    with open(path, "w", encoding="ascii") as handle:
+        handle.write("\n".join(lines) + "\n")
