@@ -1,0 +1,41 @@
+# Two commands on a fresh machine: `make run` and `make test`. Each creates .venv on first use.
+PYTHON ?= $(shell command -v python3.11 || command -v python3)
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+CONFIG ?= configs/quick.yaml
+
+.PHONY: install run test test-integration bench constraints clean
+
+$(STAMP): pyproject.toml constraints.txt
+	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else "foldwise needs Python 3.11 (bpy 5.0.1 requires it)")'
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev]'
+	touch $(STAMP)
+
+install: $(STAMP)
+
+## The main job: an experiment on the embedded default (SQLite in ./var, eager Celery).
+run: $(STAMP)
+	$(BIN)/foldwise run $(CONFIG)
+
+## The test suite (tests/integration runs against local Redis + PostgreSQL, or skips saying why).
+test: $(STAMP)
+	$(BIN)/python -m pytest
+
+test-integration: $(STAMP)
+	$(BIN)/python -m pytest tests/integration -v
+
+bench: $(STAMP)
+	$(BIN)/python bench/render.py
+	$(BIN)/python bench/train.py
+
+## Re-pin constraints.txt from the current environment.
+constraints: $(STAMP)
+	{ echo "# Exact versions known to install together on these machines (Python 3.11, x86_64)."; \
+	  echo "# Regenerate: make constraints"; \
+	  $(BIN)/python -m pip freeze --exclude-editable | grep -v '^foldwise'; } > constraints.txt
+
+clean:
+	rm -rf $(VENV) var .pytest_cache

@@ -1,0 +1,67 @@
+"""Experiment configs: every shipped config loads, and errors name the offending key."""
+
+from pathlib import Path
+
+import pytest
+
+from foldwise.config import ConfigError, load_config, parse_config, parse_config_text
+from foldwise.settings import REPO_ROOT
+
+CONFIGS = sorted((REPO_ROOT / "configs").glob("*.yaml"))
+
+
+@pytest.mark.parametrize("path", [p for p in CONFIGS if p.name != "conditions.yaml"], ids=lambda p: p.name)
+def test_shipped_configs_are_valid(path):
+    config = load_config(path)
+    assert config.stage_order()
+    assert config.active_learning.M >= 1
+
+
+def test_paper_config_has_the_papers_values():
+    config = load_config(REPO_ROOT / "configs/paper.yaml")
+    al = config.active_learning
+    assert (al.M, al.N, al.tau, al.m, al.t) == (3, 8, 0.02, 50, 1000)
+    assert config.test_set.per_stage == 150 and len(config.test_pairs()) == 21  # 3,150 test images
+    assert config.evaluation.score_threshold == 0.8
+
+
+@pytest.mark.parametrize(
+    ("data", "key"),
+    [
+        ({"name": "x", "active_learning": {"tua": 0.1}}, "active_learning.tua: unknown key"),
+        ({"name": "x", "active_learning": {"M": 0}}, "active_learning.M"),
+        ({"name": "x", "active_learning": {"tau": -1}}, "active_learning.tau"),
+        ({"name": "x", "curriculum": {"conditions": ["fb", "xx"]}}, "unknown condition 'xx'"),
+        ({"name": "x", "curriculum": {"difficulties": ["easy", "extreme"]}}, "unknown difficulty 'extreme'"),
+        ({"name": "x", "curriculum": {"conditions": ["fb", "fb"]}}, "listed twice"),
+        ({"name": "x", "detector": {"family": "ssd"}}, "detector.family"),
+        ({"name": "x", "render": {"backend": "eevee"}}, "render.backend"),
+        ({"name": "x", "render": {"image_size": 8}}, "render.image_size"),
+        ({"name": "x", "bogus": 1}, "bogus: unknown key"),
+        ({"seed": 1}, "name: Field required"),
+        ({"name": "   "}, "name"),
+    ],
+)
+def test_errors_name_the_offending_key(data, key):
+    with pytest.raises(ConfigError) as error:
+        parse_config(data)
+    assert key in str(error.value)
+
+
+def test_non_mapping_and_non_yaml_are_rejected_clearly():
+    with pytest.raises(ConfigError, match="mapping"):
+        parse_config_text("- a\n- b\n")
+    with pytest.raises(ConfigError, match="not YAML"):
+        parse_config_text("name: [unclosed")
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_config(Path("/nonexistent/config.yaml"))
+
+
+def test_json_is_accepted_as_yaml():
+    config = parse_config_text('{"name": "j", "active_learning": {"M": 2}}')
+    assert config.active_learning.M == 2
+
+
+def test_config_round_trips_through_json():
+    config = load_config(REPO_ROOT / "configs/smoke.yaml")
+    assert parse_config(config.model_dump(mode="json")) == config
