@@ -1,0 +1,292 @@
+"""Object textures, backgrounds and occluders: built-in defaults that work offline, or user folders.
+
+Built-in defaults come from the photographs scikit-image ships (no download):
+
+* objects (the detector's classes, in this order): astronaut, coffee, chelsea, rocket,
+  motorcycle_left (``AssetsConfig.n_objects`` keeps the first n);
+* backgrounds: brick, grass, gravel, hubble_deep_field, moon, immunohistochemistry, retina,
+  cell, plus procedural ones (``procedural:noise``, ``procedural:gradient``,
+  ``procedural:stripes``, ``procedural:checker``) drawn from θ's seed;
+* occluders: coins, page, camera, text, clock, colorwheel, and logo (which has its own alpha).
+
+User folders (``AssetsConfig.objects`` / ``backgrounds`` / ``occluders``) replace the
+corresponding defaults: every image file in the folder (``.png .jpg .jpeg .bmp .tif .tiff
+.webp``, searched recursively) is one asset named by its path relative to the folder (objects:
+by the file stem, which becomes the class name). An occluder PNG with an alpha channel keeps
+its own shape; others get a random shape at render time. An empty or missing folder, or an
+image OpenCV cannot read, raises :class:`AssetError` naming the path.
+
+Decoded images are cached per process: the same few hundred images are reused thousands of
+times by a render worker.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from functools import lru_cache
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+PROCEDURAL_PREFIX = "procedural:"
+PROCEDURAL_BACKGROUNDS = ("noise", "gradient", "stripes", "checker")
+
+BUILTIN_OBJECTS = ("astronaut", "coffee", "chelsea", "rocket", "motorcycle_left")
+BUILTIN_BACKGROUNDS = ("brick", "grass", "gravel", "hubble_deep_field", "moon", "immunohistochemistry", "retina", "cell")
+BUILTIN_OCCLUDERS = ("coins", "page", "camera", "text", "clock", "colorwheel", "logo")
+
+
+class AssetError(ValueError):
+    """An asset folder or image that cannot be used; the message names the path."""
+
+
+@dataclass(frozen=True)
+class Asset:
+    """One named image; ``load()`` returns it decoded (uint8 RGB, or RGBA for occluders with alpha)."""
+
+    name: str
+    loader: Callable[[], np.ndarray] = field(repr=False, compare=False)
+    source: str = ""  # where it comes from, for messages: "skimage.data.brick" or a file path
+
+    def load(self) -> np.ndarray:
+        return self.loader()
+
+    @property
+    def procedural(self) -> bool:
+        return self.name.startswith(PROCEDURAL_PREFIX)
+
+
+def _to_uint8_rgb(image: np.ndarray, source: str, keep_alpha: bool = False) -> np.ndarray:
+    """Any decoded image (grey, RGB, RGBA; bool, uint8, uint16, float) as uint8 RGB or RGBA."""
+    if image.dtype == bool:
+        image = image.astype(np.uint8) * 255
+    elif image.dtype == np.uint16:
+        image = (image // 257).astype(np.uint8)
+    elif np.issubdtype(image.dtype, np.floating):
+        image = np.clip(np.rint(image * 255.0), 0, 255).astype(np.uint8)
+    elif image.dtype != np.uint8:
+        raise AssetError(f"{source}: unsupported pixel type {image.dtype}")
+    if image.ndim == 2:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    if image.ndim != 3 or image.shape[2] not in (3, 4):
+        raise AssetError(f"{source}: expected a grey, RGB or RGBA image, got shape {image.shape}")
+    if image.shape[2] == 4 and not keep_alpha:
+        image = image[:, :, :3]
+    if image.shape[0] < 2 or image.shape[1] < 2:
+        raise AssetError(f"{source}: image of {image.shape[1]}x{image.shape[0]} pixels is too small")
+    return np.ascontiguousarray(image)
+
+
+@lru_cache(maxsize=None)
+def _skimage_image(name: str, keep_alpha: bool) -> np.ndarray:
+    import skimage.data
+
+    if name == "motorcycle_left":
+        image = skimage.data.stereo_motorcycle()[0]
+    else:
+        image = getattr(skimage.data, name)()
+    image = _to_uint8_rgb(np.asarray(image), f"skimage.data.{name}", keep_alpha=keep_alpha)
+    image.setflags(write=False)
+    return image
+
+
+@lru_cache(maxsize=128)
+def _file_image(path: str, keep_alpha: bool) -> np.ndarray:
+    import cv2
+
+    image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise AssetError(f"cannot read image {path!r} (not an image OpenCV can decode, or unreadable)")
+    if image.ndim == 3 and image.shape[2] == 3:
+        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+    elif image.ndim == 3 and image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA)
+    image = _to_uint8_rgb(image, path, keep_alpha=keep_alpha)
+    image.setflags(write=False)
+    return image
+
+
+def _procedural_placeholder() -> np.ndarray:
+    raise AssetError("procedural backgrounds are generated per image: use AssetCatalog.background()")
+
+
+def _folder_assets(folder: Path, what: str, keep_alpha: bool, name_by_stem: bool) -> list[Asset]:
+    import cv2
+
+    folder = Path(folder).expanduser()
+    if not folder.is_dir():
+        raise AssetError(f"assets.{what}: folder {str(folder)!r} does not exist")
+    files = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    if not files:
+        raise AssetError(f"assets.{what}: folder {str(folder)!r} holds no images ({' '.join(IMAGE_SUFFIXES)})")
+    assets = []
+    for path in files:
+        # A header check is cheap enough for thousands of files and catches non-images early;
+        # a file that still fails to decode raises AssetError when first used.
+        if not cv2.haveImageReader(str(path)):
+            raise AssetError(f"assets.{what}: cannot read image {str(path)!r} (not a format OpenCV can decode)")
+        name = path.stem if name_by_stem else path.relative_to(folder).as_posix()
+        assets.append(Asset(name, (lambda p=str(path): _file_image(p, keep_alpha)), source=str(path)))
+    names = [a.name for a in assets]
+    if len(set(names)) != len(names):
+        duplicates = sorted({n for n in names if names.count(n) > 1})
+        raise AssetError(f"assets.{what}: several images share the name(s) {duplicates} in {str(folder)!r}")
+    return assets
+
+
+def _builtin(names, keep_alpha: bool) -> list[Asset]:
+    return [Asset(n, (lambda n=n: _skimage_image(n, keep_alpha)), source=f"skimage.data.{n}") for n in names]
+
+
+class AssetCatalog:
+    """Objects (the detector's classes), backgrounds and occluders, each a list of named images."""
+
+    def __init__(self, objects: list[Asset], backgrounds: list[Asset], occluders: list[Asset]):
+        for what, assets in (("objects", objects), ("backgrounds", backgrounds), ("occluders", occluders)):
+            if not assets:
+                raise AssetError(f"asset catalog: no {what}")
+            names = [a.name for a in assets]
+            if len(set(names)) != len(names):
+                raise AssetError(f"asset catalog: duplicate {what} names")
+        self.objects = list(objects)
+        self.backgrounds = list(backgrounds)
+        self.occluders = list(occluders)
+        self._by_name = {
+            "objects": {a.name: a for a in self.objects},
+            "backgrounds": {a.name: a for a in self.backgrounds},
+            "occluders": {a.name: a for a in self.occluders},
+        }
+
+    def __repr__(self) -> str:
+        return (
+            f"AssetCatalog({len(self.objects)} objects, {len(self.backgrounds)} backgrounds, "
+            f"{len(self.occluders)} occluders)"
+        )
+
+    @property
+    def classes(self) -> list[str]:
+        return [a.name for a in self.objects]
+
+    def _get(self, kind: str, name: str) -> Asset:
+        try:
+            return self._by_name[kind][name]
+        except KeyError:
+            known = list(self._by_name[kind])
+            shown = ", ".join(known[:10]) + (", ..." if len(known) > 10 else "")
+            raise AssetError(f"unknown {kind[:-1]} {name!r}; this catalog has: {shown}") from None
+
+    def label(self, object_name: str) -> int:
+        """0-based class index of an object."""
+        self._get("objects", object_name)
+        return self.classes.index(object_name)
+
+    def texture(self, object_name: str) -> np.ndarray:
+        """(h, w, 3) uint8 RGB albedo of an object (read-only, cached)."""
+        return self._get("objects", object_name).load()
+
+    def occluder(self, name: str) -> tuple[np.ndarray, np.ndarray | None]:
+        """(rgb (h, w, 3) uint8, alpha (h, w) uint8 or None when the image has no alpha)."""
+        image = self._get("occluders", name).load()
+        if image.shape[2] == 4:
+            alpha = image[:, :, 3]
+            if alpha.min() < 255:
+                return image[:, :, :3], alpha
+            return image[:, :, :3], None
+        return image, None
+
+    def background(self, name: str, size: int, rng: np.random.Generator) -> np.ndarray:
+        """A (size, size, 3) uint8 RGB background: a random square crop of a photograph, or a
+        procedural pattern, both drawn from ``rng`` (so θ's seed fixes it)."""
+        asset = self._get("backgrounds", name)
+        if asset.procedural:
+            return procedural_background(name[len(PROCEDURAL_PREFIX):], size, rng)
+        return random_crop(asset.load(), size, rng)
+
+
+def random_crop(image: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
+    """A random square crop (40-100% of the shorter side), maybe mirrored, resized to size x size."""
+    import cv2
+
+    h, w = image.shape[:2]
+    side = max(2, int(round(min(h, w) * rng.uniform(0.4, 1.0))))
+    y0 = int(rng.integers(0, h - side + 1))
+    x0 = int(rng.integers(0, w - side + 1))
+    crop = image[y0:y0 + side, x0:x0 + side, :3]
+    if rng.random() < 0.5:
+        crop = crop[:, ::-1]
+    interpolation = cv2.INTER_AREA if side > size else cv2.INTER_LINEAR
+    return cv2.resize(np.ascontiguousarray(crop), (size, size), interpolation=interpolation)
+
+
+def procedural_background(kind: str, size: int, rng: np.random.Generator) -> np.ndarray:
+    """Seeded synthetic backgrounds: smooth colour noise, a linear gradient, stripes, a checkerboard."""
+    import cv2
+
+    colours = rng.uniform(0, 255, size=(2, 3))
+    if kind == "noise":
+        out = np.zeros((size, size, 3), np.float32)
+        amplitude, total = 1.0, 0.0
+        for cells in (4, 8, 16, 32):  # octaves: coarse blobs plus finer grain
+            grid = rng.uniform(0, 255, size=(cells, cells, 3)).astype(np.float32)
+            out += amplitude * cv2.resize(grid, (size, size), interpolation=cv2.INTER_CUBIC)
+            total += amplitude
+            amplitude *= 0.5
+        image = out / total
+    elif kind in ("gradient", "stripes", "checker"):
+        angle = rng.uniform(0, np.pi)
+        ys, xs = np.mgrid[0:size, 0:size].astype(np.float32) / size
+        along = np.cos(angle) * xs + np.sin(angle) * ys
+        if kind == "gradient":
+            weight = (along - along.min()) / max(float(np.ptp(along)), 1e-6)
+        elif kind == "stripes":
+            period = rng.uniform(0.05, 0.3)
+            weight = (np.sin(2 * np.pi * along / period) > 0).astype(np.float32)
+        else:
+            across = -np.sin(angle) * xs + np.cos(angle) * ys
+            period = rng.uniform(0.08, 0.3)
+            weight = ((np.floor(along / period) + np.floor(across / period)) % 2).astype(np.float32)
+        image = colours[0] * (1 - weight[..., None]) + colours[1] * weight[..., None]
+    else:
+        raise AssetError(f"unknown procedural background {kind!r}; known: {', '.join(PROCEDURAL_BACKGROUNDS)}")
+    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def _config_key(config) -> tuple:
+    if config is None:
+        return (None, None, None, 5)
+    return (
+        None if config.objects is None else str(Path(config.objects).expanduser().resolve()),
+        None if config.backgrounds is None else str(Path(config.backgrounds).expanduser().resolve()),
+        None if config.occluders is None else str(Path(config.occluders).expanduser().resolve()),
+        config.n_objects,
+    )
+
+
+def load_assets(config=None) -> AssetCatalog:
+    """The asset catalog of an ``AssetsConfig`` (None: the built-in defaults), cached per process."""
+    return _load_assets_cached(_config_key(config))
+
+
+@lru_cache(maxsize=16)
+def _load_assets_cached(key: tuple) -> AssetCatalog:
+    objects_dir, backgrounds_dir, occluders_dir, n_objects = key
+    if objects_dir is None:
+        objects = _builtin(BUILTIN_OBJECTS[:n_objects], keep_alpha=False)
+    else:
+        objects = _folder_assets(Path(objects_dir), "objects", keep_alpha=False, name_by_stem=True)
+        for asset in objects:  # few and essential: decode now so a broken texture fails before any work
+            asset.load()
+    if backgrounds_dir is None:
+        backgrounds = _builtin(BUILTIN_BACKGROUNDS, keep_alpha=False) + [
+            Asset(PROCEDURAL_PREFIX + kind, _procedural_placeholder, source="procedural")
+            for kind in PROCEDURAL_BACKGROUNDS
+        ]
+    else:
+        backgrounds = _folder_assets(Path(backgrounds_dir), "backgrounds", keep_alpha=False, name_by_stem=False)
+    if occluders_dir is None:
+        occluders = _builtin(BUILTIN_OCCLUDERS, keep_alpha=True)
+    else:
+        occluders = _folder_assets(Path(occluders_dir), "occluders", keep_alpha=True, name_by_stem=False)
+    return AssetCatalog(objects, backgrounds, occluders)

@@ -1,0 +1,331 @@
+"""``foldwise render`` (a COCO dataset, or a preview contact sheet) and ``foldwise mesh``.
+
+Heavy imports (OpenCV, scikit-image) stay inside the commands so ``foldwise --help`` is light.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Optional
+
+import typer
+
+PREVIEW_COLUMNS = ("canonical", "easy", "medium", "hard")
+# Stable indices for deriving per-(condition, difficulty) seeds.
+_DIFFICULTY_INDEX = {"canonical": 0, "easy": 1, "medium": 2, "hard": 3}
+
+
+def _split(value: str) -> list[str]:
+    return [part.strip() for part in value.split(",") if part.strip()]
+
+
+def resolve_conditions(value: str) -> list[str]:
+    """Codes from "po", "pose", "fb,mb" or "all"."""
+    from foldwise.conditions import load_condition_table
+    from workers.render.parameters import resolve_condition
+
+    table = load_condition_table()
+    names = _split(value)
+    if not names:
+        raise typer.BadParameter("no condition given")
+    if names == ["all"]:
+        return list(table.codes)
+    try:
+        codes = [resolve_condition(name, table) for name in names]
+    except ValueError as error:
+        raise typer.BadParameter(str(error)) from None
+    return list(dict.fromkeys(codes))
+
+
+def resolve_difficulties(value: str) -> list[str]:
+    from foldwise.conditions import load_condition_table
+
+    table = load_condition_table()
+    names = [name.lower() for name in _split(value)]
+    if names == ["all"]:
+        return list(table.difficulties)
+    known = ("canonical", *table.difficulties)
+    for name in names:
+        if name not in known:
+            raise typer.BadParameter(f"unknown difficulty {name!r}; known: {', '.join(known)}, all")
+    if not names:
+        raise typer.BadParameter("no difficulty given")
+    return list(dict.fromkeys(names))
+
+
+def _pair_seed(seed: int, condition: str, difficulty: str) -> int:
+    from foldwise.conditions import load_condition_table
+    from workers.render.parameters import derive_seed
+
+    codes = load_condition_table().codes
+    return derive_seed(seed, codes.index(condition), _DIFFICULTY_INDEX[difficulty])
+
+
+def _write_png(path: Path, image_rgb) -> None:
+    import cv2
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    if not cv2.imwrite(str(path), cv2.cvtColor(image_rgb, cv2.COLOR_RGB2BGR)):
+        raise typer.BadParameter(f"cannot write {str(path)!r}")
+
+
+def render_dataset(
+    out: Path,
+    conditions: list[str],
+    difficulties: list[str],
+    n: int,
+    seed: int,
+    image_size: int,
+    backend: str,
+    assets,
+    max_resamples: int = 20,
+    samples: int = 16,
+    echo=print,
+) -> dict:
+    """Render n images per (condition, difficulty) into ``out``: images/ + annotations.json (COCO)."""
+    from workers.render.pipeline import RenderRejected, render_with_resample
+    from workers.render.parameters import generate_parameters
+
+    out = Path(out)
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    images, annotations, failures = [], [], []
+    started = time.perf_counter()
+    for condition in conditions:
+        for difficulty in difficulties:
+            thetas = generate_parameters(
+                condition, difficulty, n, _pair_seed(seed, condition, difficulty), image_size=image_size, assets=assets
+            )
+            pair_start = time.perf_counter()
+            resampled = 0
+            for index, theta in enumerate(thetas):
+                name = f"{condition}_{difficulty}_{index:05d}"
+                try:
+                    result, used, reasons = render_with_resample(
+                        theta, backend=backend, max_resamples=max_resamples, assets=assets, samples=samples
+                    )
+                except RenderRejected as rejected:
+                    failures.append({"name": name, "theta": theta, "reasons": rejected.reasons})
+                    continue
+                resampled += bool(reasons)
+                file_name = f"images/{name}.png"
+                _write_png(out / file_name, result.image)
+                image_id = len(images) + 1
+                images.append(
+                    {
+                        "id": image_id,
+                        "file_name": file_name,
+                        "width": int(result.image.shape[1]),
+                        "height": int(result.image.shape[0]),
+                        "condition": condition,
+                        "difficulty": difficulty,
+                        "theta": used,
+                        "rejections": reasons,
+                    }
+                )
+                x0, y0, x1, y1 = result.box
+                annotations.append(
+                    {
+                        "id": image_id,
+                        "image_id": image_id,
+                        "category_id": int(result.label) + 1,
+                        "bbox": [x0, y0, x1 - x0, y1 - y0],
+                        "area": float(result.mask.sum()) if result.mask is not None else (x1 - x0) * (y1 - y0),
+                        "iscrowd": 0,
+                        "amodal_bbox": [
+                            result.amodal_box[0],
+                            result.amodal_box[1],
+                            result.amodal_box[2] - result.amodal_box[0],
+                            result.amodal_box[3] - result.amodal_box[1],
+                        ],
+                        "visible_fraction": float(result.visible_fraction),
+                    }
+                )
+            seconds = time.perf_counter() - pair_start
+            echo(
+                f"{condition}/{difficulty}: {len(thetas)} images in {seconds:.2f} s"
+                + (f", {resampled} resampled" if resampled else "")
+            )
+    coco = {
+        "info": {"description": "foldwise rendered dataset", "backend": backend, "seed": seed, "image_size": image_size},
+        "images": images,
+        "annotations": annotations,
+        "categories": [{"id": i + 1, "name": name} for i, name in enumerate(assets.classes)],
+    }
+    if failures:
+        coco["failures"] = failures
+    (out / "annotations.json").write_text(json.dumps(coco, indent=1))
+    echo(f"wrote {len(images)} images to {out} in {time.perf_counter() - started:.1f} s" + (f"; {len(failures)} failed" if failures else ""))
+    return coco
+
+
+def describe(theta: dict) -> str:
+    """The parameter under study in a few characters, for labels."""
+    condition = theta["condition"]
+    if theta["difficulty"] == "canonical":
+        return "canonical"
+    if condition == "fb":
+        return f"k {theta['focus_blur_pct']:.2f}%"
+    if condition == "mb":
+        return f"{theta['motion_blur_pct']:.2f}% {math.degrees(theta['motion_blur_angle']):.0f}deg"
+    if condition == "po":
+        angles = "/".join(f"{math.degrees(theta[k]):.0f}" for k in ("roll", "pitch", "yaw"))
+        return f"{angles} {theta['position_offset_m']:.1f}m"
+    if condition == "de":
+        return f"{theta['rulings']} rulings"
+    if condition == "eo":
+        return f"visible {theta['visible_fraction']:.2f}"
+    if condition == "sc":
+        return f"{theta['variant']} x{theta['scale']:.2f}"
+    if condition == "li":
+        return f"{theta['variant']} {theta['irradiance']:.2f}"
+    return condition
+
+
+def _dashed_rectangle(image, box, colour, dash: int = 4) -> None:
+    import cv2
+
+    x0, y0, x1, y1 = (int(round(v)) for v in box)
+    x1, y1 = x1 - 1, y1 - 1  # pixel-edge box to the last covered pixel
+    for a, b in (((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)), ((x0, y1), (x0, y0))):
+        length = max(abs(b[0] - a[0]), abs(b[1] - a[1]))
+        for start in range(0, length + 1, 2 * dash):
+            end = min(start + dash, length)
+            p = (a[0] + (b[0] - a[0]) * start // max(length, 1), a[1] + (b[1] - a[1]) * start // max(length, 1))
+            q = (a[0] + (b[0] - a[0]) * end // max(length, 1), a[1] + (b[1] - a[1]) * end // max(length, 1))
+            cv2.line(image, p, q, colour, 1)
+
+
+def draw_boxes(image, box, amodal_box):
+    """A copy of an RGB image with the visible box (solid green) and amodal box (dashed yellow)."""
+    import cv2
+
+    canvas = image.copy()
+    _dashed_rectangle(canvas, amodal_box, (255, 220, 0))
+    x0, y0, x1, y1 = (int(round(v)) for v in box)
+    cv2.rectangle(canvas, (x0, y0), (x1 - 1, y1 - 1), (0, 255, 0), 1)
+    return canvas
+
+
+def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, conditions=None, samples: int = 16):
+    """Contact sheet: one row per condition, columns canonical, easy, medium, hard; boxes drawn."""
+    import cv2
+    import numpy as np
+
+    from foldwise.conditions import load_condition_table
+    from workers.render.parameters import generate_parameters
+    from workers.render.pipeline import RenderRejected, render_with_resample
+
+    table = load_condition_table()
+    conditions = conditions or list(table.codes)
+    label_w, header_h, caption_h, pad = 150, 24, 16, 4
+    cell_h = image_size + caption_h
+    height = header_h + len(conditions) * (cell_h + pad)
+    width = label_w + len(PREVIEW_COLUMNS) * (image_size + pad)
+    sheet = np.full((height, width, 3), 255, np.uint8)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for col, difficulty in enumerate(PREVIEW_COLUMNS):
+        x = label_w + col * (image_size + pad)
+        cv2.putText(sheet, difficulty, (x + 4, header_h - 8), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    for row, code in enumerate(conditions):
+        y = header_h + row * (cell_h + pad)
+        cv2.putText(sheet, code, (6, y + image_size // 2 - 6), font, 0.6, (0, 0, 0), 2, cv2.LINE_AA)
+        cv2.putText(sheet, table.conditions[code].name, (6, y + image_size // 2 + 14), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+        for col, difficulty in enumerate(PREVIEW_COLUMNS):
+            x = label_w + col * (image_size + pad)
+            theta = generate_parameters(
+                code, difficulty, 1, _pair_seed(seed, code, difficulty), image_size=image_size, assets=assets
+            )[0]
+            try:
+                result, used, reasons = render_with_resample(theta, backend=backend, assets=assets, samples=samples)
+            except RenderRejected as rejected:
+                cv2.putText(sheet, "rejected", (x + 4, y + 20), font, 0.4, (200, 0, 0), 1, cv2.LINE_AA)
+                cv2.putText(sheet, rejected.reason[:24], (x + 4, y + 36), font, 0.3, (200, 0, 0), 1, cv2.LINE_AA)
+                continue
+            sheet[y:y + image_size, x:x + image_size] = draw_boxes(result.image, result.box, result.amodal_box)
+            caption = describe(used) + (f" (+{len(reasons)})" if reasons else "")
+            cv2.putText(sheet, caption, (x + 2, y + image_size + 12), font, 0.34, (0, 0, 0), 1, cv2.LINE_AA)
+    _write_png(Path(out), sheet)
+    return sheet
+
+
+def register(app: typer.Typer) -> None:
+    """Add ``render`` and ``mesh`` to the root ``foldwise`` app."""
+
+    @app.command("render")
+    def render_command(
+        out: Path = typer.Option(..., "--out", help="dataset folder (or the PNG file with --preview)"),
+        condition: str = typer.Option(
+            "all", "--condition", "-c", help="code or name (po, pose, focus_blur...), comma-separated, or all"
+        ),
+        difficulty: str = typer.Option("all", "--difficulty", "-d", help="canonical, easy, medium, hard, comma-separated, or all"),
+        n: int = typer.Option(10, "-n", min=1, help="images per (condition, difficulty)"),
+        backend: str = typer.Option("raster", "--backend", help="raster or blender"),
+        seed: int = typer.Option(0, "--seed", min=0),
+        image_size: int = typer.Option(128, "--image-size", min=16, max=4096),
+        preview: bool = typer.Option(False, "--preview", help="write a contact sheet PNG instead of a dataset"),
+        max_resamples: int = typer.Option(20, "--max-resamples", min=0),
+        samples: int = typer.Option(16, "--samples", min=1, help="Cycles samples (blender backend)"),
+        objects: Optional[Path] = typer.Option(None, "--objects", help="folder of object textures (default: built-in)"),
+        backgrounds: Optional[Path] = typer.Option(None, "--backgrounds", help="folder of background images"),
+        occluders: Optional[Path] = typer.Option(None, "--occluders", help="folder of occluder images"),
+    ) -> None:
+        """Render images with ground-truth boxes for conditions of Table 3 (COCO JSON), or a preview sheet."""
+        from foldwise.config import AssetsConfig
+        from workers.render.assets import AssetError, load_assets
+        from workers.render.pipeline import BACKENDS
+
+        if backend not in BACKENDS:
+            raise typer.BadParameter(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}", param_hint="--backend")
+        codes = resolve_conditions(condition)
+        try:
+            assets = load_assets(AssetsConfig(objects=objects, backgrounds=backgrounds, occluders=occluders))
+        except AssetError as error:
+            typer.echo(f"error: {error}", err=True)
+            raise typer.Exit(2) from None
+        if preview:
+            if out.suffix.lower() != ".png":
+                raise typer.BadParameter("with --preview, --out is a .png file", param_hint="--out")
+            render_preview(out, image_size, seed, backend, assets, conditions=codes, samples=samples)
+            typer.echo(f"wrote {out}")
+            return
+        render_dataset(
+            out,
+            codes,
+            resolve_difficulties(difficulty),
+            n,
+            seed,
+            image_size,
+            backend,
+            assets,
+            max_resamples=max_resamples,
+            samples=samples,
+            echo=typer.echo,
+        )
+
+    @app.command("mesh")
+    def mesh_command(
+        out: Path = typer.Option(..., "--out", help="OBJ file to write"),
+        rulings: int = typer.Option(2, "--rulings", min=0, help="guiding rulings (Table 3: 2 canonical, 3, 5, 8)"),
+        seed: int = typer.Option(0, "--seed", min=0),
+        width: float = typer.Option(3.0, "--width", min=1e-6, help="sheet width, metres"),
+        height: float = typer.Option(2.0, "--height", min=1e-6, help="sheet height, metres"),
+    ) -> None:
+        """Sample one randomly bent sheet and write it as a Wavefront OBJ (v, vt, f)."""
+        import numpy as np
+
+        from workers.render.paper_model import SelfIntersection, sample_sheet, write_obj
+
+        try:
+            mesh = sample_sheet(rulings, np.random.default_rng(seed), width, height)
+        except SelfIntersection as error:
+            typer.echo(f"error: the sheet drawn from seed {seed} intersects itself ({error}); try another seed", err=True)
+            raise typer.Exit(1) from None
+        except ValueError as error:
+            typer.echo(f"error: {error}", err=True)
+            raise typer.Exit(2) from None
+        out.parent.mkdir(parents=True, exist_ok=True)
+        write_obj(mesh, out)
+        typer.echo(f"wrote {out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces, {len(mesh.rulings)} guiding rulings")

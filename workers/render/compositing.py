@@ -1,0 +1,234 @@
+"""The 2D stages after the 3D render, in the paper's order: external occlusion, background,
+focus blur, motion blur (the paper blurs after adding the background).
+
+Images here are float32 sRGB in [0, 1] (H, W, 3). The pipeline calls a stage only when its
+parameter is not canonical, so a canonical image pays for none of them.
+
+Blur kernels: OpenCV needs odd kernel sizes of at least 1. A size in percent of the image is
+rounded half up to whole pixels; 0 or 1 pixel means no blur at all (the stage is skipped: a
+1-pixel kernel is the identity), an even size becomes the next odd one. Focus blur is a
+Gaussian of that kernel size with OpenCV's sigma for it (``0.3 * ((k - 1) / 2 - 1) + 0.8``).
+Motion blur is a straight segment of the exact (fractional) length at the given angle,
+splatted with bilinear weights into the odd kernel that holds it and normalised to sum 1.
+Blur spreads the object's colours over its neighbours, but the annotated box stays the
+geometric box of the sharp render (a detector must find the object, not its blur halo).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+_LINEAR_TO_SRGB_STEPS = 65535
+
+
+def _srgb_encode_table() -> np.ndarray:
+    linear = np.arange(_LINEAR_TO_SRGB_STEPS + 1, dtype=np.float64) / _LINEAR_TO_SRGB_STEPS
+    srgb = np.where(linear <= 0.0031308, 12.92 * linear, 1.055 * linear ** (1 / 2.4) - 0.055)
+    return srgb.astype(np.float32)
+
+
+_SRGB_ENCODE = _srgb_encode_table()
+
+
+def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
+    """Linear light (any float, clipped to [0, 1]) to sRGB float32 in [0, 1], via a 16-bit table."""
+    index = (np.clip(linear, 0.0, 1.0) * _LINEAR_TO_SRGB_STEPS + 0.5).astype(np.uint16)
+    return _SRGB_ENCODE[index]
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+def odd_kernel_size(percent: float, image_size: int) -> int:
+    """Kernel size in pixels for a size in percent of the image: rounded half up; even sizes
+    go to the next odd one; 0 when the kernel would be 0 or 1 pixel (no blur to apply)."""
+    pixels = math.floor(percent / 100.0 * image_size + 0.5)
+    if pixels <= 1:
+        return 0
+    return pixels if pixels % 2 == 1 else pixels + 1
+
+
+def focus_blur(image: np.ndarray, percent: float, image_size: int) -> np.ndarray:
+    """Gaussian blur with a kernel of ``percent`` of the image size (see the module notes)."""
+    size = odd_kernel_size(percent, image_size)
+    if size == 0:
+        return image
+    return cv2.GaussianBlur(image, (size, size), 0, borderType=cv2.BORDER_REFLECT_101)
+
+
+def motion_kernel_pixels(percent: float, image_size: int) -> int:
+    """A motion of ``percent`` of the image size, rounded half up to whole pixels (<= 1: no blur)."""
+    return math.floor(percent / 100.0 * image_size + 0.5)
+
+
+def motion_kernel(length_px: float, angle: float) -> np.ndarray:
+    """Normalised kernel of a straight motion of ``length_px`` pixels at ``angle`` radians
+    (counter-clockwise from image right, as seen on screen). Odd-sized and centred; empty
+    (shape (0, 0)) when the length rounds to at most one pixel."""
+    size = math.floor(length_px + 0.5)
+    if size <= 1:
+        return np.zeros((0, 0), np.float32)
+    size = size if size % 2 == 1 else size + 1
+    size += 2  # room for the bilinear splat of the end points
+    centre = (size - 1) / 2.0
+    samples = max(int(math.ceil(length_px * 8)), 2) + 1
+    t = np.linspace(-length_px / 2.0, length_px / 2.0, samples)
+    x = centre + t * math.cos(angle)
+    y = centre - t * math.sin(angle)  # image rows grow downwards
+    x0 = np.floor(x).astype(int)
+    y0 = np.floor(y).astype(int)
+    fx, fy = x - x0, y - y0
+    kernel = np.zeros((size, size), np.float64)
+    for dx, dy, weight in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
+        np.add.at(kernel, (y0 + dy, x0 + dx), weight)
+    # Trim empty border rows/columns symmetrically so the kernel stays centred and odd.
+    while kernel.shape[0] > 1 and not kernel[0].any() and not kernel[-1].any() and not kernel[:, 0].any() and not kernel[:, -1].any():
+        kernel = kernel[1:-1, 1:-1]
+    return (kernel / kernel.sum()).astype(np.float32)
+
+
+def motion_blur(image: np.ndarray, percent: float, angle: float, image_size: int) -> np.ndarray:
+    """Uniform linear motion blur: a segment of ``percent`` of the image size at ``angle``."""
+    kernel = motion_kernel(percent / 100.0 * image_size, angle)
+    if kernel.size == 0:
+        return image
+    return cv2.filter2D(image, -1, kernel, borderType=cv2.BORDER_REFLECT_101)
+
+
+def composite(background: np.ndarray, foreground: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """``foreground`` over ``background`` with coverage ``alpha`` (H, W) in [0, 1]."""
+    a = alpha[:, :, None]
+    return foreground * a + background * (1.0 - a)
+
+
+@dataclass
+class Occlusion:
+    rgb: np.ndarray  # (H, W, 3) float32 sRGB of the occluder where it lies
+    alpha: np.ndarray  # (H, W) float32 occluder coverage (anti-aliased edge)
+    mask: np.ndarray  # (H, W) bool: pixels the occluder hides (alpha >= 0.5)
+    target_fraction: float  # the visible fraction asked for
+    achieved_fraction: float  # what this placement gives (visible target pixels / amodal area)
+
+
+def random_shape(rng: np.random.Generator, height: int, width: int) -> np.ndarray:
+    """A (height, width) uint8 mask in 0..255 of an ellipse, rotated rectangle or random convex
+    polygon filling most of the box, all star-shaped about the centre."""
+    mask = np.zeros((height, width), np.uint8)
+    centre = ((width - 1) / 2.0, (height - 1) / 2.0)
+    kind = int(rng.integers(3))
+    shift = 4  # sub-pixel precision of OpenCV's drawing
+    if kind == 0:
+        cv2.ellipse(mask, (centre, (width * 0.98, height * 0.98), 0.0), 255, -1, cv2.LINE_AA)
+    elif kind == 1:
+        inset = rng.uniform(0.6, 0.95)
+        box = cv2.boxPoints((centre, (width * inset, height * inset), float(rng.uniform(-20, 20))))
+        cv2.fillPoly(mask, [np.round(box * (1 << shift)).astype(np.int32)], 255, cv2.LINE_AA, shift)
+    else:
+        count = int(rng.integers(5, 10))
+        # Evenly spread directions (jittered by less than half a step) keep every gap below pi,
+        # so the hull always contains the centre.
+        angles = (np.arange(count) + rng.uniform(-0.4, 0.4, count)) * (2 * np.pi / count)
+        radii = rng.uniform(0.6, 1.0, count)
+        points = np.stack(
+            [centre[0] + radii * np.cos(angles) * width / 2.0, centre[1] + radii * np.sin(angles) * height / 2.0], axis=1
+        )
+        hull = cv2.convexHull(points.astype(np.float32))
+        cv2.fillPoly(mask, [np.round(hull * (1 << shift)).astype(np.int32)], 255, cv2.LINE_AA, shift)
+    return mask
+
+
+def _place(pivot: tuple[float, float], centre, angle: float, scale: float) -> np.ndarray:
+    """Affine map taking the occluder's ``pivot`` to ``centre``, rotated and scaled about it."""
+    matrix = cv2.getRotationMatrix2D(pivot, math.degrees(angle), scale)
+    matrix[0, 2] += centre[0] - pivot[0]
+    matrix[1, 2] += centre[1] - pivot[1]
+    return matrix
+
+
+def place_occluder(
+    target_mask: np.ndarray,
+    amodal_area: float,
+    visible_fraction: float,
+    occluder_rgb: np.ndarray,
+    occluder_alpha: np.ndarray | None,
+    rng: np.random.Generator,
+    attempts: int = 4,
+    steps: int = 18,
+) -> Occlusion | None:
+    """Size and place an occluder over the target so that about ``visible_fraction`` of the
+    target's amodal area stays visible.
+
+    Following the paper, the occluder's centre is a random pixel of the target mask. Its size
+    is found by bisection (the occluded share grows with the size, as the shape is star-shaped
+    about that centre); a few random centres and rotations are tried and the placement whose
+    achieved fraction is closest to the target wins. ``None`` when the image border already
+    hides enough of the target (nothing left to occlude)."""
+    height, width = target_mask.shape
+    in_image = int(np.count_nonzero(target_mask))
+    need = in_image - visible_fraction * amodal_area  # target pixels the occluder must hide
+    if need <= 0.5 or in_image == 0:
+        return None
+    # Work on a copy of the occluder no larger than needed: it never has to exceed ~2 image sizes.
+    oh, ow = occluder_rgb.shape[:2]
+    limit = 2 * max(height, width)
+    if max(oh, ow) > limit:
+        factor = limit / max(oh, ow)
+        new_size = (max(2, int(ow * factor)), max(2, int(oh * factor)))
+        occluder_rgb = cv2.resize(occluder_rgb, new_size, interpolation=cv2.INTER_AREA)
+        if occluder_alpha is not None:
+            occluder_alpha = cv2.resize(occluder_alpha, new_size, interpolation=cv2.INTER_AREA)
+        oh, ow = occluder_rgb.shape[:2]
+    shape = occluder_alpha if occluder_alpha is not None else random_shape(rng, oh, ow)
+    shape_f = shape.astype(np.float32) / 255.0
+    # Scale about the shape's centroid: for an occluder with its own alpha the image centre
+    # may be transparent.
+    moments = cv2.moments(shape_f)
+    pivot = (moments["m10"] / moments["m00"], moments["m01"] / moments["m00"]) if moments["m00"] > 0 else ((ow - 1) / 2.0, (oh - 1) / 2.0)
+    rows, cols = np.nonzero(target_mask)
+    best = None
+    max_scale = 4.0 * math.hypot(height, width) / max(1.0, min(oh, ow))
+    for _ in range(attempts):
+        k = int(rng.integers(rows.size))
+        centre = (float(cols[k]), float(rows[k]))  # warpAffine puts pixel (i, j)'s centre at (j, i)
+        angle = float(rng.uniform(-math.pi, math.pi))
+
+        def hidden_at(scale: float) -> tuple[int, np.ndarray]:
+            warped = cv2.warpAffine(shape_f, _place(pivot, centre, angle, scale), (width, height), flags=cv2.INTER_LINEAR)
+            return int(np.count_nonzero((warped >= 0.5) & target_mask)), warped
+
+        lo, hi = 0.0, max_scale
+        for _ in range(steps):
+            mid = 0.5 * (lo + hi)
+            hidden, _ = hidden_at(mid)
+            if hidden < need:
+                lo = mid
+            else:
+                hi = mid
+        scale = hi
+        hidden, _ = hidden_at(scale)
+        achieved = (in_image - hidden) / amodal_area
+        error = abs(achieved - visible_fraction)
+        if best is None or error < best[0]:
+            best = (error, centre, angle, scale, achieved)
+        if error < 0.01:
+            break
+    _, centre, angle, scale, achieved = best
+    matrix = _place(pivot, centre, angle, scale)
+    alpha = cv2.warpAffine(shape_f, matrix, (width, height), flags=cv2.INTER_LINEAR)
+    rgb = cv2.warpAffine(
+        occluder_rgb.astype(np.float32) / 255.0, matrix, (width, height), flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    mask = alpha >= 0.5
+    return Occlusion(
+        rgb=rgb,
+        alpha=alpha,
+        mask=mask,
+        target_fraction=float(visible_fraction),
+        achieved_fraction=float((in_image - np.count_nonzero(mask & target_mask)) / amodal_area),
+    )
