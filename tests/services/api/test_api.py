@@ -1,0 +1,649 @@
+"""The REST API against a temporary SQLite database: every endpoint, every error path, the token rules."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import socket
+import subprocess
+import sys
+import time
+import warnings
+from datetime import datetime, timedelta, timezone
+from pathlib import Path
+
+import pytest
+from sqlalchemy import func, select
+
+from db.migrate import upgrade
+from db.models import (
+    Evaluation,
+    Experiment,
+    ExperimentStatus,
+    Model,
+    ModelStatus,
+    ParameterSet,
+    RenderStatus,
+    Split,
+    Stage,
+    StageEndReason,
+    StageStatus,
+)
+from db.session import get_engine, get_sessionmaker, reset_engines
+from foldwise.config import ExperimentConfig
+from foldwise.settings import Settings, get_settings
+from services.api.app import create_app
+
+with warnings.catch_warnings():
+    # Starlette's test client asks for the `httpx2` fork; plain httpx works and is what is installed.
+    warnings.simplefilter("ignore")
+    from fastapi.testclient import TestClient
+
+TOKEN = "s3cret-token"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+REPO = Path(__file__).resolve().parents[3]
+
+
+def closed_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+@pytest.fixture(scope="session")
+def migrated_template(tmp_path_factory) -> Path:
+    """One migrated database file, copied for each test (a migration per test would cost ~0.3 s)."""
+    path = tmp_path_factory.mktemp("template") / "api.db"
+    url = f"sqlite:///{path}"
+    upgrade(url)
+    reset_engines()  # closes the connections, so SQLite folds its WAL back into the file
+    return path
+
+
+@pytest.fixture
+def database_url(tmp_path, monkeypatch, migrated_template) -> str:
+    path = tmp_path / "api.db"
+    shutil.copy(migrated_template, path)
+    url = f"sqlite:///{path}"
+    monkeypatch.setenv("FOLDWISE_DATA_DIR", str(tmp_path))
+    monkeypatch.setenv("FOLDWISE_DATABASE_URL", url)
+    monkeypatch.setenv("FOLDWISE_BROKER_URL", f"redis://127.0.0.1:{closed_port()}/0")
+    monkeypatch.setenv("FOLDWISE_API_TOKEN", TOKEN)
+    monkeypatch.delenv("FOLDWISE_EAGER", raising=False)
+    get_settings.cache_clear()
+    reset_engines()
+    yield url
+    reset_engines()
+    get_settings.cache_clear()
+
+
+@pytest.fixture
+def client(database_url) -> TestClient:
+    return TestClient(create_app(broker_timeout_s=0.5, ping_timeout_s=0.3))
+
+
+def client_with(**overrides) -> TestClient:
+    settings = get_settings().model_copy(update=overrides)
+    return TestClient(create_app(settings, broker_timeout_s=0.5, ping_timeout_s=0.3))
+
+
+T0 = datetime(2026, 1, 1, 12, 0, tzinfo=timezone.utc)
+
+
+@pytest.fixture
+def seeded(database_url) -> dict:
+    """A running experiment: stage 0 (fb, easy) ended on a plateau, stage 1 (fb, medium) at k = 2."""
+    config = ExperimentConfig(name="seeded", seed=7, curriculum={"conditions": ["fb"], "difficulties": ["easy", "medium"]})
+    with get_sessionmaker(database_url)() as session:
+        experiment = Experiment(
+            name="seeded",
+            config=config.model_dump(mode="json"),
+            seed=7,
+            classes=["astronaut", "coffee"],
+            status=ExperimentStatus.running,
+            started_at=T0,
+        )
+        finished = Experiment(
+            name="done", config=config.model_dump(mode="json"), seed=1, status=ExperimentStatus.finished,
+            started_at=T0, finished_at=T0 + timedelta(hours=1),
+        )
+        session.add_all([experiment, finished])
+        session.flush()
+        easy = Stage(experiment_id=experiment.id, order=0, condition="fb", difficulty="easy", status=StageStatus.done,
+                     end_reason=StageEndReason.plateau, started_at=T0, finished_at=T0 + timedelta(seconds=35))
+        medium = Stage(experiment_id=experiment.id, order=1, condition="fb", difficulty="medium",
+                       status=StageStatus.running, started_at=T0 + timedelta(seconds=35))
+        session.add_all([easy, medium])
+        session.flush()
+
+        models = []
+        parent = None
+        # (stage, k, mAP or None when not yet evaluated); scores arrive 10 s apart.
+        plan = [(easy, 1, 0.40), (easy, 2, 0.70), (easy, 3, 0.60), (medium, 1, 0.65), (medium, 2, None)]
+        for arrival, (stage, k, score) in enumerate(plan, start=1):
+            model = Model(
+                experiment_id=experiment.id, stage_id=stage.id, increment=k, parent_id=parent, detector="faster_rcnn",
+                status=ModelStatus.evaluated if score is not None else ModelStatus.training, iterations=100,
+                checkpoint_path=f"checkpoints/{stage.order}/{k}.pt" if score is not None else None,
+                train_seconds=5.0 * k if score is not None else None, attempts=1,
+            )
+            session.add(model)
+            session.flush()
+            if score is not None:
+                session.add(Evaluation(
+                    model_id=model.id, map=score, map_unthresholded=score + 0.05,
+                    details={"fb": {"easy": score}}, eval_seconds=1.5,
+                    created_at=T0 + timedelta(seconds=10 * arrival),
+                ))
+            models.append(model)
+            parent = model.id
+        easy.best_model_id = models[1].id
+        medium.init_model_id = models[1].id
+
+        # Two rendered training θ for (stage 0, k = 1) and one test θ still queued.
+        for index, seconds in enumerate([1.5, 2.5]):
+            session.add(ParameterSet(
+                experiment_id=experiment.id, key=f"train/0/1/{index}", split=Split.train, stage_id=easy.id,
+                increment=1, index=index, condition="fb", difficulty="easy", seed=index, theta={"fb": 0.5},
+                status=RenderStatus.rendered, render_seconds=seconds, image_path=f"images/{index}.png",
+                box=[1, 2, 30, 40], label=0,
+            ))
+        session.add(ParameterSet(
+            experiment_id=experiment.id, key="test/fb/easy/0", split=Split.test, index=0, condition="fb",
+            difficulty="easy", seed=99, theta={"fb": 0.6}, status=RenderStatus.queued,
+        ))
+        session.commit()
+        return {
+            "experiment": experiment.id,
+            "finished": finished.id,
+            "models": [m.id for m in models],
+            "stages": [easy.id, medium.id],
+        }
+
+
+def experiment_count(url: str) -> int:
+    with get_sessionmaker(url)() as session:
+        return session.scalar(select(func.count()).select_from(Experiment))
+
+
+def stored_experiment(url: str, experiment_id: int) -> Experiment:
+    with get_sessionmaker(url)() as session:
+        return session.get(Experiment, experiment_id)
+
+
+# --------------------------------------------------------------------------- reads
+
+
+def test_list_experiments_and_status_filter(client, seeded):
+    listed = client.get("/experiments")
+    assert listed.status_code == 200
+    assert [(e["id"], e["name"], e["status"]) for e in listed.json()] == [
+        (seeded["experiment"], "seeded", "running"),
+        (seeded["finished"], "done", "finished"),
+    ]
+    assert [e["id"] for e in client.get("/experiments?status=finished").json()] == [seeded["finished"]]
+    assert client.get("/experiments?status=cancelled").json() == []
+    bad = client.get("/experiments?status=sleeping")
+    assert bad.status_code == 422 and "pending" in json.dumps(bad.json())
+
+
+def test_list_is_empty_on_a_fresh_database(client):
+    response = client.get("/experiments")
+    assert response.status_code == 200 and response.json() == []
+
+
+def test_experiment_summary(client, seeded):
+    response = client.get(f"/experiments/{seeded['experiment']}")
+    assert response.status_code == 200
+    body = response.json()
+    assert body["status"] == "running"
+    assert body["classes"] == ["astronaut", "coffee"]
+    assert body["current_stage"] == {"order": 1, "condition": "fb", "difficulty": "medium", "k": 2}
+    assert body["counts"]["models"] == {"evaluated": 4, "training": 1}
+    assert body["counts"]["evaluations"] == 4
+    assert body["counts"]["stages"] == 2
+    assert body["counts"]["parameter_sets"] == {"train": {"rendered": 2}, "test": {"queued": 1}}
+    assert body["best"] == {"map": 0.70, "model_id": seeded["models"][1]}
+    # Still running: elapsed counts up to now from the start.
+    assert body["elapsed_seconds"] >= (datetime.now(timezone.utc) - T0).total_seconds() - 5
+
+    finished = client.get(f"/experiments/{seeded['finished']}").json()
+    assert finished["elapsed_seconds"] == pytest.approx(3600.0)
+    assert finished["current_stage"] is None and finished["best"] is None
+
+
+def test_stages(client, seeded):
+    response = client.get(f"/experiments/{seeded['experiment']}/stages")
+    assert response.status_code == 200
+    easy, medium = response.json()
+    assert (easy["order"], easy["condition"], easy["difficulty"]) == (0, "fb", "easy")
+    assert easy["status"] == "done" and easy["end_reason"] == "plateau"
+    assert easy["increments"] == 3
+    assert easy["best_model_id"] == seeded["models"][1] and easy["best_map"] == pytest.approx(0.70)
+    assert easy["seconds"] == pytest.approx(35.0)
+    assert (medium["order"], medium["difficulty"], medium["status"]) == (1, "medium", "running")
+    assert medium["end_reason"] is None
+    assert medium["increments"] == 1  # k = 2 is still training: not in P yet
+    assert medium["init_model_id"] == seeded["models"][1]
+
+
+def test_history_is_P_in_arrival_order(client, seeded):
+    response = client.get(f"/experiments/{seeded['experiment']}/history")
+    assert response.status_code == 200
+    history = response.json()
+    assert [(h["condition"], h["difficulty"], h["k"], h["map"], h["model_id"]) for h in history] == [
+        ("fb", "easy", 1, 0.40, seeded["models"][0]),
+        ("fb", "easy", 2, 0.70, seeded["models"][1]),
+        ("fb", "easy", 3, 0.60, seeded["models"][2]),
+        ("fb", "medium", 1, 0.65, seeded["models"][3]),
+    ]
+    assert [h["wall_seconds"] for h in history] == pytest.approx([10.0, 20.0, 30.0, 40.0])
+    assert history[0]["render_seconds"] == pytest.approx(4.0)
+    assert history[1]["parent_id"] == seeded["models"][0]
+
+
+def test_history_and_stages_of_an_experiment_without_any(client, seeded):
+    assert client.get(f"/experiments/{seeded['finished']}/history").json() == []
+    assert client.get(f"/experiments/{seeded['finished']}/stages").json() == []
+
+
+def test_model_detail(client, seeded):
+    best = seeded["models"][1]
+    response = client.get(f"/models/{best}")
+    assert response.status_code == 200
+    body = response.json()
+    assert body["id"] == best and body["k"] == 2 and body["parent_id"] == seeded["models"][0]
+    assert body["stage"] == {"order": 0, "condition": "fb", "difficulty": "easy"}
+    assert body["status"] == "evaluated" and body["checkpoint_path"] == "checkpoints/0/2.pt"
+    assert body["evaluation"]["map"] == pytest.approx(0.70)
+    assert body["evaluation"]["map_unthresholded"] == pytest.approx(0.75)
+
+    training = client.get(f"/models/{seeded['models'][4]}").json()
+    assert training["status"] == "training" and training["evaluation"] is None
+
+
+@pytest.mark.parametrize(
+    "path, message",
+    [
+        ("/experiments/4242", "experiment 4242 does not exist"),
+        ("/experiments/4242/stages", "experiment 4242 does not exist"),
+        ("/experiments/4242/history", "experiment 4242 does not exist"),
+        ("/models/4242", "model 4242 does not exist"),
+    ],
+)
+def test_unknown_ids_are_404_naming_the_id(client, seeded, path, message):
+    response = client.get(path)
+    assert response.status_code == 404
+    assert response.json() == {"detail": message}
+
+
+@pytest.mark.parametrize("bad_id", ["0", "-3", str(2**63), "abc", "1.5"])
+def test_ids_that_cannot_exist_are_422_not_500(client, bad_id):
+    for path in (f"/experiments/{bad_id}", f"/models/{bad_id}", f"/experiments/{bad_id}/history"):
+        response = client.get(path)
+        assert response.status_code == 422, path
+        assert response.json()["detail"][0]["loc"][-1] in ("experiment_id", "model_id")
+
+
+def test_reads_need_no_token(client, seeded):
+    for path in ("/experiments", f"/experiments/{seeded['experiment']}", f"/models/{seeded['models'][0]}", "/health"):
+        assert client.get(path).status_code == 200, path
+
+
+def test_every_request_returns_its_session(client, seeded, database_url):
+    client.get(f"/experiments/{seeded['experiment']}")
+    client.get("/experiments/4242")
+    client.post(f"/experiments/{seeded['finished']}/cancel", headers=AUTH)  # 409
+    client.post("/experiments", json={"name": "x", "seed": -1}, headers=AUTH)  # 422
+    client.post("/experiments", json={"name": "x"}, headers=AUTH)  # 201
+    client.get("/health")
+    assert get_engine(database_url).pool.checkedout() == 0
+
+
+# --------------------------------------------------------------------------- creating
+
+
+def test_create_from_json(client, database_url):
+    config = {"name": "json run", "seed": 11, "active_learning": {"m": 7, "M": 2, "N": 4}}
+    response = client.post("/experiments", json=config, headers=AUTH)
+    assert response.status_code == 201
+    body = response.json()
+    assert body["name"] == "json run" and body["status"] == "pending" and body["seed"] == 11
+    assert response.headers["location"] == f"/experiments/{body['id']}"
+    # The Location answers with the same record.
+    assert client.get(response.headers["location"]).json()["id"] == body["id"]
+    stored = stored_experiment(database_url, body["id"])
+    assert stored.config == ExperimentConfig(**config).model_dump(mode="json")
+    assert stored.config["active_learning"]["m"] == 7
+    assert stored.status == ExperimentStatus.pending
+
+
+@pytest.mark.parametrize("content_type", ["application/yaml", "text/yaml", "application/x-yaml", "text/yaml; charset=utf-8"])
+def test_create_from_yaml(client, database_url, content_type):
+    document = "name: yaml run\nseed: 5\ncurriculum:\n  conditions: [mb, po]\n  difficulties: [hard]\n"
+    response = client.post("/experiments", content=document.encode(), headers={**AUTH, "Content-Type": content_type})
+    assert response.status_code == 201, response.text
+    stored = stored_experiment(database_url, response.json()["id"])
+    assert stored.name == "yaml run" and stored.seed == 5
+    assert stored.config["curriculum"] == {"conditions": ["mb", "po"], "difficulties": ["hard"]}
+
+
+def test_two_creations_get_distinct_ids(client):
+    first = client.post("/experiments", json={"name": "same"}, headers=AUTH).json()["id"]
+    second = client.post("/experiments", json={"name": "same"}, headers=AUTH).json()["id"]
+    assert first != second
+    assert [e["id"] for e in client.get("/experiments").json()] == [first, second]
+
+
+@pytest.mark.parametrize(
+    "content_type, body, named",
+    [
+        ("application/json", json.dumps({"name": "x", "active_learning": {"mm": 3}}), "active_learning.mm: unknown key"),
+        ("application/json", json.dumps({"name": "x", "active_learning": {"tau": 2}}), "active_learning.tau"),
+        ("application/json", json.dumps({"seed": 3}), "name: Field required"),
+        ("application/json", json.dumps({"name": "x", "render": {"backend": "povray"}}), "render.backend"),
+        ("application/yaml", "name: x\ncurriculum:\n  conditions: [zz]\n", "unknown condition 'zz'"),
+        ("application/yaml", "name: x\ndetector:\n  family: rcnn9000\n", "detector.family"),
+        ("application/json", json.dumps(["name", "x"]), "expected a mapping at the top level, got list"),
+        ("application/yaml", "- just\n- a list\n", "expected a mapping at the top level, got list"),
+        ("application/json", '{"name": "x",', "not JSON"),
+        ("application/yaml", "name: [unclosed\n", "not YAML"),
+        ("application/yaml", "name: a\n---\nname: b\n", "not YAML"),
+        ("application/json", "   ", "empty body"),
+    ],
+)
+def test_invalid_configs_are_422_naming_the_problem(client, seeded, database_url, content_type, body, named):
+    before = experiment_count(database_url)
+    response = client.post("/experiments", content=body.encode(), headers={**AUTH, "Content-Type": content_type})
+    assert response.status_code == 422
+    assert named in response.json()["detail"]
+    assert experiment_count(database_url) == before
+
+
+def test_body_that_is_not_utf8_is_422(client, database_url):
+    response = client.post("/experiments", content=b"name: \xff\xfe", headers={**AUTH, "Content-Type": "application/yaml"})
+    assert response.status_code == 422 and "UTF-8" in response.json()["detail"]
+    assert experiment_count(database_url) == 0
+
+
+def test_oversized_body_is_413(client, database_url):
+    padding = "#" + "x" * (1 << 20) + "\nname: big\n"
+    response = client.post("/experiments", content=padding.encode(), headers={**AUTH, "Content-Type": "application/yaml"})
+    assert response.status_code == 413
+    assert experiment_count(database_url) == 0
+
+
+@pytest.mark.parametrize("content_type", [None, "text/plain", "application/x-www-form-urlencoded", "application/xml"])
+def test_unsupported_content_type_is_415(client, database_url, content_type):
+    headers = dict(AUTH)
+    if content_type:
+        headers["Content-Type"] = content_type
+    response = client.post("/experiments", content=b'{"name": "x"}', headers=headers)
+    assert response.status_code == 415
+    detail = response.json()["detail"]
+    assert (content_type or "(none)") in detail and "application/yaml" in detail
+    assert experiment_count(database_url) == 0
+
+
+# --------------------------------------------------------------------------- the token
+
+
+def test_missing_token_is_401_with_a_bearer_challenge(client, database_url):
+    response = client.post("/experiments", json={"name": "x"})
+    assert response.status_code == 401
+    assert response.headers["www-authenticate"] == "Bearer"
+    assert "Authorization: Bearer" in response.json()["detail"]
+    assert experiment_count(database_url) == 0
+
+
+@pytest.mark.parametrize(
+    "header, detail",
+    [
+        (f"Bearer {TOKEN}x", "wrong token"),
+        (f"Bearer {TOKEN[:-1]}", "wrong token"),
+        ("Bearer ", "must be 'Bearer <token>'"),
+        (f"Basic {TOKEN}", "must be 'Bearer <token>'"),
+        (TOKEN, "must be 'Bearer <token>'"),
+    ],
+)
+def test_wrong_token_is_401(client, seeded, database_url, header, detail):
+    create = client.post("/experiments", json={"name": "x"}, headers={"Authorization": header})
+    cancel = client.post(f"/experiments/{seeded['experiment']}/cancel", headers={"Authorization": header})
+    for response in (create, cancel):
+        assert response.status_code == 401
+        assert detail in response.json()["detail"]
+    assert experiment_count(database_url) == 2
+    assert stored_experiment(database_url, seeded["experiment"]).status == ExperimentStatus.running
+
+
+def test_the_token_is_checked_before_the_body(client):
+    # An anonymous caller learns nothing about what the API would accept.
+    response = client.post("/experiments", content=b"<xml/>", headers={"Content-Type": "application/xml"})
+    assert response.status_code == 401
+
+
+@pytest.mark.parametrize("unset", [None, ""])
+def test_writes_are_403_when_no_token_is_configured(seeded, database_url, unset):
+    client = client_with(api_token=unset)
+    for headers in ({}, AUTH, {"Authorization": "Bearer "}):
+        create = client.post("/experiments", json={"name": "x"}, headers=headers)
+        cancel = client.post(f"/experiments/{seeded['experiment']}/cancel", headers=headers)
+        for response in (create, cancel):
+            assert response.status_code == 403
+            assert "FOLDWISE_API_TOKEN is not set" in response.json()["detail"]
+    assert experiment_count(database_url) == 2
+    assert stored_experiment(database_url, seeded["experiment"]).status == ExperimentStatus.running
+    # Reads still work.
+    assert client.get(f"/experiments/{seeded['experiment']}").status_code == 200
+
+
+def test_token_from_the_environment(seeded, monkeypatch):
+    monkeypatch.setenv("FOLDWISE_API_TOKEN", "from-env")
+    get_settings.cache_clear()
+    client = TestClient(create_app())
+    assert client.post("/experiments", json={"name": "x"}, headers=AUTH).status_code == 401
+    assert client.post("/experiments", json={"name": "x"}, headers={"Authorization": "Bearer from-env"}).status_code == 201
+
+
+# --------------------------------------------------------------------------- cancelling
+
+
+def test_cancel_a_running_experiment(client, seeded, database_url):
+    response = client.post(f"/experiments/{seeded['experiment']}/cancel", headers=AUTH)
+    assert response.status_code == 200
+    body = response.json()
+    assert body["status"] == "cancelled" and body["finished_at"] is not None
+    stored = stored_experiment(database_url, seeded["experiment"])
+    assert stored.status == ExperimentStatus.cancelled
+    # The record of what ran stays.
+    assert len(client.get(f"/experiments/{seeded['experiment']}/history").json()) == 4
+
+
+def test_cancel_a_pending_experiment_then_again_is_409(client, database_url):
+    created = client.post("/experiments", json={"name": "to cancel"}, headers=AUTH).json()["id"]
+    first = client.post(f"/experiments/{created}/cancel", headers=AUTH)
+    assert first.status_code == 200 and first.json()["status"] == "cancelled"
+    again = client.post(f"/experiments/{created}/cancel", headers=AUTH)
+    assert again.status_code == 409
+    assert again.json()["detail"].startswith(f"experiment {created} is already cancelled")
+
+
+@pytest.mark.parametrize("ended", ["finished", "failed"])
+def test_cancel_an_ended_experiment_is_409_and_changes_nothing(client, seeded, database_url, ended):
+    with get_sessionmaker(database_url)() as session:
+        session.get(Experiment, seeded["finished"]).status = ExperimentStatus(ended)
+        session.commit()
+    before = stored_experiment(database_url, seeded["finished"])
+    response = client.post(f"/experiments/{seeded['finished']}/cancel", headers=AUTH)
+    assert response.status_code == 409
+    assert f"already {ended}" in response.json()["detail"]
+    after = stored_experiment(database_url, seeded["finished"])
+    assert (after.status, after.finished_at) == (before.status, before.finished_at)
+
+
+def test_cancel_unknown_experiment_is_404(client, seeded):
+    response = client.post("/experiments/4242/cancel", headers=AUTH)
+    assert response.status_code == 404
+    assert response.json()["detail"] == "experiment 4242 does not exist"
+
+
+# --------------------------------------------------------------------------- health
+
+
+def test_health_with_the_broker_unreachable_answers_quickly(client):
+    started = time.perf_counter()
+    response = client.get("/health")
+    elapsed = time.perf_counter() - started
+    assert response.status_code == 200  # the API still serves the record
+    body = response.json()
+    assert body["status"] == "degraded"
+    assert body["database"]["status"] == "ok" and body["database"]["revision"]
+    assert body["broker"]["status"] == "error"
+    assert "refused" in body["broker"]["detail"].lower()
+    assert elapsed < 5.0  # a bound against hanging on retries, not a benchmark
+
+
+def test_health_skips_the_broker_in_eager_mode(database_url):
+    response = client_with(eager=True).get("/health")
+    assert response.status_code == 200
+    assert response.json()["status"] == "ok"
+    assert response.json()["broker"]["status"] == "skipped"
+    assert "FOLDWISE_EAGER" in response.json()["broker"]["detail"]
+
+
+def test_health_reports_an_unmigrated_database(tmp_path, database_url):
+    empty = f"sqlite:///{tmp_path / 'empty.db'}"
+    response = client_with(database_url=empty, eager=True).get("/health")
+    assert response.status_code == 503
+    body = response.json()
+    assert body["status"] == "error" and body["database"]["status"] == "error"
+    assert body["database"]["revision"] is None
+    assert "foldwise db upgrade" in body["database"]["detail"]
+
+
+def test_health_reports_an_unreachable_database_without_its_password(database_url):
+    url = f"postgresql+psycopg://foldwise:hunter2@127.0.0.1:{closed_port()}/foldwise"
+    started = time.perf_counter()
+    response = client_with(database_url=url, eager=True).get("/health")
+    assert time.perf_counter() - started < 10.0
+    assert response.status_code == 503
+    assert response.json()["database"]["status"] == "error"
+    assert "unreachable" in response.json()["database"]["detail"]
+    assert "hunter2" not in response.text
+
+
+# --------------------------------------------------------------------------- queues
+
+
+def test_queues_with_the_broker_unreachable_is_503(client):
+    started = time.perf_counter()
+    response = client.get("/queues")
+    assert time.perf_counter() - started < 5.0
+    assert response.status_code == 503
+    body = response.json()
+    assert "unreachable" in body["detail"] and body["broker"]["status"] == "error"
+
+
+def test_queues_never_show_the_broker_password(database_url):
+    response = client_with(broker_url=f"redis://:hunter2@127.0.0.1:{closed_port()}/0").get("/queues")
+    assert response.status_code == 503
+    assert "hunter2" not in response.text
+    health = client_with(broker_url=f"redis://:hunter2@127.0.0.1:{closed_port()}/0").get("/health")
+    assert "hunter2" not in health.text and health.json()["broker"]["status"] == "error"
+
+
+def test_queues_in_eager_mode_and_with_a_non_redis_broker(database_url):
+    eager = client_with(eager=True).get("/queues")
+    assert eager.status_code == 503 and "FOLDWISE_EAGER" in eager.json()["detail"]
+    amqp = client_with(broker_url=f"amqp://guest:guest@127.0.0.1:{closed_port()}//").get("/queues")
+    assert amqp.status_code == 501 and "Redis" in amqp.json()["detail"]
+    assert "guest:guest" not in amqp.text
+    health = client_with(broker_url=f"amqp://guest:guest@127.0.0.1:{closed_port()}//").get("/health")
+    assert health.json()["broker"]["status"] == "error"
+
+
+@pytest.fixture
+def redis_url():
+    server = shutil.which("redis-server")
+    if server is None:
+        pytest.skip("redis-server is not installed: the live-broker test of /queues needs it")
+    import redis
+
+    port = closed_port()
+    process = subprocess.Popen(
+        [server, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    client = redis.Redis(port=port)
+    try:
+        for _ in range(200):
+            try:
+                client.ping()
+                break
+            except redis.ConnectionError:
+                time.sleep(0.025)
+        else:
+            pytest.skip("redis-server did not start")
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        client.close()
+        process.terminate()
+        process.wait(timeout=10)
+
+
+def test_queues_against_a_live_redis_with_a_worker(database_url, redis_url):
+    import redis
+    from celery import Celery
+    from celery.contrib.testing.worker import start_worker
+
+    broker = redis.Redis.from_url(redis_url)
+    broker.rpush("render", "m1", "m2")
+    broker.rpush("render\x06\x163", "m3")  # kombu's key for priority 3 of the render queue
+    broker.rpush("train", "m4")
+    broker.rpush("unrelated", "m5")
+    broker.hset("unacked", "tag-1", "{}")
+    client = client_with(broker_url=redis_url)
+
+    idle = client.get("/queues")
+    assert idle.status_code == 200
+    assert idle.json()["queues"] == {"render": 3, "train": 1}
+    assert idle.json()["unacked"] == 1
+    assert idle.json()["workers"] == []
+    assert client.get("/health").json()["broker"]["status"] == "ok"
+
+    # A worker listening on another queue, so it answers the ping without draining ours.
+    worker_app = Celery("api-test-worker", broker=redis_url)
+    worker_app.conf.task_default_queue = "api-test"
+    with start_worker(worker_app, perform_ping_check=False, hostname="render@api-test"):
+        busy = client.get("/queues").json()
+    assert busy["workers"] == ["render@api-test"]
+    assert busy["queues"] == {"render": 3, "train": 1}
+    broker.close()
+
+
+# --------------------------------------------------------------------------- the module
+
+
+def test_openapi_documents_both_config_media_types(client):
+    spec = client.get("/openapi.json").json()
+    assert {"/health", "/experiments", "/experiments/{experiment_id}", "/experiments/{experiment_id}/cancel",
+            "/experiments/{experiment_id}/stages", "/experiments/{experiment_id}/history", "/models/{model_id}",
+            "/queues"} <= set(spec["paths"])
+    content = spec["paths"]["/experiments"]["post"]["requestBody"]["content"]
+    assert {"application/json", "application/yaml", "text/yaml"} <= set(content)
+
+
+def test_import_loads_neither_torch_nor_bpy_and_touches_nothing(tmp_path):
+    data_dir = tmp_path / "never-created"
+    code = (
+        "import services.api.app, sys\n"
+        "assert 'torch' not in sys.modules and 'bpy' not in sys.modules\n"
+        "from fastapi import FastAPI\n"
+        "assert isinstance(services.api.app.app, FastAPI)\n"
+    )
+    env = {"PATH": "/usr/bin:/bin", "FOLDWISE_DATA_DIR": str(data_dir), "FOLDWISE_BROKER_URL": "redis://127.0.0.1:1/0"}
+    result = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
+    assert result.returncode == 0, result.stderr
+    # Building the module-level app connects to nothing: no database file appears.
+    assert not data_dir.exists()
