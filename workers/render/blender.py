@@ -17,10 +17,10 @@ Conventions match ``scene.py`` and the raster backend:
   exposure``, the model ``scene.py`` documents. Direct light only (no bounces), no world
   light, a sun of zero angular size.
 * Output: the render is written as a 32-bit float OpenEXR (no view transform reaches float
-  files) and read back. ``alpha`` is the film coverage (transparent film), ``mask`` is
-  ``alpha > 0.5`` and ``rgb`` is Cycles' premultiplied linear colour, i.e. already 0 where
-  nothing is covered and ``alpha × colour`` on anti-aliased edges, so compositing over a
-  background is ``rgb + (1 − alpha) × background``.
+  files) and read back. ``alpha`` is the film coverage (transparent film, Cycles' 1.5 px
+  Blackman-Harris pixel filter), ``mask`` is ``alpha > 0.5`` and ``rgb`` the object's linear
+  colour: Cycles' premultiplied value divided by alpha, 0 where nothing is covered, so that
+  compositing is ``colour × alpha + background × (1 − alpha)`` as for the raster backend.
 * Determinism: fixed seed, no animated seed, no adaptive sampling, no denoiser: the same
   scene renders to the same bytes.
 """
@@ -229,7 +229,7 @@ class BlenderRenderer:
             self._scene.cycles.device = device
 
     def render(self, scene: Scene3D) -> BackendOutput:
-        """Render ``scene``: linear premultiplied RGB, the coverage mask and alpha."""
+        """Render ``scene``: the sheet's linear RGB (not premultiplied), its mask and alpha."""
         _validate_scene(scene)
         with self._lock:
             self._update_mesh(scene)
@@ -238,8 +238,12 @@ class BlenderRenderer:
             self._update_light(scene)
             rgba = self._render_rgba()
             self.stats["renders"] += 1
-        rgb = np.ascontiguousarray(rgba[..., :3], dtype=np.float32)
         alpha = np.ascontiguousarray(np.clip(rgba[..., 3], 0.0, 1.0), dtype=np.float32)
+        # Cycles stores colour premultiplied by coverage; the contract (and the compositing
+        # stage, ``colour × alpha + background × (1 − alpha)``) wants the object's own colour.
+        rgb = np.zeros(rgba.shape[:2] + (3,), dtype=np.float32)
+        covered = rgba[..., 3] > 0
+        rgb[covered] = rgba[covered, :3] / rgba[covered, 3:4]
         return BackendOutput(rgb=rgb, mask=alpha > 0.5, alpha=alpha)
 
     def close(self) -> None:
@@ -324,7 +328,8 @@ class BlenderRenderer:
         self._texture.colorspace_settings.name = "sRGB"
 
         material = bpy.data.materials.new(_NAME + "-paper")
-        material.use_nodes = True
+        if material.node_tree is None:  # Blender < 5 creates materials without a node tree
+            material.use_nodes = True
         nodes = material.node_tree.nodes
         links = material.node_tree.links
         nodes.clear()

@@ -127,6 +127,11 @@ def test_canonical_scene_gives_albedo_times_irradiance(renderer):
     np.testing.assert_allclose(out.rgb[inside], srgb_to_linear(128), rtol=1e-4)
     np.testing.assert_array_equal(out.alpha[inside], 1.0)
     assert np.all(out.rgb[out.alpha == 0] == 0) and np.all(out.alpha[~out.mask] <= 0.5)
+    # Anti-aliased edge pixels carry the object's own colour (not premultiplied by coverage),
+    # since compositing multiplies by alpha.
+    edge = (out.alpha > 0.05) & (out.alpha < 0.95)
+    assert edge.sum() > 20
+    np.testing.assert_allclose(out.rgb[edge], srgb_to_linear(128), rtol=1e-4)
 
 
 def test_oblique_light_and_exposure_scale_linearly(renderer):

@@ -1,0 +1,221 @@
+"""Render benchmark: raster vs blender on one fixed set of θ, side by side.
+
+For every (condition, difficulty) of Table 3 plus canonical, ``--n-per-stage`` θ are drawn
+with a fixed seed at ``--size``² pixels. Each θ is rendered by every backend in turn
+(interleaved, so machine load hits both alike), timed around ``render_theta``. Reported:
+
+* images per second per backend and their ratio (raster / blender), with the mean of each
+  pipeline stage's time (``RenderResult.timings``) so it is plain where the time goes;
+* box agreement: IoU between the two backends' boxes (the visible box after occlusion and
+  border crop) per θ, its mean, min and the worst θ, also per condition and per difficulty;
+  amodal-box IoU and the visible-fraction difference alongside;
+* rejections (``RenderRejected``) per backend, with their reasons, and any other exception
+  (a backend bug) with the θ it happened on; such θ are left out of the timings and IoUs.
+
+Prints JSON to stdout (and to ``--out FILE``). Example::
+
+    python bench/render.py --n-per-stage 3 --samples 16 --size 256 --out render.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import math
+import sys
+import time
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+BACKENDS = ("raster", "blender")
+
+
+def box_iou(a, b) -> float:
+    """IoU of two [x0, y0, x1, y1] boxes (pixel-edge coordinates)."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    inter_w = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    inter_h = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = inter_w * inter_h
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+def fixed_thetas(n_per_stage: int, size: int, seed: int, assets) -> list[dict]:
+    """The benchmark's θ: canonical, then every condition × difficulty of Table 3."""
+    from foldwise.conditions import load_condition_table
+    from workers.render.parameters import derive_seed, generate_parameters
+
+    table = load_condition_table()
+    stages = [(table.codes[0], "canonical")] + [(c, d) for c in table.codes for d in table.difficulties]
+    thetas = []
+    for index, (condition, difficulty) in enumerate(stages):
+        thetas += generate_parameters(
+            condition, difficulty, n_per_stage, derive_seed(seed, index), image_size=size, assets=assets
+        )
+    return thetas
+
+
+def stage_of(theta: dict) -> str:
+    return "canonical" if theta["difficulty"] == "canonical" else f"{theta['condition']}/{theta['difficulty']}"
+
+
+def summarise(values: list[float]) -> dict:
+    if not values:
+        return {"n": 0}
+    array = np.asarray(values, dtype=np.float64)
+    return {"n": int(array.size), "mean": float(array.mean()), "min": float(array.min())}
+
+
+def run(n_per_stage: int, samples: int, size: int, backends: list[str], seed: int, progress: bool) -> dict:
+    from workers.render.assets import load_assets
+    from workers.render.pipeline import RenderRejected, render_theta
+
+    assets = load_assets()
+    thetas = fixed_thetas(n_per_stage, size, seed, assets)
+
+    # Warm-up outside the clock: imports and the bpy scene (one θ per backend), then every θ
+    # once through the fastest backend so per-asset caches (background crops, occluders,
+    # texture pyramids) are warm for both: otherwise whichever backend goes first pays them.
+    warm = fixed_thetas(1, size, seed + 1, assets)[0]
+    for backend in backends:
+        with contextlib.suppress(Exception):
+            render_theta(warm, backend=backend, assets=assets, samples=samples)
+    if "raster" in backends:
+        for theta in thetas:
+            with contextlib.suppress(Exception):
+                render_theta(theta, backend="raster", assets=assets)
+
+    seconds = {b: 0.0 for b in backends}
+    rendered = {b: 0 for b in backends}
+    stage_seconds = {b: defaultdict(float) for b in backends}
+    rejections = {b: defaultdict(int) for b in backends}
+    failures = {b: [] for b in backends}  # exceptions other than RenderRejected (untimed)
+    per_theta = []
+    started = time.perf_counter()
+    for index, theta in enumerate(thetas):
+        results = {}
+        for backend in backends:
+            begin = time.perf_counter()
+            try:
+                result = render_theta(theta, backend=backend, assets=assets, samples=samples)
+            except RenderRejected as rejected:
+                seconds[backend] += time.perf_counter() - begin
+                rejections[backend][rejected.reason] += 1
+                results[backend] = None
+                continue
+            except Exception as error:  # a backend bug: record it, keep measuring the rest
+                failures[backend].append({"index": index, "stage": stage_of(theta), "error": repr(error)[:300]})
+                results[backend] = None
+                continue
+            seconds[backend] += time.perf_counter() - begin
+            rendered[backend] += 1
+            for stage, value in result.timings.items():
+                stage_seconds[backend][stage] += float(value)
+            results[backend] = result
+        row = {"index": index, "stage": stage_of(theta), "theta": theta}
+        for backend in backends:
+            result = results[backend]
+            row[backend] = (
+                None
+                if result is None
+                else {"box": [float(v) for v in result.box], "visible_fraction": float(result.visible_fraction),
+                      "amodal_box": None if result.amodal_box is None else [float(v) for v in result.amodal_box]}
+            )
+        if len(backends) == 2 and all(results[b] is not None for b in backends):
+            first, second = (results[b] for b in backends)
+            row["box_iou"] = box_iou(first.box, second.box)
+            if first.amodal_box is not None and second.amodal_box is not None:
+                row["amodal_box_iou"] = box_iou(first.amodal_box, second.amodal_box)
+            row["visible_fraction_diff"] = abs(float(first.visible_fraction) - float(second.visible_fraction))
+        per_theta.append(row)
+        if progress:
+            print(f"\r{index + 1}/{len(thetas)} θ", end="", file=sys.stderr, flush=True)
+    if progress:
+        print(file=sys.stderr)
+
+    speed = {}
+    for backend in backends:
+        count = rendered[backend]
+        speed[backend] = {
+            "images": count,
+            "rejected": int(sum(rejections[backend].values())),
+            "seconds": seconds[backend],
+            "images_per_second": count / seconds[backend] if seconds[backend] > 0 else math.nan,
+            "mean_stage_seconds": {k: v / max(count, 1) for k, v in sorted(stage_seconds[backend].items())},
+            "rejection_reasons": dict(rejections[backend]),
+            "errors": failures[backend],
+        }
+    report: dict = {
+        "settings": {
+            "n_per_stage": n_per_stage,
+            "samples": samples,
+            "size": size,
+            "backends": backends,
+            "seed": seed,
+            "thetas": len(thetas),
+        },
+        "speed": speed,
+        "wall_seconds": time.perf_counter() - started,
+    }
+    if len(backends) == 2:
+        fast, slow = backends
+        report["speed_ratio"] = {
+            "of": f"{fast}/{slow} images per second, whole render_theta",
+            "value": speed[fast]["images_per_second"] / speed[slow]["images_per_second"],
+            # The 3D backend alone (the "render" stage): what differs between the two.
+            "render_stage": speed[slow]["mean_stage_seconds"].get("render", math.nan)
+            / speed[fast]["mean_stage_seconds"].get("render", math.nan),
+        }
+        compared = [row for row in per_theta if "box_iou" in row]
+        ious = [row["box_iou"] for row in compared]
+        by_condition, by_difficulty = defaultdict(list), defaultdict(list)
+        for row in compared:
+            by_condition[row["theta"]["condition"] if row["stage"] != "canonical" else "canonical"].append(row["box_iou"])
+            by_difficulty[row["theta"]["difficulty"]].append(row["box_iou"])
+        worst = min(compared, key=lambda row: row["box_iou"]) if compared else None
+        report["box_iou"] = {
+            **summarise(ious),
+            "below_0.98": int(sum(v < 0.98 for v in ious)),
+            "amodal": summarise([row["amodal_box_iou"] for row in compared if "amodal_box_iou" in row]),
+            "visible_fraction_abs_diff": summarise([row["visible_fraction_diff"] for row in compared]),
+            "per_condition": {k: summarise(v) for k, v in sorted(by_condition.items())},
+            "per_difficulty": {k: summarise(v) for k, v in sorted(by_difficulty.items())},
+            "worst": worst,
+            "rejected_by_one_backend_only": int(
+                sum((row[fast] is None) != (row[slow] is None) for row in per_theta)
+            ),
+        }
+        report["worst_5"] = sorted(compared, key=lambda row: row["box_iou"])[:5]
+    return report
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--n-per-stage", type=int, default=3, help="θ per (condition, difficulty) and canonical")
+    parser.add_argument("--samples", type=int, default=16, help="Cycles samples per pixel (blender)")
+    parser.add_argument("--size", type=int, default=256, help="image side in pixels")
+    parser.add_argument("--backends", default="raster,blender", help="comma-separated, e.g. raster,blender")
+    parser.add_argument("--seed", type=int, default=2018)
+    parser.add_argument("--out", type=Path, help="also write the JSON here")
+    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+    args = parser.parse_args(argv)
+    backends = [b.strip() for b in args.backends.split(",") if b.strip()]
+    unknown = [b for b in backends if b not in BACKENDS]
+    if unknown or not backends or len(set(backends)) != len(backends):
+        parser.error(f"--backends: expected distinct names among {', '.join(BACKENDS)}, got {args.backends!r}")
+    if args.n_per_stage < 1 or args.samples < 1 or args.size < 16:
+        parser.error("--n-per-stage and --samples must be >= 1, --size >= 16")
+    report = run(args.n_per_stage, args.samples, args.size, backends, args.seed, progress=not args.quiet)
+    text = json.dumps(report, indent=2, default=float)
+    print(text)
+    if args.out:
+        args.out.write_text(text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
