@@ -195,7 +195,7 @@ def _options(width: float, height: float, opts: dict) -> _Options:
         value = opts.get(name)
         return default if value is None else value
 
-    mesh_step = _positive("mesh_step", get("mesh_step", max(width, height) / 20.0))
+    mesh_step = _positive("mesh_step", get("mesh_step", min(math.sqrt(width * height) / 16.0, min(width, height) / 4.0)))
     if mesh_step > min(width, height):
         raise ValueError(f"mesh_step {mesh_step:g} is larger than the sheet's short side {min(width, height):g}")
     smooth_steps = get("smooth_steps", 3)
@@ -310,26 +310,35 @@ def _sample_guides(
     """Guiding rulings as (s0, s1, angle) with nested ends on two arcs split by two corners,
     or None when no pair of corners leaves room for ``n`` rulings."""
     half_band = (options.smooth_steps - 1) / 2.0 * options.bend_spacing
-    end_margin = options.corner_gap + half_band
+    # Ruling ends (interpolated ones included) keep corner_gap from every corner: from the two
+    # corners that bound the arcs, and from the corner in the middle of an arc (if any).
+    keep_off = options.corner_gap + half_band
     spacing = 2.0 * half_band + options.min_gap  # between neighbouring guiding rulings' centres
     corners = border.corners
-    pairs = []
+    splits = []
     for i in range(4):
         for j in range(i + 1, 4):
             arc_a = corners[j] - corners[i]
+            inner_a = [c - corners[i] for c in corners[i + 1 : j]]
             arc_b = border.length - arc_a
-            if min(arc_a, arc_b) - 2 * end_margin - (n - 1) * spacing > 0:
-                pairs.append((i, j, arc_a, arc_b))
-    if not pairs:
+            inner_b = sorted((corners[i] - c) % border.length for c in (*corners[:i], *corners[j + 1 :]))
+            free_a = arc_a - 2 * keep_off * (1 + len(inner_a)) - (n - 1) * spacing
+            free_b = arc_b - 2 * keep_off * (1 + len(inner_b)) - (n - 1) * spacing
+            if min(free_a, free_b) > 0:
+                splits.append((i, (free_a, inner_a), (free_b, inner_b)))
+    if not splits:
         return None
-    i, _, arc_a, arc_b = pairs[int(rng.integers(len(pairs)))]
+    i, arc_a, arc_b = splits[int(rng.integers(len(splits)))]
 
-    def increasing(arc: float) -> np.ndarray:
-        # Uniform among positions at least `spacing` apart: sorted uniforms on the shortened arc.
-        free = arc - 2 * end_margin - (n - 1) * spacing
-        return end_margin + np.sort(rng.uniform(0.0, free, n)) + spacing * np.arange(n)
+    def increasing(free: float, inner_corners: list[float]) -> np.ndarray:
+        # Uniform among positions at least `spacing` apart (sorted uniforms on the arc shortened
+        # by the gaps), then opened up around the arc's inner corners.
+        positions = keep_off + np.sort(rng.uniform(0.0, free, n)) + spacing * np.arange(n)
+        for corner in inner_corners:
+            positions[positions >= corner - keep_off] += 2 * keep_off
+        return positions
 
-    along_a, along_b = increasing(arc_a), increasing(arc_b)
+    along_a, along_b = increasing(*arc_a), increasing(*arc_b)
     magnitudes = rng.uniform(options.min_angle, options.max_angle, n)
     signs = rng.choice([-1.0, 1.0], n)
     start = corners[i]
@@ -698,7 +707,7 @@ def build_sheet(width: float, height: float, rulings: Sequence[tuple[Sequence[fl
     border, radians, positive = valley fold seen from +z).
 
     Options (all keyword, lengths in metres): ``mesh_step`` (target edge length, default
-    max(W, H)/20), ``smooth_steps`` (interpolated rulings per guiding ruling, default 3; 1 is a
+    sqrt(W H)/16, at most min(W, H)/4), ``smooth_steps`` (interpolated rulings per guiding ruling, default 3; 1 is a
     sharp crease), ``bend_spacing`` (border distance between them, default 0.75 mesh_step),
     ``corner_gap`` (ruling ends kept this far from corners, default 0.5 mesh_step),
     ``min_strip`` (least distance between rulings, default 0.3 mesh_step),
