@@ -1,0 +1,68 @@
+# One image for every foldwise role (api, scheduler, render and train workers, migrate);
+# compose.yaml picks the role with the command. Build: `docker compose build` (BuildKit, the
+# default builder since Docker 23, for the RUN --mount below).
+
+# --- the project itself, as a wheel: rebuilt on every code change, and cheap ---------------
+FROM python:3.11-slim-bookworm AS wheel
+ENV PIP_NO_CACHE_DIR=1 PIP_DISABLE_PIP_VERSION_CHECK=1 PIP_ROOT_USER_ACTION=ignore
+WORKDIR /src
+# README.md is optional (the glob lets the build go on without it); pyproject names it.
+COPY pyproject.toml README.md* ./
+COPY foldwise/ foldwise/
+COPY db/ db/
+COPY workers/ workers/
+COPY services/ services/
+RUN pip wheel --no-deps --wheel-dir /wheels .
+
+# --- the runtime --------------------------------------------------------------------------
+FROM python:3.11-slim-bookworm
+
+ENV PYTHONUNBUFFERED=1 \
+    PYTHONDONTWRITEBYTECODE=1 \
+    PIP_NO_CACHE_DIR=1 \
+    PIP_DISABLE_PIP_VERSION_CHECK=1 \
+    PIP_ROOT_USER_ACTION=ignore
+
+# What bpy 5.0.1 links against outside its wheel (read off `ldd`/`readelf -d` of bpy's shared
+# objects): X11 client libraries, libxkbcommon, the GL dispatch libraries (libgl1 brings libglx0)
+# and libopengl0; libegl1 because bpy dlopens libEGL.so.1 when it runs headless. No X server,
+# no Mesa drivers: Cycles renders on the CPU (or CUDA/OptiX from the host driver).
+RUN apt-get update \
+ && apt-get install -y --no-install-recommends \
+        libx11-6 libxext6 libxrender1 libxfixes3 libxi6 libxt6 libxkbcommon0 \
+        libsm6 libice6 \
+        libgl1 libegl1 libopengl0 \
+ && rm -rf /var/lib/apt/lists/*
+
+RUN useradd --create-home --uid 1000 --shell /usr/sbin/nologin foldwise \
+ && mkdir -p /data \
+ && chown foldwise:foldwise /data
+
+WORKDIR /app
+
+# Dependencies first, from the package metadata alone (empty packages stand in for the code),
+# so that a code change reuses this layer instead of reinstalling torch and bpy. The same
+# constraints file and extras as `make install`, less the dev tools.
+COPY pyproject.toml constraints.txt ./
+RUN mkdir -p foldwise db workers services \
+ && touch foldwise/__init__.py db/__init__.py workers/__init__.py services/__init__.py \
+ && pip install -c constraints.txt '.[all]' \
+ && pip uninstall -y foldwise \
+ && rm -rf foldwise db workers services build ./*.egg-info
+
+# The code: only the wheel built above (bind-mounted, so it leaves no layer behind).
+RUN --mount=type=bind,from=wheel,source=/wheels,target=/wheels \
+    pip install --no-deps -c constraints.txt /wheels/foldwise-*.whl
+
+# Experiment configs and Table 3 (read at run time from FOLDWISE_CONFIGS_DIR).
+COPY configs/ configs/
+
+# The artifact store is the shared volume compose mounts at /data.
+ENV FOLDWISE_DATA_DIR=/data \
+    FOLDWISE_CONFIGS_DIR=/app/configs
+
+USER foldwise
+VOLUME ["/data"]
+
+# Every role is a `foldwise` sub-command; compose.yaml names which one each service runs.
+CMD ["foldwise", "--help"]
