@@ -13,6 +13,7 @@ of the Celery app import them only inside task bodies, and are never imported he
 # No `from __future__ import annotations`: FastAPI must resolve the dependency annotations
 # declared inside create_app at runtime, and string annotations cannot see those locals.
 import json
+import math
 import secrets
 import threading
 from collections.abc import Iterator
@@ -153,7 +154,14 @@ class BrokerProbe:
             if self._celery is None:
                 from workers.app import create_app as create_celery_app
 
-                self._celery = create_celery_app(self._settings)
+                celery = create_celery_app(self._settings)
+                # Closing a Redis channel waits out its pending BRPOP (1 s by default); a short
+                # poll makes a ping take about ping_timeout_s instead of twice that.
+                celery.conf.broker_transport_options = {
+                    **celery.conf.broker_transport_options,
+                    "polling_interval": 0.05,
+                }
+                self._celery = celery
             return self._celery
 
     def ping_workers(self) -> list[str]:
@@ -219,6 +227,23 @@ def _media_type(request: Request) -> str | None:
     return header.split(";", 1)[0].strip().lower()
 
 
+def _reject_constant(name: str) -> None:
+    # Python's json accepts NaN and Infinity; JSON does not, and PostgreSQL's JSON columns refuse them.
+    raise ValueError(f"{name} is not a JSON number")
+
+
+def _require_finite(value: Any, key: str = "") -> None:
+    """Refuse NaN and ±inf anywhere in a config (YAML's .nan and .inf), naming the key."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ConfigError(f"invalid experiment config:\n  {key}: must be a finite number, got {value}")
+    if isinstance(value, dict):
+        for name, item in value.items():
+            _require_finite(item, f"{key}.{name}" if key else str(name))
+    elif isinstance(value, (list, tuple)):
+        for index, item in enumerate(value):
+            _require_finite(item, f"{key}[{index}]")
+
+
 async def read_config(request: Request) -> ExperimentConfig:
     """The request body as a validated experiment config (JSON or YAML)."""
     media_type = _media_type(request)
@@ -243,11 +268,14 @@ async def read_config(request: Request) -> ExperimentConfig:
     try:
         if is_json:
             try:
-                data = json.loads(document)
-            except json.JSONDecodeError as error:
+                data = json.loads(document, parse_constant=_reject_constant)
+            except (json.JSONDecodeError, ValueError) as error:
                 raise ConfigError(f"invalid experiment config: not JSON: {error}") from None
-            return parse_config(data)
-        return parse_config_text(document)
+            config = parse_config(data)
+        else:
+            config = parse_config_text(document)
+        _require_finite(config.model_dump(mode="python"))
+        return config
     except ConfigError as error:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error)) from None
 
