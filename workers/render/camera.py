@@ -26,9 +26,11 @@ normal +z), so the canonical view looks straight at its front.
 * Scale multiplies the sheet's size (its vertices, about its centre); the camera stays at the
   canonical distance. Equivalent in the image to dividing the distance, except for depth
   effects on a deformed sheet.
-* Lighting: one distant light along the canonical optical axis (``light_direction`` +z,
-  towards the camera side), irradiance from θ, Lambertian sheet; ``exposure`` = 1 so that a
-  canonical, front-facing facet shows its texture unchanged (see scene.py).
+* Lighting: one distant light from the camera's side, a little above and to the left of
+  the optical axis (``LIGHT_DIRECTION``, 23° off it), irradiance from θ, Lambertian sheet.
+  ``exposure`` = 1 / cos(23°), so that a flat facet facing the canonical camera shows its
+  texture unchanged at irradiance 1 (see scene.py), while bent or turned facets get brighter
+  or darker: folds and pose show in the shading, as they would under a real lamp.
 """
 
 from __future__ import annotations
@@ -42,7 +44,8 @@ from workers.render.scene import Camera, Scene3D
 FIELD_OF_VIEW = math.radians(40.0)
 SHEET_LONG_SIDE_M = 3.0
 CANONICAL_SPAN = 0.65
-LIGHT_DIRECTION = np.array([0.0, 0.0, 1.0])
+LIGHT_DIRECTION = np.array([-0.25, 0.35, 1.0]) / np.linalg.norm([-0.25, 0.35, 1.0])
+EXPOSURE = 1.0 / float(LIGHT_DIRECTION[2])
 # Camera frame = OpenCV (x right, y down, z forward); the canonical camera looks along -z.
 _WORLD_TO_CAMERA = np.diag([1.0, -1.0, -1.0])
 
@@ -118,5 +121,5 @@ def build_scene(
         camera=make_camera(image_size, offset_m, offset_angle),
         irradiance=float(irradiance),
         light_direction=LIGHT_DIRECTION.copy(),
-        exposure=1.0,
+        exposure=EXPOSURE,
     )

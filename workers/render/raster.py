@@ -9,8 +9,9 @@ Two vectorised passes, no Python loop over triangles:
    ``np.minimum.at`` on a key that packs the quantised depth above the face index.
 2. Shading. For the covered pixels only: perspective-correct barycentrics of the winning
    face, UVs, one ``cv2.remap`` (bilinear) into the linear-light texture, times the face's
-   Lambertian factor ``irradiance * exposure * |n . l|``. Both sides of the sheet show the
-   texture (as Blender's single-sided plane does), lit by ``|n . l|``.
+   Lambertian factor ``irradiance * exposure * max(0, n . l)``, with ``n`` the facet's normal
+   turned towards the camera: both sides of the sheet show the texture, as Blender's
+   single-sided plane does, and a side facing away from the light is black, as in Cycles.
 
 The texture is sRGB-encoded; it is decoded to linear albedo first (a lookup table), and
 downsampled in linear light (``INTER_AREA``, powers of two) to the level that matches the
@@ -209,13 +210,16 @@ def render_scene(scene: Scene3D) -> BackendOutput:
 
 
 def _face_radiance(scene: Scene3D) -> np.ndarray:
-    """Per face: irradiance * exposure * |n . l| (float32), the Lambertian factor on the albedo."""
+    """Per face: irradiance * exposure * max(0, n . l) (float32), n turned towards the camera."""
     v = np.asarray(scene.vertices, np.float64)[np.asarray(scene.faces, np.int64)]
     normals = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    norms = np.linalg.norm(normals, axis=1)
+    norms = np.maximum(np.linalg.norm(normals, axis=1), 1e-300)
+    camera_centre = -scene.camera.R.T @ scene.camera.t
+    towards_camera = camera_centre - v.mean(axis=1)
+    facing = np.where(np.einsum("ij,ij->i", normals, towards_camera) >= 0, 1.0, -1.0)
     light = np.asarray(scene.light_direction, np.float64)
     light = light / max(float(np.linalg.norm(light)), 1e-300)
-    cosine = np.abs(normals @ light) / np.maximum(norms, 1e-300)
+    cosine = np.maximum(0.0, facing * (normals @ light) / norms)
     return (scene.irradiance * scene.exposure * cosine).astype(np.float32)
 
 

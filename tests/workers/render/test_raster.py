@@ -1,0 +1,184 @@
+"""The rasteriser against geometry computed by hand: coverage at pixel centres, texture
+orientation, perspective-correct texturing, z-test, Lambertian shading, off-image extent."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from workers.render.camera import EXPOSURE, LIGHT_DIRECTION, build_scene, canonical_distance, intrinsics
+from workers.render.raster import SRGB_TO_LINEAR, amodal_extent, render_scene, silhouette
+
+SIZE = 64
+WIDTH_M, HEIGHT_M = 3.0, 2.0
+
+
+def quad(width=WIDTH_M, height=HEIGHT_M, z=0.0, uv_box=(0.0, 0.0, 1.0, 1.0)):
+    """A flat two-triangle rectangle centred on the origin at depth z, counter-clockwise."""
+    w, h = width / 2, height / 2
+    vertices = np.array([[-w, -h, z], [w, -h, z], [w, h, z], [-w, h, z]], float)
+    u0, v0, u1, v1 = uv_box
+    uv = np.array([[u0, v0], [u1, v0], [u1, v1], [u0, v1]], float)
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    return vertices, faces, uv
+
+
+def quadrant_texture():
+    """Top-left red, top-right green, bottom-left blue, bottom-right white (8x8)."""
+    texture = np.zeros((8, 8, 3), np.uint8)
+    texture[:4, :4] = (255, 0, 0)
+    texture[:4, 4:] = (0, 255, 0)
+    texture[4:, :4] = (0, 0, 255)
+    texture[4:, 4:] = (255, 255, 255)
+    return texture
+
+
+def flat_scene(texture=None, size=SIZE, **pose):
+    vertices, faces, uv = quad()
+    texture = quadrant_texture() if texture is None else texture
+    return build_scene(vertices, faces, uv, texture, image_size=size, **pose)
+
+
+def expected_rectangle_mask(size, width_m, height_m, distance):
+    """Pixels whose centre falls inside the projected fronto-parallel rectangle."""
+    focal = intrinsics(size)[0, 0]
+    half_w = focal * width_m / 2 / distance
+    half_h = focal * height_m / 2 / distance
+    centres = np.arange(size) + 0.5
+    inside_x = np.abs(centres - size / 2) <= half_w
+    inside_y = np.abs(centres - size / 2) <= half_h
+    return inside_y[:, None] & inside_x[None, :]
+
+
+def test_coverage_is_exactly_the_pixel_centres_inside_the_projected_sheet():
+    output = render_scene(flat_scene())
+    expected = expected_rectangle_mask(SIZE, WIDTH_M, HEIGHT_M, canonical_distance())
+    assert np.array_equal(output.mask, expected)
+    assert np.array_equal(output.alpha, output.mask.astype(np.float32))
+    # The canonical framing: the longer side spans 65% of the image.
+    columns = np.flatnonzero(output.mask.any(axis=0))
+    assert abs((columns[-1] + 1 - columns[0]) - 0.65 * SIZE) <= 1.0
+
+
+def test_texture_is_upright_unmirrored_and_unchanged_on_a_front_facing_sheet():
+    output = render_scene(flat_scene())
+    rows = np.flatnonzero(output.mask.any(axis=1))
+    cols = np.flatnonzero(output.mask.any(axis=0))
+    top, bottom = rows[0] + 2, rows[-1] - 2
+    left, right = cols[0] + 2, cols[-1] - 2
+    red, green, blue, white = (
+        output.rgb[top, left],
+        output.rgb[top, right],
+        output.rgb[bottom, left],
+        output.rgb[bottom, right],
+    )
+    # Exposure makes a facet facing the canonical camera show the linear albedo exactly.
+    np.testing.assert_allclose(red, [1, 0, 0], atol=1e-5)
+    np.testing.assert_allclose(green, [0, 1, 0], atol=1e-5)
+    np.testing.assert_allclose(blue, [0, 0, 1], atol=1e-5)
+    np.testing.assert_allclose(white, [1, 1, 1], atol=1e-5)
+    assert not output.rgb[~output.mask].any()
+
+
+def test_srgb_texture_is_decoded_to_linear_albedo():
+    texture = np.full((4, 4, 3), 128, np.uint8)
+    output = render_scene(flat_scene(texture))
+    centre = output.rgb[SIZE // 2, SIZE // 2]
+    np.testing.assert_allclose(centre, SRGB_TO_LINEAR[128], rtol=1e-5)
+    assert 0.21 < SRGB_TO_LINEAR[128] < 0.22  # linear value of sRGB 128
+
+
+def test_lambertian_shading_scales_with_irradiance_and_cosine():
+    texture = np.full((4, 4, 3), 255, np.uint8)
+    base = render_scene(flat_scene(texture)).rgb[SIZE // 2, SIZE // 2, 0]
+    dim = render_scene(flat_scene(texture, irradiance=0.01)).rgb[SIZE // 2, SIZE // 2, 0]
+    bright = render_scene(flat_scene(texture, irradiance=10.0)).rgb[SIZE // 2, SIZE // 2, 0]
+    assert base == pytest.approx(1.0, abs=1e-6)
+    assert dim == pytest.approx(0.01, rel=1e-5)
+    assert bright == pytest.approx(10.0, rel=1e-5)  # unclipped: clipping is the pipeline's job
+    yaw = 0.6
+    turned = render_scene(flat_scene(texture, yaw=yaw)).rgb[SIZE // 2, SIZE // 2, 0]
+    normal = np.array([math.sin(yaw), 0.0, math.cos(yaw)])
+    assert turned == pytest.approx(EXPOSURE * float(normal @ LIGHT_DIRECTION), rel=1e-5)
+
+
+def test_texturing_is_perspective_correct():
+    # Top half red, bottom half blue: under a strong pitch the boundary (v = 0.5, the sheet's
+    # centre line) must land where the 3D centre projects, the image centre row. Affine
+    # interpolation in screen space would move it by several pixels.
+    texture = np.zeros((2, 2, 3), np.uint8)
+    texture[0] = (255, 0, 0)
+    texture[1] = (0, 0, 255)
+    size = 128
+    output = render_scene(flat_scene(texture, size=size, pitch=1.2, scale=2.5))
+    column = output.rgb[:, size // 2]
+    covered = output.mask[:, size // 2]
+    red_rows = np.flatnonzero(covered & (column[:, 0] > column[:, 2]))
+    blue_rows = np.flatnonzero(covered & (column[:, 2] > column[:, 0]))
+    boundary = (red_rows.max() + 1 + blue_rows.min()) / 2
+    assert abs(boundary - size / 2) <= 1.0
+    # ... and the projection is really foreshortened asymmetrically (the test means something).
+    assert abs((size / 2 - red_rows.min()) - (blue_rows.max() + 1 - size / 2)) >= 4
+
+
+def test_nearest_surface_wins_whatever_the_face_order():
+    texture = np.zeros((1, 2, 3), np.uint8)
+    texture[0, 0] = (255, 0, 0)  # left half of the texture: red
+    texture[0, 1] = (0, 0, 255)  # right half: blue
+    back_v, back_f, back_uv = quad(z=0.0, uv_box=(0.0, 0.0, 0.5, 1.0))
+    front_v, front_f, front_uv = quad(width=1.0, height=1.0, z=0.5, uv_box=(0.5, 0.0, 1.0, 1.0))
+    for first, second in (((back_v, back_f, back_uv), (front_v, front_f, front_uv)),
+                          ((front_v, front_f, front_uv), (back_v, back_f, back_uv))):
+        vertices = np.vstack([first[0], second[0]])
+        faces = np.vstack([first[1], second[1] + 4])
+        uv = np.vstack([first[2], second[2]])
+        output = render_scene(build_scene(vertices, faces, uv, texture, image_size=SIZE))
+        centre = output.rgb[SIZE // 2, SIZE // 2]
+        assert centre[2] > 0.5 and centre[0] < 0.01, "the nearer (blue) quad must hide the red one"
+        corner_rows = np.flatnonzero(output.mask.any(axis=1))
+        assert output.rgb[corner_rows[0] + 1, SIZE // 2 - 18, 0] > 0.5, "the far quad shows around the near one"
+
+
+def test_edge_on_sheet_covers_nothing_and_does_not_fail():
+    output = render_scene(flat_scene(yaw=math.pi / 2))
+    assert not output.mask.any()
+    assert np.isfinite(output.rgb).all()
+
+
+def test_triangles_behind_the_camera_are_dropped():
+    vertices, faces, uv = quad()
+    vertices = vertices.copy()
+    vertices[1, 2] = canonical_distance() + 1.0  # a corner of the first triangle only, behind the camera
+    output = render_scene(build_scene(vertices, faces, uv, quadrant_texture(), image_size=SIZE))
+    assert np.isfinite(output.rgb).all()
+    assert output.mask.any()  # the triangle not touching that corner still renders
+
+
+def test_amodal_extent_counts_the_part_outside_the_image():
+    scene = flat_scene(scale=3.0)
+    output = render_scene(scene)
+    area, box = amodal_extent(scene, output.mask)
+    focal = intrinsics(SIZE)[0, 0]
+    expected_w = 3.0 * focal * WIDTH_M / canonical_distance()
+    expected_h = 3.0 * focal * HEIGHT_M / canonical_distance()
+    assert area == pytest.approx(expected_w * expected_h, rel=0.03)
+    assert box[0] < 0 and box[2] > SIZE  # wider than the image
+    assert box[2] - box[0] == pytest.approx(expected_w, abs=1.0)
+    assert output.mask.sum() < area
+
+
+def test_amodal_extent_inside_the_image_is_the_mask_itself():
+    scene = flat_scene()
+    output = render_scene(scene)
+    area, box = amodal_extent(scene, output.mask)
+    assert area == output.mask.sum()
+    rows = np.flatnonzero(output.mask.any(axis=1))
+    cols = np.flatnonzero(output.mask.any(axis=0))
+    assert box == [cols[0], rows[0], cols[-1] + 1, rows[-1] + 1]
+
+
+def test_silhouette_matches_the_render_mask():
+    scene = flat_scene(roll=0.3, pitch=0.4, yaw=-0.5)
+    assert np.array_equal(silhouette(scene), render_scene(scene).mask)
