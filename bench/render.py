@@ -2,13 +2,16 @@
 
 For every (condition, difficulty) of Table 3 plus canonical, ``--n-per-stage`` θ are drawn
 with a fixed seed at ``--size``² pixels. Each θ is rendered by every backend in turn
-(interleaved, so machine load hits both alike), timed around ``render_theta``. Reported:
+(interleaved, alternating which goes first, so machine load hits both alike), timed around
+``render_theta``. Reported:
 
-* images per second per backend and their ratio (raster / blender), with the mean of each
-  pipeline stage's time (``RenderResult.timings``) so it is plain where the time goes;
+* images per second per backend and their ratio (raster / blender) for the whole
+  ``render_theta`` and for its 3D ``render`` stage alone, with the mean of each pipeline
+  stage's time (``RenderResult.timings``) so it is plain where the time goes;
 * box agreement: IoU between the two backends' boxes (the visible box after occlusion and
   border crop) per θ, its mean, min and the worst θ, also per condition and per difficulty;
-  amodal-box IoU and the visible-fraction difference alongside;
+  amodal-box IoU, the visible-fraction difference and the mean absolute difference of the
+  two final images (uint8 levels) alongside;
 * rejections (``RenderRejected``) per backend, with their reasons, and any other exception
   (a backend bug) with the θ it happened on; such θ are left out of the timings and IoUs.
 
@@ -98,7 +101,9 @@ def run(n_per_stage: int, samples: int, size: int, backends: list[str], seed: in
     started = time.perf_counter()
     for index, theta in enumerate(thetas):
         results = {}
-        for backend in backends:
+        # Alternate which backend goes first, so neither always runs on caches the other
+        # just cooled (Cycles' threads sweep the CPU caches).
+        for backend in backends if index % 2 == 0 else backends[::-1]:
             begin = time.perf_counter()
             try:
                 result = render_theta(theta, backend=backend, assets=assets, samples=samples)
@@ -131,6 +136,10 @@ def run(n_per_stage: int, samples: int, size: int, backends: list[str], seed: in
             if first.amodal_box is not None and second.amodal_box is not None:
                 row["amodal_box_iou"] = box_iou(first.amodal_box, second.amodal_box)
             row["visible_fraction_diff"] = abs(float(first.visible_fraction) - float(second.visible_fraction))
+            # How alike the final images look (uint8 levels, whole image incl. background).
+            row["image_mean_abs_diff"] = float(
+                np.abs(first.image.astype(np.int16) - second.image.astype(np.int16)).mean()
+            )
         per_theta.append(row)
         if progress:
             print(f"\r{index + 1}/{len(thetas)} θ", end="", file=sys.stderr, flush=True)
@@ -182,6 +191,10 @@ def run(n_per_stage: int, samples: int, size: int, backends: list[str], seed: in
             "below_0.98": int(sum(v < 0.98 for v in ious)),
             "amodal": summarise([row["amodal_box_iou"] for row in compared if "amodal_box_iou" in row]),
             "visible_fraction_abs_diff": summarise([row["visible_fraction_diff"] for row in compared]),
+            "image_mean_abs_diff_uint8": {
+                **summarise([row["image_mean_abs_diff"] for row in compared]),
+                "max": max((row["image_mean_abs_diff"] for row in compared), default=None),
+            },
             "per_condition": {k: summarise(v) for k, v in sorted(by_condition.items())},
             "per_difficulty": {k: summarise(v) for k, v in sorted(by_difficulty.items())},
             "worst": worst,
