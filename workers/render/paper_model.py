@@ -119,12 +119,15 @@ class _Border:
         w, h = self.width, self.height
         s = s % self.length
         if s <= w:
-            return (s, 0.0)
-        if s <= w + h:
-            return (w, s - w)
-        if s <= 2 * w + h:
-            return (w - (s - w - h), h)
-        return (0.0, h - (s - 2 * w - h))
+            x, y = s, 0.0
+        elif s <= w + h:
+            x, y = w, s - w
+        elif s <= 2 * w + h:
+            x, y = w - (s - w - h), h
+        else:
+            x, y = 0.0, h - (s - 2 * w - h)
+        # Round-off must not push a border point off the sheet (uv stays in [0, 1]).
+        return (min(max(x, 0.0), w), min(max(y, 0.0), h))
 
     def position(self, point: Sequence[float], tol: float) -> float:
         """``s`` of a border point; RulingLayoutError when the point is off the border."""
@@ -146,16 +149,6 @@ class _Border:
     def corner_distance(self, s: float) -> float:
         d = np.abs(self.corners - (s % self.length))
         return float(np.min(np.minimum(d, self.length - d)))
-
-
-def _cyclic_distance(a: float, b: float, length: float) -> float:
-    d = abs(a - b) % length
-    return min(d, length - d)
-
-
-def _ccw_between(start: float, point: float, end: float, length: float) -> bool:
-    """Whether ``point`` lies strictly inside the counter-clockwise arc from ``start`` to ``end``."""
-    return 0.0 < (point - start) % length < (end - start) % length
 
 
 # -- options ---------------------------------------------------------------------------------
@@ -265,21 +258,18 @@ def _expand(border: _Border, guides: list[tuple[float, float, float]], options: 
     return chords
 
 
-def _segment_distance(p0: np.ndarray, p1: np.ndarray, q0: np.ndarray, q1: np.ndarray) -> float:
-    """Distance between two 2D segments that do not cross: attained at an end point."""
-
-    def point_segment(p, a, b):
-        ab = b - a
-        t = np.clip(np.dot(p - a, ab) / np.dot(ab, ab), 0.0, 1.0)
-        return float(np.linalg.norm(p - (a + t * ab)))
-
-    return min(point_segment(p0, q0, q1), point_segment(p1, q0, q1), point_segment(q0, p0, p1), point_segment(q1, p0, p1))
+def _point_segment_distances(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distance from points[i] to segment (a[j], b[j]), as an (n, m) array."""
+    ab = (b - a)[None]
+    ap = points[:, None] - a[None]
+    t = np.clip(np.sum(ap * ab, axis=2) / np.sum(ab * ab, axis=2), 0.0, 1.0)
+    return np.linalg.norm(ap - t[..., None] * ab, axis=2)
 
 
 def _validate_layout(border: _Border, chords: list[_Chord], options: _Options) -> None:
     """RulingLayoutError naming the first problem: ends at corners or on one side, crossing
     rulings, ends nearly shared, strips narrower than ``min_strip``."""
-    length = border.length
+    names = ["bottom", "right", "top", "left"]
     for c in chords:
         for s in (c.s0, c.s1):
             if border.corner_distance(s) < options.corner_gap:
@@ -288,20 +278,45 @@ def _validate_layout(border: _Border, chords: list[_Chord], options: _Options) -
                     f"ruling end ({x:.4g}, {y:.4g}) is within {options.corner_gap:.3g} of a sheet corner"
                 )
         if border.side(c.s0) == border.side(c.s1):
-            names = ["bottom", "right", "top", "left"]
             raise RulingLayoutError(f"a ruling has both ends on the {names[border.side(c.s0)]} side")
-    for i, a in enumerate(chords):
-        for b in chords[i + 1 :]:
-            gap = min(_cyclic_distance(sa, sb, length) for sa in (a.s0, a.s1) for sb in (b.s0, b.s1))
-            if gap < options.min_strip:
-                raise RulingLayoutError(f"two rulings have ends only {gap:.3g} apart (min_strip {options.min_strip:.3g})")
-            if _ccw_between(a.s0, b.s0, a.s1, length) != _ccw_between(a.s0, b.s1, a.s1, length):
-                raise RulingLayoutError("two rulings cross inside the sheet")
-            distance = _segment_distance(a.p0, a.p1, b.p0, b.p1)
-            if distance < options.min_strip:
-                raise RulingLayoutError(
-                    f"two rulings come within {distance:.3g} of each other (min_strip {options.min_strip:.3g})"
-                )
+    if len(chords) < 2:
+        return
+    length = border.length
+    s0 = np.array([c.s0 for c in chords])
+    s1 = np.array([c.s1 for c in chords])
+    p0 = np.array([c.p0 for c in chords])
+    p1 = np.array([c.p1 for c in chords])
+    pair = np.triu(np.ones((len(chords), len(chords)), bool), k=1)
+
+    def cyclic(a, b):
+        d = np.abs(a[:, None] - b[None]) % length
+        return np.minimum(d, length - d)
+
+    gaps = np.minimum.reduce([cyclic(s0, s0), cyclic(s0, s1), cyclic(s1, s0), cyclic(s1, s1)])
+    bad = pair & (gaps < options.min_strip)
+    if bad.any():
+        gap = gaps[bad][0]
+        raise RulingLayoutError(f"two rulings have ends only {gap:.3g} apart (min_strip {options.min_strip:.3g})")
+    # Two chords cross exactly when their ends alternate along the border.
+    span = ((s1 - s0) % length)[:, None]
+    inside0 = (s0[None] - s0[:, None]) % length < span
+    inside1 = (s1[None] - s0[:, None]) % length < span
+    if np.any(pair & (inside0 != inside1)):
+        raise RulingLayoutError("two rulings cross inside the sheet")
+    # Segments that do not cross are closest at an end of one of them.
+    distances = np.minimum.reduce(
+        [
+            _point_segment_distances(p0, p0, p1),
+            _point_segment_distances(p1, p0, p1),
+            _point_segment_distances(p0, p0, p1).T,
+            _point_segment_distances(p1, p0, p1).T,
+        ]
+    )
+    bad = pair & (distances < options.min_strip)
+    if bad.any():
+        raise RulingLayoutError(
+            f"two rulings come within {distances[bad][0]:.3g} of each other (min_strip {options.min_strip:.3g})"
+        )
 
 
 def _sample_guides(
@@ -473,22 +488,18 @@ def _triangulate_region(region: _Region, points: np.ndarray, grid: np.ndarray, o
     inside = np.all(grid @ normals.T - offsets <= -margin, axis=1)
     interior = grid[inside]
 
-    # Bulge the boundary points of every straight edge outward (see _BULGE).
+    # Bulge the boundary points of every straight edge outward (see _BULGE). The chain starts
+    # at a corner, so chain position k lies on the edge of the last corner at or before it.
     chain = np.array(region.chain)
-    bulged = points[chain].copy()
-    corner_positions = [k for k, v in enumerate(region.chain) if v in set(region.corner_ids)]
-    n_chain = len(chain)
-    for e, start in enumerate(corner_positions):
-        stop = corner_positions[(e + 1) % len(corner_positions)]
-        count = (stop - start) % n_chain
-        if count < 2:
-            continue
-        a, b = points[chain[start]], points[chain[stop]]
-        length = float(np.linalg.norm(b - a))
-        for k in range(1, count):
-            idx = (start + k) % n_chain
-            t = float(np.dot(points[chain[idx]] - a, b - a)) / length**2
-            bulged[idx] = points[chain[idx]] + normals[e] * (_BULGE * length * 4.0 * t * (1.0 - t))
+    corner_set = set(region.corner_ids)
+    corner_positions = np.array([k for k, v in enumerate(region.chain) if v in corner_set])
+    edge = np.searchsorted(corner_positions, np.arange(len(chain)), side="right") - 1
+    a = points[chain[corner_positions[edge]]]
+    b = points[chain[corner_positions[(edge + 1) % len(corner_positions)]]]
+    ab = b - a
+    lengths = np.linalg.norm(ab, axis=1)
+    t = np.sum((points[chain] - a) * ab, axis=1) / lengths**2
+    bulged = points[chain] + normals[edge] * (_BULGE * lengths * 4.0 * t * (1.0 - t))[:, None]
 
     local = np.vstack([bulged, interior])
     triangulation = Delaunay(local)

@@ -1,0 +1,378 @@
+"""The paper model: random isometric bending of a sheet along non-crossing rulings.
+
+The geometric checks recompute everything from the returned arrays (flat and bent vertices,
+faces, rulings) rather than trusting the module's own bookkeeping.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from workers.render.paper_model import (
+    RulingLayoutError,
+    SelfIntersection,
+    SheetMesh,
+    build_sheet,
+    sample_sheet,
+    write_obj,
+)
+
+A4 = (0.21, 0.297)
+SEEDS = range(50)
+RULING_COUNTS = (2, 3, 5, 8)
+
+
+# -- independent geometry helpers -------------------------------------------------------------
+
+
+def edges_of(faces: np.ndarray) -> np.ndarray:
+    return np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+
+
+def triangle_angles(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """(F, 3) interior angle at each corner of each triangle."""
+    tri = points[faces]
+    angles = []
+    for k in range(3):
+        u = tri[:, (k + 1) % 3] - tri[:, k]
+        v = tri[:, (k + 2) % 3] - tri[:, k]
+        cos = np.einsum("ij,ij->i", u, v) / (np.linalg.norm(u, axis=1) * np.linalg.norm(v, axis=1))
+        angles.append(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return np.stack(angles, axis=1)
+
+
+def signed_flat_areas(flat: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    t = flat[faces]
+    return 0.5 * ((t[:, 1, 0] - t[:, 0, 0]) * (t[:, 2, 1] - t[:, 0, 1]) - (t[:, 1, 1] - t[:, 0, 1]) * (t[:, 2, 0] - t[:, 0, 0]))
+
+
+def border_sides(points: np.ndarray, width: float, height: float, tol: float) -> np.ndarray:
+    """(n, 4) bool: on the bottom, right, top, left side."""
+    x, y = points[:, 0], points[:, 1]
+    return np.stack([np.abs(y) <= tol, np.abs(x - width) <= tol, np.abs(y - height) <= tol, np.abs(x) <= tol], axis=1)
+
+
+def orientation(a, b, c) -> float:
+    return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
+
+
+def segments_cross(p0, p1, q0, q1) -> bool:
+    """Whether two 2D segments share a point (touching counts)."""
+    o1, o2 = orientation(p0, p1, q0), orientation(p0, p1, q1)
+    o3, o4 = orientation(q0, q1, p0), orientation(q0, q1, p1)
+    return (o1 * o2 <= 0) and (o3 * o4 <= 0)
+
+
+def assert_valid_sheet(mesh: SheetMesh) -> None:
+    width, height = mesh.width, mesh.height
+    scale = max(width, height)
+    flat, vertices, faces = mesh.flat, mesh.vertices, mesh.faces
+    assert flat.dtype == vertices.dtype == np.float64 and faces.dtype == np.int64
+    assert flat.shape[1] == 2 and vertices.shape == (len(flat), 3) and faces.shape[1] == 3
+    assert faces.min() >= 0 and faces.max() < len(flat)
+    assert len(np.unique(faces)) == len(flat), "every vertex is used by a triangle"
+    assert np.all(flat >= 0.0) and np.all(flat <= np.array([width, height]))
+    np.testing.assert_allclose(mesh.uv, flat / np.array([width, height]), rtol=0, atol=1e-15)
+
+    # Counter-clockwise, non-degenerate triangles that tile the flat sheet exactly.
+    areas = signed_flat_areas(flat, faces)
+    assert areas.min() > 1e-4 * (scale / 20) ** 2, "no (near) zero-area triangle"
+    assert math.isclose(areas.sum(), width * height, rel_tol=1e-12)
+
+    # Isometry: edge lengths and triangle angles equal the flat sheet's.
+    flat3 = np.column_stack([flat, np.zeros(len(flat))])
+    edges = edges_of(faces)
+    flat_lengths = np.linalg.norm(flat3[edges[:, 0]] - flat3[edges[:, 1]], axis=1)
+    bent_lengths = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    np.testing.assert_allclose(bent_lengths, flat_lengths, rtol=1e-9, atol=0)
+    np.testing.assert_allclose(triangle_angles(vertices, faces), triangle_angles(flat3, faces), rtol=1e-9, atol=1e-12)
+
+    # Watertight: every edge is shared by two triangles, except edges along the sheet border.
+    keys, counts = np.unique(np.sort(edges, axis=1), axis=0, return_counts=True)
+    assert counts.max() == 2, "an edge belongs to more than two triangles"
+    open_edges = keys[counts == 1]
+    tol = 1e-9 * scale
+    sides0 = border_sides(flat[open_edges[:, 0]], width, height, tol)
+    sides1 = border_sides(flat[open_edges[:, 1]], width, height, tol)
+    assert np.all(np.any(sides0 & sides1, axis=1)), "an open edge is not along the sheet border"
+    assert math.isclose(
+        np.linalg.norm(flat[open_edges[:, 0]] - flat[open_edges[:, 1]], axis=1).sum(), 2 * (width + height), rel_tol=1e-12
+    ), "the open edges are exactly the border"
+
+    # Interior vertices: the bent triangle angles around them still add up to 2π.
+    on_border = np.any(border_sides(flat, width, height, tol), axis=1)
+    angle_sums = np.bincount(faces.ravel(), weights=triangle_angles(vertices, faces).ravel(), minlength=len(flat))
+    np.testing.assert_allclose(angle_sums[~on_border], 2 * np.pi, rtol=1e-9)
+
+    # Rulings: both ends on the border, on two different sides, no two touching or crossing.
+    lines = mesh.fold_lines
+    assert len(lines) >= len(mesh.rulings)
+    for p0, p1, _ in [*mesh.rulings, *lines]:
+        ends = border_sides(np.array([p0, p1]), width, height, tol)
+        assert ends[0].any() and ends[1].any(), "ruling end off the border"
+        assert not np.any(ends[0] & ends[1]), "ruling with both ends on one side"
+    for i, (p0, p1, _) in enumerate(lines):
+        for q0, q1, _ in lines[i + 1 :]:
+            assert not segments_cross(p0, p1, q0, q1), "two rulings cross or touch"
+
+    # No triangle straddles a ruling: its vertices are all on one side or on the line.
+    for p0, p1, _ in lines:
+        p0, p1 = np.asarray(p0), np.asarray(p1)
+        direction = (p1 - p0) / np.linalg.norm(p1 - p0)
+        side = (flat[:, 0] - p0[0]) * direction[1] - (flat[:, 1] - p0[1]) * direction[0]
+        side = np.where(np.abs(side) <= tol, 0.0, np.sign(side))[faces]
+        assert not np.any((side.max(axis=1) > 0) & (side.min(axis=1) < 0)), "a triangle crosses a ruling"
+
+    # The region holding the sheet centre stays where the flat sheet was.
+    centre_face = np.argmax(
+        np.min(
+            [
+                orientation(flat[faces[:, k]].T, flat[faces[:, (k + 1) % 3]].T, (width / 2, height / 2))
+                for k in range(3)
+            ],
+            axis=0,
+        )
+    )
+    fixed = faces[centre_face]
+    np.testing.assert_allclose(vertices[fixed, :2], flat[fixed] - [width / 2, height / 2], atol=1e-12)
+    np.testing.assert_allclose(vertices[fixed, 2], 0.0, atol=1e-12)
+
+
+# -- sampled sheets -------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n_rulings", RULING_COUNTS)
+def test_sampled_sheets_are_isometric_and_well_meshed(n_rulings):
+    rejected = []
+    for seed in SEEDS:
+        try:
+            mesh = sample_sheet(n_rulings, np.random.default_rng(seed), *A4)
+        except SelfIntersection as error:
+            rejected.append(error.reason)
+            continue
+        assert len(mesh.rulings) == n_rulings
+        assert 200 <= len(mesh.faces) <= 2500, "meshes stay modest"
+        assert_valid_sheet(mesh)
+        # The sheet really bends: every guiding ruling has its angle, and something leaves z=0.
+        assert all(math.radians(10) - 1e-12 <= abs(angle) <= math.radians(50) + 1e-12 for *_, angle in mesh.rulings)
+        assert np.ptp(mesh.vertices[:, 2]) > 1e-3
+    assert len(rejected) <= len(SEEDS) // 5, f"too many self-intersecting samples: {rejected}"
+
+
+def test_same_generator_state_gives_the_same_sheet():
+    first = sample_sheet(5, np.random.default_rng(123), *A4)
+    second = sample_sheet(5, np.random.default_rng(123), *A4)
+    other = sample_sheet(5, np.random.default_rng(124), *A4)
+    for name in ("flat", "vertices", "faces", "uv"):
+        np.testing.assert_array_equal(getattr(first, name), getattr(second, name))
+    assert first.rulings == second.rulings
+    assert first.rulings != other.rulings
+
+
+def test_interpolated_rulings_share_their_guiding_angle():
+    mesh = sample_sheet(3, np.random.default_rng(5), *A4, smooth_steps=4)
+    assert len(mesh.fold_lines) == 12
+    for guide, (*_, angle) in enumerate(mesh.rulings):
+        shares = [a for *_, a in mesh.fold_lines[4 * guide : 4 * guide + 4]]
+        np.testing.assert_allclose(shares, angle / 4)
+    assert_valid_sheet(mesh)
+
+
+def test_sharp_creases_and_other_sheet_shapes():
+    for n, size, opts in [
+        (8, (0.5, 0.12), {}),
+        (5, (1.0, 1.0), {"smooth_steps": 1}),
+        (8, (0.9, 0.6), {"smooth_steps": 5, "mesh_step": 0.04}),
+        (1, (0.3, 0.2), {}),
+    ]:
+        mesh = sample_sheet(n, np.random.default_rng(11), *size, **opts)
+        assert len(mesh.fold_lines) == n * opts.get("smooth_steps", 3)
+        assert_valid_sheet(mesh)
+
+
+def test_no_rulings_gives_the_flat_sheet():
+    mesh = sample_sheet(0, np.random.default_rng(0), *A4)
+    assert mesh.rulings == [] and mesh.fold_lines == []
+    assert_valid_sheet(mesh)
+    np.testing.assert_array_equal(mesh.vertices[:, 2], 0.0)
+    np.testing.assert_allclose(mesh.vertices[:, :2], mesh.flat - np.array(A4) / 2)
+    normals = np.cross(
+        mesh.vertices[mesh.faces[:, 1]] - mesh.vertices[mesh.faces[:, 0]],
+        mesh.vertices[mesh.faces[:, 2]] - mesh.vertices[mesh.faces[:, 0]],
+    )
+    assert np.all(normals[:, 2] > 0), "faces are counter-clockwise, normals towards +z"
+
+
+# -- given rulings --------------------------------------------------------------------------
+
+
+def test_a_positive_angle_is_a_valley_fold_of_the_right_size():
+    width, height = A4
+    for angle in (0.7, -0.7):
+        # A vertical crease right of the centre: the left part stays, the right part turns.
+        mesh = build_sheet(width, height, [((0.15, 0.0), (0.15, height), angle)], smooth_steps=1)
+        assert_valid_sheet(mesh)
+        right = mesh.flat[:, 0] > 0.15 + 1e-9
+        left = mesh.flat[:, 0] < 0.15 - 1e-9
+        np.testing.assert_allclose(mesh.vertices[left, 2], 0.0, atol=1e-15)
+        # The far edge (x = W) rises (valley) or drops (mountain) by its distance times sin(angle).
+        far = np.isclose(mesh.flat[:, 0], width)
+        np.testing.assert_allclose(mesh.vertices[far, 2], (width - 0.15) * math.sin(angle), rtol=1e-12)
+        assert np.sign(mesh.vertices[right, 2]).tolist() == [np.sign(angle)] * int(right.sum())
+        # Dihedral angle between the two sides' normals is the bending angle.
+        tri = mesh.vertices[mesh.faces]
+        normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        turned = normals[right[mesh.faces].all(axis=1)]
+        np.testing.assert_allclose(np.arccos(np.clip(turned @ [0, 0, 1], -1, 1)), abs(angle), rtol=1e-12)
+
+
+def test_smooth_bend_spreads_the_angle_over_its_band():
+    width, height = A4
+    mesh = build_sheet(width, height, [((0.05, 0.0), (0.05, height), 1.2)], smooth_steps=4, bend_spacing=0.01)
+    assert_valid_sheet(mesh)
+    xs = sorted(p0[0] for p0, _, _ in mesh.fold_lines)
+    np.testing.assert_allclose(xs, [0.035, 0.045, 0.055, 0.065], atol=1e-12)
+    # The centre is right of the band: the part left of it turns by the whole angle.
+    left_edge = np.isclose(mesh.flat[:, 0], 0.0)
+    assert np.all(mesh.vertices[left_edge, 2] > 0)
+    tri = mesh.vertices[mesh.faces]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    outside = (mesh.flat[mesh.faces][:, :, 0] < 0.035 - 1e-9).all(axis=1)
+    np.testing.assert_allclose(normals[outside] @ [0, 0, 1], math.cos(1.2), rtol=1e-12)
+
+
+def test_flaps_folded_through_each_other_are_a_self_intersection():
+    width, height = A4
+    # Two flaps, 0.4 W wide, folded up by 110° over a middle strip 0.2 W wide: in the x-z
+    # cross-section the left flap runs from (0.4W, 0) to (0.537W, 0.376W) and the right one
+    # from (0.6W, 0) to (0.463W, 0.376W), so they cross above x = 0.5 W. The bends along the
+    # sheet add up to 220°, below the 270° curl limit: only the geometric test can see it.
+    rulings = [((0.4 * width, 0.0), (0.4 * width, height), math.radians(110)),
+               ((0.6 * width, 0.0), (0.6 * width, height), math.radians(110))]
+    with pytest.raises(SelfIntersection, match="pass through") as caught:
+        build_sheet(width, height, rulings, smooth_steps=1)
+    assert "regions" in caught.value.reason
+    # Without the check the same sheet is built, and it is still an exact isometry.
+    assert_valid_sheet(build_sheet(width, height, rulings, smooth_steps=1, check_self_intersection=False))
+    # Folding the flaps to opposite sides (a Z) keeps them apart.
+    apart = [rulings[0], (rulings[1][0], rulings[1][1], -rulings[1][2])]
+    assert_valid_sheet(build_sheet(width, height, apart, smooth_steps=1))
+    # Less folded (70°), the flaps lean outwards and never meet.
+    assert_valid_sheet(build_sheet(width, height, [(p0, p1, math.radians(70)) for p0, p1, _ in rulings], smooth_steps=1))
+
+
+def test_layers_closer_than_the_clearance_count_as_touching():
+    width, height = A4
+    # A flap folded flat back (179°) over a strip tilted by 1°: it lies parallel to the fixed
+    # region, 0.05 W * sin(1°) ~ 0.18 mm above it, without crossing it.
+    rulings = [((0.25 * width, 0.0), (0.25 * width, height), math.radians(179)),
+               ((0.3 * width, 0.0), (0.3 * width, height), math.radians(1))]
+    with pytest.raises(SelfIntersection, match="within 0.001"):
+        build_sheet(width, height, rulings, smooth_steps=1, clearance=1e-3)
+    assert_valid_sheet(build_sheet(width, height, rulings, smooth_steps=1, clearance=0.0))
+
+
+def test_bends_adding_up_past_the_limit_are_rejected():
+    width, height = A4
+    rulings = [((x, 0.0), (x, height), math.radians(100)) for x in (0.05, 0.1, 0.16)]
+    with pytest.raises(SelfIntersection, match="add up to 300 degrees"):
+        build_sheet(width, height, rulings)
+    # Alternating signs never curl: 100 - 100 + 100.
+    alternating = [(p0, p1, a * s) for (p0, p1, a), s in zip(rulings, (1, -1, 1))]
+    assert_valid_sheet(build_sheet(width, height, alternating))
+
+
+def test_high_bending_angles_get_rejected_sometimes_and_never_pass_intersecting():
+    # With up to 170° per ruling many samples curl through themselves: the ones that pass
+    # must still be valid sheets; the others name their reason.
+    outcomes = {"ok": 0, "rejected": 0}
+    for seed in range(12):
+        try:
+            mesh = sample_sheet(3, np.random.default_rng(seed), *A4, min_angle=2.0, max_angle=2.9)
+        except SelfIntersection as error:
+            assert error.reason and str(error) == error.reason
+            outcomes["rejected"] += 1
+            continue
+        outcomes["ok"] += 1
+        assert_valid_sheet(mesh)
+    assert outcomes["rejected"] >= 3
+
+
+# -- bad input ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "rulings, message",
+    [
+        ([((0.05, 0.0), (0.15, 0.0), 0.5)], "both ends on the bottom"),
+        ([((0.05, 0.0), (0.15, 0.297), 0.5), ((0.15, 0.0), (0.05, 0.297), 0.5)], "cross"),
+        ([((0.05, 0.1), (0.15, 0.297), 0.5)], "not on the sheet border"),
+        ([((0.05, -0.1), (0.15, 0.297), 0.5)], "outside"),
+        ([((0.0, 0.0), (0.21, 0.297), 0.5)], "corner"),
+        ([((0.05, 0.0), (0.05, 0.297), 0.5), ((0.052, 0.0), (0.052, 0.297), 0.5)], "apart"),
+        ([((0.05, 0.0), (0.05, 0.297), math.pi)], "below pi"),
+        ([((0.05, 0.0), (0.05, 0.297))], "must be \\(p0, p1, angle\\)"),
+    ],
+)
+def test_bad_rulings_are_named(rulings, message):
+    with pytest.raises(RulingLayoutError, match=message):
+        build_sheet(*A4, rulings, smooth_steps=1)
+
+
+def test_bad_arguments_are_clear_errors():
+    rng = np.random.default_rng(0)
+    with pytest.raises(ValueError, match="n_rulings"):
+        sample_sheet(-1, rng, *A4)
+    with pytest.raises(TypeError, match="n_rulings"):
+        sample_sheet(2.5, rng, *A4)
+    with pytest.raises(TypeError, match="Generator"):
+        sample_sheet(2, 7, *A4)
+    with pytest.raises(ValueError, match="width"):
+        sample_sheet(2, rng, 0.0, 0.3)
+    with pytest.raises(ValueError, match="height"):
+        sample_sheet(2, rng, 0.2, float("nan"))
+    with pytest.raises(TypeError, match="unknown paper model option.*wiggle"):
+        sample_sheet(2, rng, *A4, wiggle=3)
+    with pytest.raises(ValueError, match="smooth_steps"):
+        sample_sheet(2, rng, *A4, smooth_steps=0)
+    with pytest.raises(ValueError, match="max_angle"):
+        sample_sheet(2, rng, *A4, max_angle=4.0)
+    with pytest.raises(ValueError, match="do not fit"):
+        sample_sheet(40, rng, *A4)
+
+
+# -- OBJ ------------------------------------------------------------------------------------
+
+
+def read_obj(path):
+    vertices, uvs, faces = [], [], []
+    for line in path.read_text().splitlines():
+        kind, *fields = line.split() or [""]
+        if kind == "v":
+            vertices.append([float(f) for f in fields])
+        elif kind == "vt":
+            uvs.append([float(f) for f in fields])
+        elif kind == "f":
+            corners = [f.split("/") for f in fields]
+            assert all(v == t for v, t in corners), "v and vt indices agree"
+            faces.append([int(v) - 1 for v, _ in corners])
+    return np.array(vertices), np.array(uvs), np.array(faces)
+
+
+def test_obj_round_trips(tmp_path):
+    mesh = sample_sheet(5, np.random.default_rng(3), *A4)
+    path = tmp_path / "sheet.obj"
+    write_obj(mesh, path)
+    vertices, uvs, faces = read_obj(path)
+    assert len(vertices) == len(uvs) == len(mesh.vertices)
+    assert uvs.min() >= 0.0 and uvs.max() <= 1.0
+    np.testing.assert_allclose(vertices, mesh.vertices, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(uvs, mesh.uv, rtol=0, atol=1e-12)
+    np.testing.assert_array_equal(faces, mesh.faces)
+    write_obj(mesh, str(tmp_path / "as_string.obj"))
+    assert (tmp_path / "as_string.obj").read_text() == path.read_text()
