@@ -27,6 +27,7 @@ Conventions match ``scene.py`` and the raster backend:
 
 from __future__ import annotations
 
+import atexit
 import contextlib
 import math
 import os
@@ -481,6 +482,7 @@ def get_renderer(samples: int = 16, device: str = "CPU") -> BlenderRenderer:
     with _renderer_lock:
         if _renderer is None:
             _renderer = BlenderRenderer(samples=samples, device=device)
+            atexit.register(_renderer.close)
         else:
             _renderer.configure(samples=samples, device=device)
         return _renderer

@@ -4,7 +4,10 @@ agreement with the raster backend on the object mask."""
 from __future__ import annotations
 
 import importlib.util
+import pickle
 import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -167,6 +170,29 @@ def test_same_scene_renders_identical_bytes(renderer):
     second = renderer.render(scene)
     assert first.rgb.tobytes() == second.rgb.tobytes()
     assert first.alpha.tobytes() == second.alpha.tobytes()
+
+
+def test_another_process_renders_the_same_bytes(renderer, tmp_path):
+    # Render tasks may be redelivered to another worker process: the image must not change.
+    texture = np.random.default_rng(5).integers(0, 256, size=(16, 16, 3), dtype=np.uint8)
+    scene = flat_scene(texture=texture, camera=make_camera(tilt=(0.1, 0.2, -0.3)), grid=(2, 3), irradiance=0.8)
+    with open(tmp_path / "scene.pkl", "wb") as file:
+        pickle.dump(scene, file)
+    child = (
+        "import pickle, sys, numpy as np\n"
+        "from workers.render.blender import get_renderer\n"
+        "scene = pickle.load(open(sys.argv[1], 'rb'))\n"
+        f"out = get_renderer(samples={SAMPLES}).render(scene)\n"
+        "np.savez(sys.argv[2], rgb=out.rgb, alpha=out.alpha)\n"
+    )
+    subprocess.run(
+        [sys.executable, "-c", child, str(tmp_path / "scene.pkl"), str(tmp_path / "out.npz")],
+        check=True, capture_output=True, timeout=120,
+    )
+    other = np.load(tmp_path / "out.npz")
+    here = renderer.render(scene)
+    assert here.rgb.tobytes() == other["rgb"].tobytes()
+    assert here.alpha.tobytes() == other["alpha"].tobytes()
 
 
 def test_projected_corners_bound_the_rendered_mask(renderer):
