@@ -145,6 +145,27 @@ def test_oblique_light_and_exposure_scale_linearly(renderer):
     np.testing.assert_allclose(out.rgb[inside], srgb_to_linear(200) * 0.5 * 2.0, rtol=1e-4)
 
 
+def test_no_shadows_follow_the_shading_model(renderer):
+    # A small card floats above the sheet between it and an oblique light: the model (and
+    # the raster backend) has no visibility term, so the sheet under it stays fully lit.
+    sheet_vertices, sheet_faces, sheet_uv = grid_sheet()
+    card_vertices, card_faces, card_uv = grid_sheet(width=0.2, height=0.2)
+    card_vertices = card_vertices + [0.0, 0.0, 0.3]
+    light = np.array([1.0, 0.0, 1.0])  # 45°: the card's shadow lands around x = -0.3 on the sheet
+    scene = Scene3D(
+        vertices=np.concatenate([sheet_vertices, card_vertices]),
+        faces=np.concatenate([sheet_faces, card_faces + len(sheet_vertices)]),
+        uv=np.concatenate([sheet_uv, card_uv]),
+        texture=uniform_texture(128),
+        camera=make_camera(),
+        light_direction=light,
+    )
+    out = renderer.render(scene)
+    shadow_spot, _ = scene.camera.project(np.array([[-0.3, 0.0, 0.0]]))
+    column, row = np.floor(shadow_spot[0]).astype(int)
+    np.testing.assert_allclose(out.rgb[row - 1 : row + 2, column - 1 : column + 2], srgb_to_linear(128) / np.sqrt(2), rtol=1e-4)
+
+
 @pytest.mark.parametrize("irradiance", [0.01, 10.0])
 def test_extreme_irradiance_gives_finite_scaled_output(renderer, irradiance):
     reference = renderer.render(flat_scene(irradiance=1.0))
