@@ -52,7 +52,7 @@ ModelId = Annotated[int, Path(ge=1, le=MAX_ID, description="model id (ω)")]
 
 
 class BrokerUnavailable(RuntimeError):
-    """The broker cannot be reached (or is not one whose queues can be read)."""
+    """The broker did not answer within the timeout."""
 
 
 def _first_line(error: BaseException, limit: int = 300) -> str:
@@ -120,10 +120,14 @@ class BrokerProbe:
                 from kombu import Connection
 
                 with Connection(self.url, connect_timeout=self.timeout_s) as connection:
-                    connection.ensure_connection(max_retries=1, interval_start=0, interval_step=0, timeout=self.timeout_s)
+                    self._connect_once(connection)
         except Exception as error:  # any failure to talk to the broker is the answer, not a 500
             return {"status": "error", "url": self.display_url, "detail": _first_line(error)}
         return {"status": "ok", "url": self.display_url}
+
+    def _connect_once(self, connection) -> None:
+        # Kombu would otherwise retry a lost broker for minutes.
+        connection.ensure_connection(max_retries=1, interval_start=0, interval_step=0, timeout=self.timeout_s)
 
     def queue_depths(self, queues: tuple[str, ...]) -> dict[str, Any]:
         """Messages waiting per queue, and those delivered to a worker but not yet acknowledged.
@@ -169,8 +173,7 @@ class BrokerProbe:
         celery = self._celery_app()
         try:
             with celery.connection_for_write() as connection:
-                # Celery would otherwise retry a lost broker for minutes.
-                connection.ensure_connection(max_retries=1, interval_start=0, interval_step=0, timeout=self.timeout_s)
+                self._connect_once(connection)
                 replies = celery.control.ping(timeout=self.ping_timeout_s, connection=connection) or []
         except Exception as error:
             raise BrokerUnavailable(f"broker {self.display_url} is unreachable: {_first_line(error)}") from error
@@ -438,7 +441,9 @@ def create_app(
 
         reason = broker.skipped_reason
         if reason:
-            return JSONResponse({"detail": f"no queues to read: {reason}"}, status_code=status.HTTP_503_SERVICE_UNAVAILABLE)
+            return JSONResponse(
+                {"detail": f"no queues to read: {reason}"}, status_code=status.HTTP_503_SERVICE_UNAVAILABLE
+            )
         if not broker.is_redis:
             return JSONResponse(
                 {"detail": f"queue depth is read from Redis; the broker is {broker.display_url}"},
