@@ -22,6 +22,8 @@ times by a render worker.
 
 from __future__ import annotations
 
+import math
+from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
@@ -153,6 +155,9 @@ class AssetCatalog:
         self.objects = list(objects)
         self.backgrounds = list(backgrounds)
         self.occluders = list(occluders)
+        # Photographs shrunk once per output size: cropping a 1411-pixel retina for a
+        # 128-pixel background every time would cost more than rendering the sheet.
+        self._shrunk: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
         self._by_name = {
             "objects": {a.name: a for a in self.objects},
             "backgrounds": {a.name: a for a in self.backgrounds},
@@ -202,7 +207,28 @@ class AssetCatalog:
         asset = self._get("backgrounds", name)
         if asset.procedural:
             return procedural_background(name[len(PROCEDURAL_PREFIX):], size, rng)
-        return random_crop(asset.load(), size, rng)
+        return random_crop(self._shrunk_photo(asset, size), size, rng)
+
+    def _shrunk_photo(self, asset: Asset, size: int) -> np.ndarray:
+        """The photograph with its shorter side at most 2.5 x size (the smallest crop, 40% of
+        that side, still has the output's resolution); cached per (name, size)."""
+        import cv2
+
+        key = (asset.name, size)
+        image = self._shrunk.get(key)
+        if image is not None:
+            self._shrunk.move_to_end(key)
+            return image
+        image = asset.load()
+        h, w = image.shape[:2]
+        limit = int(math.ceil(2.5 * size))
+        if min(h, w) > limit:
+            factor = limit / min(h, w)
+            image = cv2.resize(image, (max(2, round(w * factor)), max(2, round(h * factor))), interpolation=cv2.INTER_AREA)
+        self._shrunk[key] = image
+        if len(self._shrunk) > 256:
+            self._shrunk.popitem(last=False)
+        return image
 
 
 def random_crop(image: np.ndarray, size: int, rng: np.random.Generator) -> np.ndarray:
@@ -236,21 +262,23 @@ def procedural_background(kind: str, size: int, rng: np.random.Generator) -> np.
         image = out / total
     elif kind in ("gradient", "stripes", "checker"):
         angle = rng.uniform(0, np.pi)
-        ys, xs = np.mgrid[0:size, 0:size].astype(np.float32) / size
-        along = np.cos(angle) * xs + np.sin(angle) * ys
+        xs = (np.arange(size, dtype=np.float32) / size)[None, :]
+        ys = (np.arange(size, dtype=np.float32) / size)[:, None]
+        along = np.float32(np.cos(angle)) * xs + np.float32(np.sin(angle)) * ys
         if kind == "gradient":
             weight = (along - along.min()) / max(float(np.ptp(along)), 1e-6)
         elif kind == "stripes":
             period = rng.uniform(0.05, 0.3)
             weight = (np.sin(2 * np.pi * along / period) > 0).astype(np.float32)
         else:
-            across = -np.sin(angle) * xs + np.cos(angle) * ys
+            across = np.float32(-np.sin(angle)) * xs + np.float32(np.cos(angle)) * ys
             period = rng.uniform(0.08, 0.3)
             weight = ((np.floor(along / period) + np.floor(across / period)) % 2).astype(np.float32)
-        image = colours[0] * (1 - weight[..., None]) + colours[1] * weight[..., None]
+        colours = colours.astype(np.float32)
+        image = colours[0] + (colours[1] - colours[0]) * weight[..., None]
     else:
         raise AssetError(f"unknown procedural background {kind!r}; known: {', '.join(PROCEDURAL_BACKGROUNDS)}")
-    return np.clip(np.rint(image), 0, 255).astype(np.uint8)
+    return np.clip(image + 0.5, 0, 255).astype(np.uint8)
 
 
 def _config_key(config) -> tuple:

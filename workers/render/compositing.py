@@ -101,9 +101,21 @@ def motion_blur(image: np.ndarray, percent: float, angle: float, image_size: int
 
 
 def composite(background: np.ndarray, foreground: np.ndarray, alpha: np.ndarray) -> np.ndarray:
-    """``foreground`` over ``background`` with coverage ``alpha`` (H, W) in [0, 1]."""
-    a = alpha[:, :, None]
-    return foreground * a + background * (1.0 - a)
+    """``foreground`` over ``background`` with coverage ``alpha`` (H, W) in [0, 1] (float32)."""
+    return cv2.blendLinear(foreground, background, alpha, 1.0 - alpha)
+
+
+def composite_object(background: np.ndarray, linear_rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
+    """The rendered object (linear light, encoded to sRGB here) over the background (float32
+    sRGB, modified in place and returned); work only inside the box where ``alpha > 0``."""
+    rows = np.flatnonzero(alpha.any(axis=1))
+    if rows.size == 0:
+        return background
+    cols = np.flatnonzero(alpha.any(axis=0))
+    region = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    a = np.ascontiguousarray(alpha[region])
+    background[region] = cv2.blendLinear(linear_to_srgb(linear_rgb[region]), background[region], a, 1.0 - a)
+    return background
 
 
 @dataclass

@@ -152,10 +152,8 @@ def render_theta(theta: dict, backend: str = "raster", assets=None, samples: int
     lap("annotation")
 
     background = assets.background(theta["background"], size, _rng(theta, _BACKGROUND))
-    image = compositing.composite(
-        background.astype(np.float32) * np.float32(1.0 / 255.0),
-        compositing.linear_to_srgb(output.rgb),
-        output.alpha,
+    image = compositing.composite_object(
+        background.astype(np.float32) * np.float32(1.0 / 255.0), output.rgb, output.alpha
     )
     if occlusion is not None:
         image = compositing.composite(image, occlusion.rgb, occlusion.alpha)

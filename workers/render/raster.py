@@ -2,11 +2,12 @@
 
 Two vectorised passes, no Python loop over triangles:
 
-1. Face-id buffer. For every triangle, every pixel whose centre lies in its screen bounding
-   box becomes a (triangle, pixel) candidate (built with ``np.repeat``); barycentric
-   coordinates decide coverage (pixel centres per scene.py, edges inclusive so shared edges
-   leave no gaps); the z-test keeps, per pixel, the candidate of smallest depth with one
-   ``np.minimum.at`` on a key that packs the quantised depth above the face index.
+1. Face-id buffer. For every triangle and every pixel row it crosses, the run of pixel
+   centres inside it follows from its three edge functions (barycentric coordinates >= 0,
+   pixel centres per scene.py, edges inclusive so shared edges leave no gaps); the runs are
+   expanded to (face, pixel) candidates with ``np.repeat``; the z-test keeps, per pixel, the
+   candidate of smallest depth with one ``np.minimum.at`` on a key that packs the quantised
+   depth above the face index.
 2. Shading. For the covered pixels only: perspective-correct barycentrics of the winning
    face, UVs, one ``cv2.remap`` (bilinear) into the linear-light texture, times the face's
    Lambertian factor ``irradiance * exposure * max(0, n . l)``, with ``n`` the facet's normal
@@ -122,47 +123,65 @@ def rasterize_face_ids(
     pix: np.ndarray, depth: np.ndarray, faces: np.ndarray, width: int, height: int, uv: np.ndarray | None = None
 ):
     """(height*width,) int64 index of the nearest face whose triangle covers each pixel centre
-    (-1: none), and the per-face texturing planes (None without ``uv``)."""
+    (-1: none), and the per-face texturing planes (None without ``uv``).
+
+    Scanline spans: for every face and every pixel row its bounding box crosses, the three
+    edge inequalities ``w_k(px, row centre) >= -eps`` are solved for px, which gives the run of
+    covered pixel centres directly, so only covered pixels are ever generated."""
     coverage, texturing, usable, x, y = _face_planes(pix, depth, faces, uv)
     ids = np.full(width * height, -1, dtype=np.int64)
-    j0 = np.ceil(x.min(axis=1) - 0.5)
-    j1 = np.floor(x.max(axis=1) - 0.5)
+    x_min, x_max = x.min(axis=1), x.max(axis=1)
     i0 = np.ceil(y.min(axis=1) - 0.5)
     i1 = np.floor(y.max(axis=1) - 0.5)
-    usable &= (j1 >= j0) & (i1 >= i0) & (j1 >= 0) & (j0 <= width - 1) & (i1 >= 0) & (i0 <= height - 1)
+    usable &= (i1 >= i0) & (i1 >= 0) & (i0 <= height - 1) & (x_max >= 0.5) & (x_min <= width - 0.5)
     selected = np.flatnonzero(usable)
     if selected.size == 0:
         return ids, texturing
-    j0 = np.clip(j0[selected], 0, width - 1).astype(np.int64)
-    j1 = np.clip(j1[selected], 0, width - 1).astype(np.int64)
     i0 = np.clip(i0[selected], 0, height - 1).astype(np.int64)
     i1 = np.clip(i1[selected], 0, height - 1).astype(np.int64)
-    box_w = j1 - j0 + 1
-    counts = box_w * (i1 - i0 + 1)
-    total = int(counts.sum())
-    # Candidates (face, pixel) in face order, so per-face values spread with np.repeat
-    # (a copy) rather than a gather.
-    local = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(counts) - counts, counts)
-    row_in_box, col_in_box = np.divmod(local, np.repeat(box_w, counts))
-    cols = np.repeat(j0, counts) + col_in_box
-    rows = np.repeat(i0, counts) + row_in_box
-    px = cols + 0.5
-    py = rows + 0.5
-    p = np.repeat(coverage[selected], counts, axis=0)
-    w0 = p[:, 0] * px + p[:, 1] * py + p[:, 2]
-    w1 = p[:, 3] * px + p[:, 4] * py + p[:, 5]
-    inside = np.flatnonzero((w0 >= -_EDGE_EPS) & (w1 >= -_EDGE_EPS) & (w0 + w1 <= 1.0 + _EDGE_EPS))
-    if inside.size == 0:
+    rows_per_face = i1 - i0 + 1
+    n_spans = int(rows_per_face.sum())
+    span_face = np.repeat(selected, rows_per_face)
+    row = np.repeat(i0, rows_per_face) + (
+        np.arange(n_spans, dtype=np.int64) - np.repeat(np.cumsum(rows_per_face) - rows_per_face, rows_per_face)
+    )
+    py = row + 0.5
+    c = coverage[span_face]
+    # Edge k: w_k = a_k px + b_k py + c_k >= -eps, with w2 = 1 - w0 - w1.
+    a = (c[:, 0], c[:, 3], -c[:, 0] - c[:, 3])
+    rhs = (
+        -(c[:, 1] * py + c[:, 2]) - _EDGE_EPS,
+        -(c[:, 4] * py + c[:, 5]) - _EDGE_EPS,
+        -((1.0 - c[:, 2] - c[:, 5]) - (c[:, 1] + c[:, 4]) * py) - _EDGE_EPS,
+    )
+    lo = x_min[span_face].copy()
+    hi = x_max[span_face].copy()
+    empty = np.zeros(n_spans, dtype=bool)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for a_k, rhs_k in zip(a, rhs):
+            bound = rhs_k / a_k
+            lo = np.where(a_k > 0, np.maximum(lo, bound), lo)
+            hi = np.where(a_k < 0, np.minimum(hi, bound), hi)
+            empty |= (a_k == 0) & (rhs_k > 0)
+    col_start = np.maximum(np.ceil(lo - 0.5), 0)
+    col_end = np.minimum(np.floor(hi - 0.5), width - 1)
+    run = np.where(empty, 0, np.maximum(col_end - col_start + 1, 0)).astype(np.int64)
+    keep = np.flatnonzero(run)
+    if keep.size == 0:
         return ids, texturing
-    p = p[inside]
-    inverse_depth = p[:, 6] * px[inside] + p[:, 7] * py[inside] + p[:, 8]
-    pixel = rows[inside] * width + cols[inside]
-    face = np.repeat(selected, counts)[inside]
+    run, col_start, row, span_face, c, py = run[keep], col_start[keep].astype(np.int64), row[keep], span_face[keep], c[keep], py[keep]
+    total = int(run.sum())
+    local = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(run) - run, run)
+    pixel = np.repeat(row * width + col_start, run) + local
+    face = np.repeat(span_face, run)
+    # 1/z along the run: its value at the first pixel centre plus a constant step per pixel.
+    start_inverse_depth = c[:, 6] * (col_start + 0.5) + c[:, 7] * py + c[:, 8]
+    inverse_depth = np.repeat(start_inverse_depth, run) + np.repeat(c[:, 6], run) * local
     # z-test: nearest = smallest depth. Quantise depth into the key's high bits, face in the low bits.
     depth_at = 1.0 / np.maximum(inverse_depth, 1e-300)
-    lo, hi = float(depth_at.min()), float(depth_at.max())
-    span = max(hi - lo, 1e-12)
-    quantised = ((depth_at - lo) * ((_DEPTH_LEVELS - 1) / span)).astype(np.int64)
+    lo_depth, hi_depth = float(depth_at.min()), float(depth_at.max())
+    span = max(hi_depth - lo_depth, 1e-12)
+    quantised = ((depth_at - lo_depth) * ((_DEPTH_LEVELS - 1) / span)).astype(np.int64)
     keys = (quantised << _FACE_BITS) | face
     buffer = np.full(width * height, _EMPTY_KEY, dtype=np.int64)
     np.minimum.at(buffer, pixel, keys)
