@@ -10,6 +10,7 @@ with a fixed seed at ``--size``² pixels. Each θ is rendered by every backend i
   stage's time (``RenderResult.timings``) so it is plain where the time goes;
 * box agreement: IoU between the two backends' boxes (the visible box after occlusion and
   border crop) per θ, its mean, min and the worst θ, also per condition and per difficulty;
+  the IoU of the visible masks themselves likewise;
   amodal-box IoU, the visible-fraction difference and the mean absolute difference of the
   two final images (uint8 levels) alongside;
 * rejections (``RenderRejected``) per backend, with their reasons, and any other exception
@@ -136,6 +137,9 @@ def run(n_per_stage: int, samples: int, size: int, backends: list[str], seed: in
             if first.amodal_box is not None and second.amodal_box is not None:
                 row["amodal_box_iou"] = box_iou(first.amodal_box, second.amodal_box)
             row["visible_fraction_diff"] = abs(float(first.visible_fraction) - float(second.visible_fraction))
+            if first.mask is not None and second.mask is not None:
+                union = np.count_nonzero(first.mask | second.mask)
+                row["mask_iou"] = float(np.count_nonzero(first.mask & second.mask) / union) if union else 1.0
             # How alike the final images look (uint8 levels, whole image incl. background).
             row["image_mean_abs_diff"] = float(
                 np.abs(first.image.astype(np.int16) - second.image.astype(np.int16)).mean()
@@ -181,10 +185,13 @@ def run(n_per_stage: int, samples: int, size: int, backends: list[str], seed: in
         }
         compared = [row for row in per_theta if "box_iou" in row]
         ious = [row["box_iou"] for row in compared]
-        by_condition, by_difficulty = defaultdict(list), defaultdict(list)
+        by_condition, by_difficulty, mask_by_condition = defaultdict(list), defaultdict(list), defaultdict(list)
         for row in compared:
-            by_condition[row["theta"]["condition"] if row["stage"] != "canonical" else "canonical"].append(row["box_iou"])
+            condition = row["theta"]["condition"] if row["stage"] != "canonical" else "canonical"
+            by_condition[condition].append(row["box_iou"])
             by_difficulty[row["theta"]["difficulty"]].append(row["box_iou"])
+            if "mask_iou" in row:
+                mask_by_condition[condition].append(row["mask_iou"])
         worst = min(compared, key=lambda row: row["box_iou"]) if compared else None
         report["box_iou"] = {
             **summarise(ious),
@@ -201,6 +208,11 @@ def run(n_per_stage: int, samples: int, size: int, backends: list[str], seed: in
             "rejected_by_one_backend_only": int(
                 sum((row[fast] is None) != (row[slow] is None) for row in per_theta)
             ),
+        }
+        mask_ious = [row["mask_iou"] for row in compared if "mask_iou" in row]
+        report["mask_iou"] = {
+            **summarise(mask_ious),
+            "per_condition": {k: summarise(v) for k, v in sorted(mask_by_condition.items())},
         }
         report["worst_5"] = sorted(compared, key=lambda row: row["box_iou"])[:5]
     return report
