@@ -15,6 +15,10 @@ Conventions (both backends must follow them, so that the same θ gives the same 
 * Lighting: one distant light of irradiance ``irradiance`` (W/m², canonical 1) shining
   along ``-light_direction``; Lambertian sheet of albedo = texture; ``exposure`` maps
   radiance to linear image values so that the canonical scene looks like the texture.
+* Colour: ``texture`` holds sRGB-encoded values; backends decode them to linear albedo and
+  return linear ``rgb`` = albedo × irradiance × exposure × max(0, n · l), where n is the
+  facet's unit normal turned towards the camera (both sides of the sheet show the texture;
+  a side facing away from the light is black). The pipeline encodes to sRGB afterwards.
 """
 
 from __future__ import annotations
