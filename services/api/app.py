@@ -20,7 +20,7 @@ from collections.abc import Iterator
 from typing import Annotated, Any
 from urllib.parse import urlsplit
 
-from fastapi import Depends, FastAPI, HTTPException, Path, Query, Request, status
+from fastapi import Depends, FastAPI, HTTPException, Path, Query, Request, Response, status
 from fastapi.responses import JSONResponse
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from kombu.utils.url import maybe_sanitize_url
@@ -32,6 +32,17 @@ from db.session import get_sessionmaker
 from foldwise.config import ConfigError, ExperimentConfig, parse_config, parse_config_text
 from foldwise.settings import Settings, get_settings
 from services import queries
+from services.api.schemas import (
+    BrokerDown,
+    ErrorDetail,
+    ExperimentListItem,
+    ExperimentSummary,
+    Health,
+    HistoryEntry,
+    ModelDetail,
+    QueueStatus,
+    StageSummary,
+)
 
 # Database ids are 64-bit; a larger number can name nothing (and SQLite would overflow on it).
 MAX_ID = 2**63 - 1
@@ -43,6 +54,14 @@ YAML_TYPES = frozenset({"application/yaml", "text/yaml", "application/x-yaml", "
 ACCEPTED_TYPES = "application/json, application/yaml or text/yaml"
 
 LIVE_STATUSES = (ExperimentStatus.pending, ExperimentStatus.running)
+
+NOT_FOUND: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorDetail, "description": "no experiment or model with this id"}
+}
+WRITE_ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorDetail, "description": "missing or wrong token"},
+    403: {"model": ErrorDetail, "description": "no token is configured on the server (FOLDWISE_API_TOKEN)"},
+}
 
 ExperimentId = Annotated[int, Path(ge=1, le=MAX_ID, description="experiment id")]
 ModelId = Annotated[int, Path(ge=1, le=MAX_ID, description="model id (ω)")]
@@ -288,12 +307,28 @@ _CONFIG_BODY_DOC = {
         "required": True,
         "description": "An experiment config (the same document as `foldwise run CONFIG` reads).",
         "content": {
-            "application/json": {"schema": ExperimentConfig.model_json_schema()},
-            "application/yaml": {"schema": {"type": "string"}},
-            "text/yaml": {"schema": {"type": "string"}},
+            "application/json": {"schema": {"$ref": "#/components/schemas/ExperimentConfig"}},
+            "application/yaml": {"schema": {"type": "string", "description": "the same config as YAML"}},
+            "text/yaml": {"schema": {"type": "string", "description": "the same config as YAML"}},
         },
     }
 }
+
+
+def _document_config_schema(app: FastAPI) -> None:
+    """Add ExperimentConfig and its sections to the OpenAPI components (the body is read by hand)."""
+    build_openapi = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is None:
+            document = build_openapi()
+            config_schema = ExperimentConfig.model_json_schema(ref_template="#/components/schemas/{model}")
+            components = document.setdefault("components", {}).setdefault("schemas", {})
+            components.update(config_schema.pop("$defs", {}))
+            components["ExperimentConfig"] = config_schema
+        return app.openapi_schema
+
+    app.openapi = openapi
 
 
 # --------------------------------------------------------------------------- the app
@@ -322,6 +357,7 @@ def create_app(
     )
     app.state.settings = settings
     app.state.broker = broker
+    _document_config_schema(app)
 
     def get_session() -> Iterator[Session]:
         session = get_sessionmaker(database_url)()
@@ -358,21 +394,26 @@ def create_app(
     async def _not_found(_request: Request, error: queries.NotFound) -> JSONResponse:
         return JSONResponse({"detail": str(error)}, status_code=status.HTTP_404_NOT_FOUND)
 
-    @app.get("/health", tags=["status"])
-    def health(session: SessionDep) -> JSONResponse:
-        """Database and broker reachability. 200 while the database serves (the broker may be down), else 503."""
+    @app.get(
+        "/health",
+        tags=["status"],
+        response_model=Health,
+        responses={503: {"model": Health, "description": "the database is unreachable or not migrated"}},
+    )
+    def health(session: SessionDep, response: Response) -> dict[str, Any]:
+        """Database and broker reachability: 200 while the database serves (the broker may be down), else 503."""
         database = schema.check(session)
         broker_state = broker.check()
-        healthy_broker = broker_state["status"] in ("ok", "skipped")
         if database["status"] != "ok":
-            overall, code = "error", status.HTTP_503_SERVICE_UNAVAILABLE
-        elif not healthy_broker:
-            overall, code = "degraded", status.HTTP_200_OK
+            overall = "error"
+            response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
+        elif broker_state["status"] == "error":
+            overall = "degraded"
         else:
-            overall, code = "ok", status.HTTP_200_OK
-        return JSONResponse({"status": overall, "database": database, "broker": broker_state}, status_code=code)
+            overall = "ok"
+        return {"status": overall, "database": database, "broker": broker_state}
 
-    @app.get("/experiments", tags=["experiments"])
+    @app.get("/experiments", tags=["experiments"], response_model=list[ExperimentListItem])
     def list_experiments(
         session: SessionDep,
         status_filter: Annotated[ExperimentStatus | None, Query(alias="status")] = None,
@@ -383,29 +424,56 @@ def create_app(
             experiments = [e for e in experiments if e["status"] == status_filter.value]
         return experiments
 
-    @app.post("/experiments", tags=["experiments"], status_code=201, openapi_extra=_CONFIG_BODY_DOC,
-              dependencies=[Depends(require_token)])
+    @app.post(
+        "/experiments",
+        tags=["experiments"],
+        status_code=status.HTTP_201_CREATED,
+        response_model=ExperimentSummary,
+        dependencies=[Depends(require_token)],
+        openapi_extra=_CONFIG_BODY_DOC,
+        responses={
+            **WRITE_ERRORS,
+            413: {"model": ErrorDetail, "description": "the body is larger than 1 MiB"},
+            415: {"model": ErrorDetail, "description": "not JSON or YAML"},
+            422: {"model": ErrorDetail, "description": "an invalid config; the message names the key"},
+        },
+    )
     def create_experiment(
-        request: Request, session: SessionDep, config: Annotated[ExperimentConfig, Depends(read_config)]
-    ) -> JSONResponse:
+        request: Request,
+        response: Response,
+        session: SessionDep,
+        config: Annotated[ExperimentConfig, Depends(read_config)],
+    ) -> dict[str, Any]:
         """Record a new experiment (status pending); the scheduler starts it on its next pass."""
         experiment = queries.create_experiment(session, config)
         session.commit()
-        location = request.scope.get("root_path", "") + app.url_path_for(
+        response.headers["Location"] = request.scope.get("root_path", "") + app.url_path_for(
             "experiment_summary", experiment_id=experiment.id
         )
-        return JSONResponse(
-            queries.summary(session, experiment.id),
-            status_code=status.HTTP_201_CREATED,
-            headers={"Location": location},
-        )
+        return queries.summary(session, experiment.id)
 
-    @app.get("/experiments/{experiment_id}", tags=["experiments"], name="experiment_summary")
+    @app.get(
+        "/experiments/{experiment_id}",
+        tags=["experiments"],
+        name="experiment_summary",
+        response_model=ExperimentSummary,
+        responses=NOT_FOUND,
+    )
     def experiment_summary(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
         """Status, current stage and k, counts of θ, ω and P, elapsed time, best model."""
         return queries.summary(session, experiment_id)
 
-    @app.post("/experiments/{experiment_id}/cancel", tags=["experiments"], dependencies=[Depends(require_token)])
+    @app.post(
+        "/experiments/{experiment_id}/cancel",
+        tags=["experiments"],
+        response_model=ExperimentSummary,
+        dependencies=[Depends(require_token)],
+        responses={
+            **WRITE_ERRORS,
+            **NOT_FOUND,
+            409: {"model": ErrorDetail, "description": "the experiment has already ended"},
+        },
+    )
     def cancel_experiment(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
         """Cancel a pending or running experiment; 409 when it has already ended."""
         experiment = queries.get_experiment(session, experiment_id)
@@ -419,23 +487,41 @@ def create_app(
         session.commit()
         return queries.summary(session, experiment_id)
 
-    @app.get("/experiments/{experiment_id}/stages", tags=["experiments"])
+    @app.get(
+        "/experiments/{experiment_id}/stages",
+        tags=["experiments"],
+        response_model=list[StageSummary],
+        responses=NOT_FOUND,
+    )
     def experiment_stages(experiment_id: ExperimentId, session: SessionDep) -> list[dict[str, Any]]:
         """The curriculum's stages (c, δ) in order: status, increments, why each ended, best model."""
         return queries.stages(session, experiment_id)
 
-    @app.get("/experiments/{experiment_id}/history", tags=["experiments"])
+    @app.get(
+        "/experiments/{experiment_id}/history",
+        tags=["experiments"],
+        response_model=list[HistoryEntry],
+        responses=NOT_FOUND,
+    )
     def experiment_history(experiment_id: ExperimentId, session: SessionDep) -> list[dict[str, Any]]:
         """P: one entry per evaluated model (c, δ, k, mAP, model id, wall time), in arrival order."""
         return queries.history(session, experiment_id)
 
-    @app.get("/models/{model_id}", tags=["models"])
+    @app.get("/models/{model_id}", tags=["models"], response_model=ModelDetail, responses=NOT_FOUND)
     def model_detail(model_id: ModelId, session: SessionDep) -> dict[str, Any]:
         """One ω: its stage, k, parent ω_in, training and its evaluation."""
         return queries.model_detail(session, model_id)
 
-    @app.get("/queues", tags=["status"])
-    def queue_status() -> JSONResponse:
+    @app.get(
+        "/queues",
+        tags=["status"],
+        response_model=QueueStatus,
+        responses={
+            501: {"model": ErrorDetail, "description": "the broker is not Redis"},
+            503: {"model": BrokerDown, "description": "the broker is unreachable, or tasks run in-process"},
+        },
+    )
+    def queue_status() -> Any:
         """Depth of the render and train queues and the workers that answer a ping; 503 when the broker is down."""
         from workers.app import RENDER_QUEUE, TRAIN_QUEUE
 
@@ -457,14 +543,12 @@ def create_app(
                 {"detail": str(error), "broker": {"status": "error", "url": broker.display_url}},
                 status_code=status.HTTP_503_SERVICE_UNAVAILABLE,
             )
-        return JSONResponse(
-            {
-                "broker": {"status": "ok", "url": broker.display_url},
-                **depths,
-                "workers": workers,
-                "ping_timeout_s": broker.ping_timeout_s,
-            }
-        )
+        return {
+            "broker": {"status": "ok", "url": broker.display_url},
+            **depths,
+            "workers": workers,
+            "ping_timeout_s": broker.ping_timeout_s,
+        }
 
     return app
 

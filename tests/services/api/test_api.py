@@ -301,6 +301,31 @@ def test_every_request_returns_its_session(client, seeded, database_url):
     assert get_engine(database_url).pool.checkedout() == 0
 
 
+def test_responses_carry_the_query_results_unchanged(client, seeded, database_url):
+    """The typed response models document the queries' dictionaries; they must not drop or reshape a key."""
+    from services import queries
+
+    with get_sessionmaker(database_url)() as session:
+        expected = {
+            "/experiments": queries.list_experiments(session),
+            f"/experiments/{seeded['finished']}": queries.summary(session, seeded["finished"]),
+            f"/experiments/{seeded['experiment']}/stages": queries.stages(session, seeded["experiment"]),
+            f"/experiments/{seeded['experiment']}/history": queries.history(session, seeded["experiment"]),
+            f"/models/{seeded['models'][1]}": queries.model_detail(session, seeded["models"][1]),
+            f"/models/{seeded['models'][4]}": queries.model_detail(session, seeded["models"][4]),
+        }
+    def settled(value):
+        # A running stage's duration counts up between the two reads.
+        if isinstance(value, list):
+            return [settled(item) for item in value]
+        if isinstance(value, dict) and value.get("finished_at", "") is None and "seconds" in value:
+            return {**value, "seconds": "running"}
+        return value
+
+    for path, result in expected.items():
+        assert settled(client.get(path).json()) == settled(json.loads(json.dumps(result))), path
+
+
 # --------------------------------------------------------------------------- creating
 
 
@@ -642,6 +667,23 @@ def test_openapi_documents_both_config_media_types(client):
             "/queues"} <= set(spec["paths"])
     content = spec["paths"]["/experiments"]["post"]["requestBody"]["content"]
     assert {"application/json", "application/yaml", "text/yaml"} <= set(content)
+    config_schema = spec["components"]["schemas"]["ExperimentConfig"]
+    assert "active_learning" in config_schema["properties"]
+
+    def refs(node):
+        if isinstance(node, dict):
+            if isinstance(node.get("$ref"), str):
+                yield node["$ref"]
+            for value in node.values():
+                yield from refs(value)
+        elif isinstance(node, list):
+            for value in node:
+                yield from refs(value)
+
+    # Every reference resolves inside the document (the config's sections included).
+    for ref in set(refs(spec)):
+        assert ref.startswith("#/components/schemas/"), ref
+        assert ref.rsplit("/", 1)[1] in spec["components"]["schemas"], ref
 
 
 def test_import_loads_neither_torch_nor_bpy_and_touches_nothing(tmp_path):

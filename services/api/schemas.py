@@ -1,0 +1,159 @@
+"""Response shapes of the API, for its OpenAPI document and its clients.
+
+They describe the dictionaries :mod:`services.queries` builds (the CLI and the report read the
+same ones). Each model allows extra keys, so a field added to a query reaches clients before
+it is documented here; a documented field that goes missing fails the request loudly.
+Times are ISO 8601 strings as the queries write them; durations are seconds.
+"""
+
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from db.models import ExperimentStatus, ModelStatus, StageEndReason, StageStatus
+
+
+class _Shape(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+
+class ErrorDetail(BaseModel):
+    detail: str = Field(description="what was wrong, naming the id, key or header at fault")
+
+
+class ExperimentListItem(_Shape):
+    id: int
+    name: str
+    status: ExperimentStatus
+    created_at: str | None
+    finished_at: str | None
+
+
+class CurrentStage(_Shape):
+    order: int = Field(description="position of (c, δ) in the curriculum, from 0")
+    condition: str = Field(description="c")
+    difficulty: str = Field(description="δ")
+    k: int | None = Field(description="the latest increment of this stage (None before the first)")
+
+
+class Counts(_Shape):
+    parameter_sets: dict[str, dict[str, int]] = Field(description="θ per split (train/test) and render status")
+    models: dict[str, int] = Field(description="ω per status")
+    evaluations: int = Field(description="entries of P")
+    stages: int
+
+
+class BestModel(_Shape):
+    map: float
+    model_id: int
+
+
+class ExperimentSummary(_Shape):
+    id: int
+    name: str
+    status: ExperimentStatus
+    error: str | None
+    seed: int
+    classes: list[Any] | None = Field(description="the detector's classes (object names), fixed at the start")
+    current_stage: CurrentStage | None
+    counts: Counts
+    best: BestModel | None = Field(description="the best score in P so far and its model")
+    final_model_id: int | None
+    created_at: str | None
+    started_at: str | None
+    finished_at: str | None
+    elapsed_seconds: float | None = Field(description="since the start; up to now while it runs")
+
+
+class StageSummary(_Shape):
+    order: int
+    condition: str = Field(description="c")
+    difficulty: str = Field(description="δ")
+    status: StageStatus
+    end_reason: StageEndReason | None = Field(description="plateau (|P_M − P_N| ≤ τ) or cap (max increments)")
+    increments: int = Field(description="evaluated increments k")
+    init_model_id: int | None = Field(description="ω_in of the first increment: the previous stage's ω_be")
+    best_model_id: int | None = Field(description="ω_be")
+    best_map: float | None
+    started_at: str | None
+    finished_at: str | None
+    seconds: float | None
+
+
+class HistoryEntry(_Shape):
+    """One entry of P: the score of ω_k on the standard test set."""
+
+    stage: int
+    condition: str = Field(description="c")
+    difficulty: str = Field(description="δ")
+    k: int
+    model_id: int
+    parent_id: int | None = Field(description="ω_in")
+    map: float | None = Field(description="mAP under the paper's protocol (confidence threshold); None if not finite")
+    map_unthresholded: float | None
+    render_seconds: float | None = Field(description="summed render time of this increment's training θ")
+    train_seconds: float | None
+    eval_seconds: float
+    wall_seconds: float | None = Field(description="from the experiment's start to this score")
+    evaluated_at: str | None
+
+
+class StageRef(_Shape):
+    order: int
+    condition: str
+    difficulty: str
+
+
+class EvaluationDetail(_Shape):
+    map: float | None
+    map_unthresholded: float | None
+    eval_seconds: float
+    details: dict[str, Any] = Field(description="per condition and difficulty breakdown")
+
+
+class ModelDetail(_Shape):
+    id: int
+    experiment_id: int
+    stage: StageRef
+    k: int
+    parent_id: int | None = Field(description="ω_in")
+    detector: str
+    status: ModelStatus
+    iterations: int = Field(description="t")
+    checkpoint_path: str | None = Field(description="relative to the artifact store")
+    train_seconds: float | None
+    train_stats: dict[str, Any] | None
+    attempts: int
+    error: str | None
+    evaluation: EvaluationDetail | None
+
+
+class ComponentState(_Shape):
+    status: Literal["ok", "error", "skipped"]
+    detail: str | None = None
+
+
+class Health(BaseModel):
+    status: Literal["ok", "degraded", "error"] = Field(
+        description="ok; degraded: the broker is down but the record can be read; error: the database is down"
+    )
+    database: ComponentState
+    broker: ComponentState
+
+
+class BrokerState(_Shape):
+    status: Literal["ok", "error"]
+    url: str = Field(description="the broker URL without its password")
+
+
+class QueueStatus(BaseModel):
+    broker: BrokerState
+    queues: dict[str, int] = Field(description="messages waiting in the render and train queues")
+    unacked: int = Field(description="messages delivered to a worker and not yet acknowledged: running, or reserved by a worker")
+    workers: list[str] = Field(description="hostnames of the workers that answered a ping")
+    ping_timeout_s: float
+
+
+class BrokerDown(_Shape):
+    detail: str
+    broker: BrokerState | None = None
