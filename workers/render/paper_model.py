@@ -531,61 +531,79 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
 # -- self-intersection ----------------------------------------------------------------------
 
 
-def _points_in_triangles(points: np.ndarray, tri: np.ndarray, normals: np.ndarray, tol: float) -> np.ndarray:
-    """Whether each point (n, 3), projected on its triangle's plane, falls inside it (inclusive)."""
-    inside = np.ones(len(points), bool)
-    for k in range(3):
-        a, b = tri[:, k], tri[:, (k + 1) % 3]
-        side = np.einsum("ij,ij->i", np.cross(b - a, points - a), normals)
-        inside &= side >= -tol * np.linalg.norm(b - a, axis=1)
-    return inside
+def _clip_to_slab(polygon: np.ndarray, heights: np.ndarray, clearance: float) -> np.ndarray:
+    """The part of a convex polygon (n, 3) with |height| <= clearance (Sutherland-Hodgman
+    against the two faces of the slab); with clearance 0, where it meets the plane."""
+    points, values = list(polygon), list(heights)
+    for sign in (1.0, -1.0):  # keep sign * height <= clearance
+        kept_points, kept_values = [], []
+        n = len(points)
+        for k in range(n):
+            p, q = points[k], points[(k + 1) % n]
+            hp, hq = sign * values[k] - clearance, sign * values[(k + 1) % n] - clearance
+            if hp <= 0:
+                kept_points.append(p)
+                kept_values.append(values[k])
+            if (hp < 0 < hq) or (hq < 0 < hp):
+                t = hp / (hp - hq)
+                kept_points.append(p + t * (q - p))
+                kept_values.append(sign * clearance)  # exactly on the slab face, no round-off
+        points, values = kept_points, kept_values
+        if not points:
+            break
+    return np.array(points).reshape(-1, 3)
 
 
-def _edges_hit(first: np.ndarray, second: np.ndarray, clearance: float, tol: float) -> np.ndarray:
-    """Per pair: an edge of ``first`` pierces ``second``, or a vertex of ``first`` lies within
-    ``clearance`` of ``second``'s face. Triangles are (n, 3, 3)."""
-    normals = np.cross(second[:, 1] - second[:, 0], second[:, 2] - second[:, 0])
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    heights = np.einsum("nkj,nj->nk", first - second[:, :1], normals)
-    hit = np.zeros(len(first), bool)
-    for k in range(3):
-        near = np.abs(heights[:, k]) <= clearance + tol
-        if near.any():
-            foot = first[:, k] - heights[:, k : k + 1] * normals
-            hit |= near & _points_in_triangles(foot, second, normals, tol)
-        h0, h1 = heights[:, k], heights[:, (k + 1) % 3]
-        crossing = h0 * h1 < 0
-        if crossing.any():
-            t = (h0 / np.where(crossing, h0 - h1, 1.0))[:, None]
-            point = first[:, k] + t * (first[:, (k + 1) % 3] - first[:, k])
-            hit |= crossing & _points_in_triangles(point, second, normals, tol)
-    return hit
+def _convex_sets_overlap(first: np.ndarray, second: np.ndarray) -> bool:
+    """Separating-axis test for two convex 2D point sets given in boundary order (the first a
+    polygon, the second a polygon, a segment or a point); touching counts as overlapping."""
+    axes = []
+    for points in (first, second):
+        if len(points) >= 2:
+            edges = np.roll(points, -1, axis=0) - points
+            edges = edges[np.linalg.norm(edges, axis=1) > 0]
+            axes.append(np.stack([-edges[:, 1], edges[:, 0]], axis=1))
+    for axis in np.concatenate(axes):
+        a, b = first @ axis, second @ axis
+        if a.max() < b.min() or b.max() < a.min():
+            return False
+    return True
 
 
 def _find_self_intersection(
-    vertices: np.ndarray, faces: np.ndarray, face_regions: np.ndarray, adjacent: np.ndarray, clearance: float, scale: float
+    corners: list[np.ndarray], rotations: list[np.ndarray], adjacent: np.ndarray, clearance: float
 ) -> tuple[int, int] | None:
-    """The first pair of non-adjacent regions whose triangles intersect (or come within
-    ``clearance``), or None. Regions sharing a ruling meet along it by construction and bend
-    by less than pi there, so only non-adjacent pairs can cross."""
-    tri = vertices[faces]
-    lo, hi = tri.min(axis=1) - clearance, tri.max(axis=1) + clearance
-    n_regions = adjacent.shape[0]
-    members = [np.flatnonzero(face_regions == r) for r in range(n_regions)]
-    region_lo = np.array([lo[m].min(axis=0) for m in members])
-    region_hi = np.array([hi[m].max(axis=0) for m in members])
-    tol = 1e-12 * scale
+    """The first pair of non-adjacent regions that pass through each other or come within
+    ``clearance`` (measured across the plane of one of them), or None.
+
+    Regions are planar convex polygons (``corners``: (n, 3) bent corner positions). Regions
+    sharing a ruling meet along it and bend by less than pi there, so only non-adjacent pairs
+    can cross. A pair is apart when one polygon lies wholly beyond ``clearance`` on one side of
+    the other's plane; otherwise the slice of one near the other's plane is compared with the
+    other polygon inside that plane. Exact for crossings, coplanar overlaps included.
+    """
+    n_regions = len(corners)
+    normals = np.array([rotation[:, 2] for rotation in rotations])
+    origins = np.array([c[0] for c in corners])
+    owner = np.concatenate([np.full(len(c), r) for r, c in enumerate(corners)])
+    stacked = np.concatenate(corners)
+    # heights[r, k]: height of corner k above the plane of region r.
+    heights = np.einsum("rj,rkj->rk", normals, stacked[None] - origins[:, None])
+    above = np.full((n_regions, n_regions), -np.inf)
+    below = np.full((n_regions, n_regions), np.inf)
+    for r in range(n_regions):
+        above[:, r] = heights[:, owner == r].max(axis=1)
+        below[:, r] = heights[:, owner == r].min(axis=1)
+    beyond = (below > clearance) | (above < -clearance)  # [a, b]: b wholly off a's plane
     for a in range(n_regions):
         for b in range(a + 1, n_regions):
-            if adjacent[a, b] or np.any(region_lo[a] > region_hi[b]) or np.any(region_lo[b] > region_hi[a]):
+            if adjacent[a, b] or beyond[a, b] or beyond[b, a]:
                 continue
-            fa, fb = members[a], members[b]
-            overlap = np.all((lo[fa][:, None] <= hi[fb][None]) & (lo[fb][None] <= hi[fa][:, None]), axis=2)
-            ia, ib = np.nonzero(overlap)
-            if not len(ia):
+            piece = _clip_to_slab(corners[b], heights[a, owner == b], clearance)
+            if not len(piece):
                 continue
-            first, second = tri[fa[ia]], tri[fb[ib]]
-            if np.any(_edges_hit(first, second, clearance, tol)) or np.any(_edges_hit(second, first, clearance, tol)):
+            basis = rotations[a][:, :2]
+            if _convex_sets_overlap((corners[a] - origins[a]) @ basis, (piece - origins[a]) @ basis):
                 return a, b
     return None
 
@@ -661,6 +679,20 @@ def _assemble(width: float, height: float, border: _Border, chords: list[_Chord]
             rotations[child] = rotations[parent] @ local
             translations[child] = rotations[parent] @ (a - local @ a) + translations[parent]
 
+    # Regions are rigid planar polygons: check them before spending time on the mesh.
+    if options.check_self_intersection:
+        corners = [
+            (np.column_stack([points[region.corner_ids], np.zeros(len(region.corner_ids))]) - origin) @ rotations[r].T
+            + translations[r]
+            for r, region in enumerate(regions)
+        ]
+        found = _find_self_intersection(corners, rotations, adjacent, options.clearance)
+        if found is not None:
+            raise SelfIntersection(
+                f"regions {found[0]} and {found[1]} of the bent sheet pass through each other "
+                f"(or come within {options.clearance:.3g} m)"
+            )
+
     # Triangulate each region; vertices on rulings are shared by both neighbours.
     nx = max(1, round(width / options.mesh_step))
     ny = max(1, round(height / options.mesh_step))
@@ -688,16 +720,6 @@ def _assemble(width: float, height: float, border: _Border, chords: list[_Chord]
         ids = region_vertices[r][~placed[region_vertices[r]]]
         vertices[ids] = flat3[ids] @ rotations[r].T + translations[r]
         placed[ids] = True
-
-    if options.check_self_intersection:
-        found = _find_self_intersection(
-            vertices, faces_arr, face_regions_arr, adjacent, options.clearance, max(width, height)
-        )
-        if found is not None:
-            raise SelfIntersection(
-                f"regions {found[0]} and {found[1]} of the bent sheet pass through each other "
-                f"(or come within {options.clearance:.3g} m)"
-            )
 
     fold_lines = [(tuple(map(float, c.p0)), tuple(map(float, c.p1)), float(c.angle)) for c in chords]
     return SheetMesh(

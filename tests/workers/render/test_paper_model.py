@@ -59,11 +59,51 @@ def orientation(a, b, c) -> float:
     return (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0])
 
 
-def segments_cross(p0, p1, q0, q1) -> bool:
-    """Whether two 2D segments share a point (touching counts)."""
+def segments_cross(p0, p1, q0, q1):
+    """Whether 2D segments share a point (touching counts); works on (2, n) arrays too."""
     o1, o2 = orientation(p0, p1, q0), orientation(p0, p1, q1)
     o3, o4 = orientation(q0, q1, p0), orientation(q0, q1, p1)
-    return (o1 * o2 <= 0) and (o3 * o4 <= 0)
+    return (o1 * o2 <= 0) & (o3 * o4 <= 0)
+
+
+def segment_hits_triangle(p, q, a, b, c) -> np.ndarray:
+    """Möller–Trumbore, vectorised over rows: does segment p->q meet triangle abc?"""
+    d, e1, e2 = q - p, b - a, c - a
+    h = np.cross(d, e2)
+    det = np.einsum("ij,ij->i", e1, h)
+    usable = np.abs(det) > 1e-300
+    inv = np.where(usable, 1.0 / np.where(usable, det, 1.0), 0.0)
+    s = p - a
+    u = inv * np.einsum("ij,ij->i", s, h)
+    qv = np.cross(s, e1)
+    v = inv * np.einsum("ij,ij->i", d, qv)
+    t = inv * np.einsum("ij,ij->i", e2, qv)
+    return usable & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
+
+
+def count_crossing_triangles(mesh: SheetMesh) -> int:
+    """Brute force: pairs of triangles from regions that share no vertex (regions that do
+    share one meet along a ruling) where an edge of one pierces the other."""
+    faces, regions = mesh.faces, mesh.face_regions
+    neighbours = np.zeros((regions.max() + 1,) * 2, bool)
+    regions_at_vertex = [set() for _ in range(len(mesh.vertices))]
+    for face, region in zip(faces, regions):
+        for vertex in face:
+            regions_at_vertex[vertex].add(region)
+    for around in regions_at_vertex:
+        for r in around:
+            neighbours[r, list(around)] = True
+    tri = mesh.vertices[faces]
+    lo, hi = tri.min(axis=1), tri.max(axis=1)
+    boxes_meet = np.all((lo[:, None] <= hi[None]) & (lo[None] <= hi[:, None]), axis=2)
+    i, j = np.nonzero(np.triu(boxes_meet, 1))
+    keep = ~neighbours[regions[i], regions[j]]
+    first, second = tri[i[keep]], tri[j[keep]]
+    hit = np.zeros(len(first), bool)
+    for x, y in ((first, second), (second, first)):
+        for k in range(3):
+            hit |= segment_hits_triangle(x[:, k], x[:, (k + 1) % 3], y[:, 0], y[:, 1], y[:, 2])
+    return int(hit.sum())
 
 
 def assert_valid_sheet(mesh: SheetMesh) -> None:
@@ -114,9 +154,10 @@ def assert_valid_sheet(mesh: SheetMesh) -> None:
         ends = border_sides(np.array([p0, p1]), width, height, tol)
         assert ends[0].any() and ends[1].any(), "ruling end off the border"
         assert not np.any(ends[0] & ends[1]), "ruling with both ends on one side"
-    for i, (p0, p1, _) in enumerate(lines):
-        for q0, q1, _ in lines[i + 1 :]:
-            assert not segments_cross(p0, p1, q0, q1), "two rulings cross or touch"
+    if len(lines) > 1:
+        p0, p1 = (np.array([line[k] for line in lines]) for k in (0, 1))
+        i, j = np.triu_indices(len(lines), 1)
+        assert not np.any(segments_cross(p0[i].T, p1[i].T, p0[j].T, p1[j].T)), "two rulings cross or touch"
 
     # No triangle straddles a ruling: its vertices are all on one side or on the line.
     for p0, p1, _ in lines:
@@ -125,6 +166,17 @@ def assert_valid_sheet(mesh: SheetMesh) -> None:
         side = (flat[:, 0] - p0[0]) * direction[1] - (flat[:, 1] - p0[1]) * direction[0]
         side = np.where(np.abs(side) <= tol, 0.0, np.sign(side))[faces]
         assert not np.any((side.max(axis=1) > 0) & (side.min(axis=1) < 0)), "a triangle crosses a ruling"
+
+    # Rigid regions: one more than the rulings, each still a plane after bending.
+    assert mesh.face_regions.shape == (len(faces),)
+    assert np.array_equal(np.unique(mesh.face_regions), np.arange(len(lines) + 1))
+    first_face = faces[np.unique(mesh.face_regions, return_index=True)[1]]  # one face per region
+    a, b, c = (vertices[first_face[:, k]] for k in range(3))
+    normals = np.cross(b - a, c - a)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    region = mesh.face_regions
+    heights = np.einsum("fkj,fj->fk", vertices[faces] - a[region][:, None], normals[region])
+    assert np.abs(heights).max() <= 1e-12 * scale, "a region is not planar after bending"
 
     # The region holding the sheet centre stays where the flat sheet was.
     centre_face = np.argmax(
@@ -301,6 +353,24 @@ def test_high_bending_angles_get_rejected_sometimes_and_never_pass_intersecting(
         outcomes["ok"] += 1
         assert_valid_sheet(mesh)
     assert outcomes["rejected"] >= 3
+
+
+def test_self_intersection_verdicts_agree_with_brute_force():
+    # Sharp creases of 85°-160° with the curl limit lifted: the geometric test alone decides,
+    # and a brute-force Möller–Trumbore check over all triangle pairs must agree with it.
+    options = dict(min_angle=1.5, max_angle=2.8, max_total_bend=20.0, clearance=0.0, smooth_steps=1)
+    verdicts = []
+    for seed in range(10):
+        try:
+            mesh = sample_sheet(5, np.random.default_rng(seed), *A4, **options)
+            verdicts.append("accepted")
+            assert count_crossing_triangles(mesh) == 0
+        except SelfIntersection as error:
+            assert "pass through" in error.reason
+            verdicts.append("rejected")
+            unchecked = sample_sheet(5, np.random.default_rng(seed), *A4, check_self_intersection=False, **options)
+            assert count_crossing_triangles(unchecked) > 0
+    assert {"accepted", "rejected"} <= set(verdicts)
 
 
 # -- bad input ------------------------------------------------------------------------------
