@@ -463,6 +463,11 @@ def create_app(
         """Status, current stage and k, counts of θ, ω and P, elapsed time, best model."""
         return queries.summary(session, experiment_id)
 
+    @app.get("/experiments/{experiment_id}/config", tags=["experiments"], responses=NOT_FOUND)
+    def experiment_config(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
+        """The experiment's config as recorded, every default filled in."""
+        return queries.get_experiment(session, experiment_id).config
+
     @app.post(
         "/experiments/{experiment_id}/cancel",
         tags=["experiments"],

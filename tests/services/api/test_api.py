@@ -356,6 +356,19 @@ def test_create_from_yaml(client, database_url, content_type):
     assert stored.config["curriculum"] == {"conditions": ["mb", "po"], "difficulties": ["hard"]}
 
 
+def test_recorded_config_has_the_defaults_filled_in(client, seeded):
+    document = "name: defaults\nactive_learning:\n  tau: 0.05\n"
+    created = client.post("/experiments", content=document, headers={**AUTH, "Content-Type": "text/yaml"}).json()
+    response = client.get(f"/experiments/{created['id']}/config")
+    assert response.status_code == 200
+    config = response.json()
+    assert config["active_learning"]["tau"] == 0.05
+    assert config["active_learning"]["M"] == 3 and config["active_learning"]["N"] == 8  # the paper's defaults
+    assert config == ExperimentConfig(name="defaults", active_learning={"tau": 0.05}).model_dump(mode="json")
+    missing = client.get("/experiments/4242/config")
+    assert missing.status_code == 404 and missing.json()["detail"] == "experiment 4242 does not exist"
+
+
 def test_two_creations_get_distinct_ids(client):
     first = client.post("/experiments", json={"name": "same"}, headers=AUTH).json()["id"]
     second = client.post("/experiments", json={"name": "same"}, headers=AUTH).json()["id"]
@@ -663,6 +676,7 @@ def test_queues_against_a_live_redis_with_a_worker(database_url, redis_url):
 def test_openapi_documents_both_config_media_types(client):
     spec = client.get("/openapi.json").json()
     assert {"/health", "/experiments", "/experiments/{experiment_id}", "/experiments/{experiment_id}/cancel",
+            "/experiments/{experiment_id}/config",
             "/experiments/{experiment_id}/stages", "/experiments/{experiment_id}/history", "/models/{model_id}",
             "/queues"} <= set(spec["paths"])
     content = spec["paths"]["/experiments"]["post"]["requestBody"]["content"]
