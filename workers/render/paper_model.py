@@ -25,7 +25,13 @@ Sampling never produces crossing rulings by construction: two sheet corners spli
 into arcs A and B; the guiding rulings' ends are drawn as increasing positions along A and
 along B and the i-th of A is paired with the i-th of B (nested chords never alternate along
 the perimeter). Arcs A and B share no side, so both ends of a ruling are on different sides.
-Every chain of non-crossing rulings arises this way for some pair of corners.
+Every chain of non-crossing rulings arises this way for some pair of corners. Layouts with
+ends too near a corner or strips narrower than ``min_strip`` are redrawn.
+
+Self-intersection (``SelfIntersection``, the caller resamples): a sheet whose bends add up
+past ``max_total_bend`` (270°) between two regions curls into itself; otherwise every two
+regions that do not share a ruling are tested as the planar convex polygons they are (exact,
+cheap, done before meshing), counting layers closer than ``clearance`` as touching.
 """
 
 from __future__ import annotations
@@ -182,13 +188,16 @@ def _positive(name: str, value: Any) -> float:
 def _options(width: float, height: float, opts: dict) -> _Options:
     unknown = sorted(set(opts) - _OPTION_NAMES)
     if unknown:
-        raise TypeError(f"unknown paper model option(s) {', '.join(unknown)}; known: {', '.join(sorted(_OPTION_NAMES))}")
+        raise TypeError(
+            f"unknown paper model option(s) {', '.join(unknown)}; known: {', '.join(sorted(_OPTION_NAMES))}"
+        )
 
     def get(name: str, default: Any) -> Any:
         value = opts.get(name)
         return default if value is None else value
 
-    mesh_step = _positive("mesh_step", get("mesh_step", min(math.sqrt(width * height) / 16.0, min(width, height) / 4.0)))
+    default_step = min(math.sqrt(width * height) / 16.0, min(width, height) / 4.0)
+    mesh_step = _positive("mesh_step", get("mesh_step", default_step))
     if mesh_step > min(width, height):
         raise ValueError(f"mesh_step {mesh_step:g} is larger than the sheet's short side {min(width, height):g}")
     smooth_steps = get("smooth_steps", 3)
@@ -197,7 +206,9 @@ def _options(width: float, height: float, opts: dict) -> _Options:
     min_angle = float(get("min_angle", math.radians(10.0)))
     max_angle = float(get("max_angle", math.radians(50.0)))
     if not (0.0 <= min_angle <= max_angle < math.pi):
-        raise ValueError(f"need 0 <= min_angle <= max_angle < pi, got min_angle={min_angle!r}, max_angle={max_angle!r}")
+        raise ValueError(
+            f"need 0 <= min_angle <= max_angle < pi, got min_angle={min_angle!r}, max_angle={max_angle!r}"
+        )
     max_tries = get("max_tries", 200)
     if isinstance(max_tries, bool) or not isinstance(max_tries, (int, np.integer)) or max_tries < 1:
         raise ValueError(f"max_tries must be an integer >= 1, got {max_tries!r}")
@@ -358,8 +369,8 @@ def _sample_guides(
     signs = rng.choice([-1.0, 1.0], n)
     start = corners[i]
     return [
-        ((start + along_a[k]) % border.length, (start - along_b[k]) % border.length, float(signs[k] * magnitudes[k]))
-        for k in range(n)
+        ((start + a) % border.length, (start - b) % border.length, float(sign * magnitude))
+        for a, b, sign, magnitude in zip(along_a, along_b, signs, magnitudes)
     ]
 
 
@@ -478,7 +489,9 @@ def _polygon_area(polygon: np.ndarray) -> float:
     return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
 
 
-def _triangulate_region(region: _Region, points: np.ndarray, grid: np.ndarray, options: _Options) -> tuple[np.ndarray, np.ndarray]:
+def _triangulate_region(
+    region: _Region, points: np.ndarray, grid: np.ndarray, options: _Options
+) -> tuple[np.ndarray, np.ndarray]:
     """Faces (global ids, ccw) and the interior grid points used, for one convex region."""
     from scipy.spatial import Delaunay  # noqa: PLC0415 - scipy comes with scikit-image (render extra)
 
@@ -611,7 +624,10 @@ def _find_self_intersection(
 # -- public API ------------------------------------------------------------------------------
 
 
-def _assemble(width: float, height: float, border: _Border, chords: list[_Chord], guides: list[Ruling], options: _Options) -> SheetMesh:
+def _assemble(
+    width: float, height: float, border: _Border, chords: list[_Chord], guides: list[Ruling], options: _Options
+) -> SheetMesh:
+    """Regions, their rigid transforms, the self-intersection checks, then the mesh."""
     builder = _MeshBuilder(border, chords, options)
     points, regions = builder.build()
 
@@ -681,11 +697,10 @@ def _assemble(width: float, height: float, border: _Border, chords: list[_Chord]
 
     # Regions are rigid planar polygons: check them before spending time on the mesh.
     if options.check_self_intersection:
-        corners = [
-            (np.column_stack([points[region.corner_ids], np.zeros(len(region.corner_ids))]) - origin) @ rotations[r].T
-            + translations[r]
-            for r, region in enumerate(regions)
-        ]
+        corners = []
+        for r, region in enumerate(regions):
+            flat_corners = np.column_stack([points[region.corner_ids], np.zeros(len(region.corner_ids))]) - origin
+            corners.append(flat_corners @ rotations[r].T + translations[r])
         found = _find_self_intersection(corners, rotations, adjacent, options.clearance)
         if found is not None:
             raise SelfIntersection(
@@ -735,18 +750,22 @@ def _assemble(width: float, height: float, border: _Border, chords: list[_Chord]
     )
 
 
-def build_sheet(width: float, height: float, rulings: Sequence[tuple[Sequence[float], Sequence[float], float]], **opts) -> SheetMesh:
+def build_sheet(
+    width: float, height: float, rulings: Sequence[tuple[Sequence[float], Sequence[float], float]], **opts
+) -> SheetMesh:
     """A bent sheet from given guiding rulings ``(p0, p1, angle)`` (flat end points on the
     border, radians, positive = valley fold seen from +z).
 
     Options (all keyword, lengths in metres): ``mesh_step`` (target edge length, default
-    sqrt(W H)/16, at most min(W, H)/4), ``smooth_steps`` (interpolated rulings per guiding ruling, default 3; 1 is a
-    sharp crease), ``bend_spacing`` (border distance between them, default 0.75 mesh_step),
+    sqrt(W H)/16, at most min(W, H)/4), ``smooth_steps`` (interpolated rulings per guiding
+    ruling, default 3; 1 is a sharp crease), ``bend_spacing`` (border distance between
+    them, default 0.75 mesh_step),
     ``corner_gap`` (ruling ends kept this far from corners, default 0.5 mesh_step),
     ``min_strip`` (least distance between rulings, default 0.3 mesh_step),
     ``max_total_bend`` (radians, default 3π/2), ``clearance`` (non-neighbouring regions
     closer than this count as touching, default 0.002 max(W, H)),
-    ``check_self_intersection`` (default True).
+    ``check_self_intersection`` (default True; False skips both the curl limit and the
+    geometric test).
 
     Raises RulingLayoutError (a ValueError) for rulings that cannot make a sheet and
     SelfIntersection when the bent sheet passes through itself.
@@ -761,9 +780,14 @@ def build_sheet(width: float, height: float, rulings: Sequence[tuple[Sequence[fl
             p0, p1, angle = ruling
         except (TypeError, ValueError):
             raise RulingLayoutError(f"ruling {index} must be (p0, p1, angle), got {ruling!r}") from None
-        angle = float(angle)
+        try:
+            angle = float(angle)
+        except (TypeError, ValueError):
+            raise RulingLayoutError(f"ruling {index}: bending angle must be a number, got {angle!r}") from None
         if not math.isfinite(angle) or abs(angle) >= math.pi:
-            raise RulingLayoutError(f"ruling {index}: bending angle {angle!r} must be finite and below pi in magnitude")
+            raise RulingLayoutError(
+                f"ruling {index}: bending angle {angle!r} must be finite and below pi in magnitude"
+            )
         guides.append((border.position(p0, tol), border.position(p1, tol), angle))
     chords = _expand(border, guides, options)
     _validate_layout(border, chords, options)
@@ -786,7 +810,9 @@ def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height:
     if n_rulings < 0:
         raise ValueError(f"n_rulings must be >= 0, got {n_rulings}")
     if not isinstance(rng, np.random.Generator):
-        raise TypeError(f"rng must be a numpy.random.Generator (numpy.random.default_rng(seed)), got {type(rng).__name__}")
+        raise TypeError(
+            f"rng must be a numpy.random.Generator (numpy.random.default_rng(seed)), got {type(rng).__name__}"
+        )
     width, height = _check_sheet_size(width, height)
     options = _options(width, height, opts)
     border = _Border(width, height)
@@ -796,10 +822,11 @@ def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height:
     for _ in range(options.max_tries):
         guides = _sample_guides(int(n_rulings), rng, border, options)
         if guides is None:
+            border_per_ruling = (options.smooth_steps - 1) * options.bend_spacing + options.min_gap
             raise ValueError(
                 f"{n_rulings} guiding rulings do not fit on a {width:g} x {height:g} sheet with mesh_step "
-                f"{options.mesh_step:g} (each needs about {(options.smooth_steps - 1) * options.bend_spacing + options.min_gap:.3g} "
-                "of border on both ends): use fewer rulings, fewer smooth_steps or a smaller mesh_step"
+                f"{options.mesh_step:g} (each needs about {border_per_ruling:.3g} of border on both ends): "
+                "use fewer rulings, fewer smooth_steps or a smaller mesh_step"
             )
         chords = _expand(border, guides, options)
         try:
@@ -809,7 +836,9 @@ def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height:
             continue
         guide_rulings = [(border.point(s0), border.point(s1), angle) for s0, s1, angle in guides]
         return _assemble(width, height, border, chords, guide_rulings, options)
-    raise ValueError(f"no valid layout of {n_rulings} rulings in {options.max_tries} tries; last problem: {last_problem}")
+    raise ValueError(
+        f"no valid layout of {n_rulings} rulings in {options.max_tries} tries; last problem: {last_problem}"
+    )
 
 
 def write_obj(mesh: SheetMesh, path: str | PathLike) -> None:

@@ -387,6 +387,7 @@ def test_self_intersection_verdicts_agree_with_brute_force():
         ([((0.05, 0.0), (0.05, 0.297), 0.5), ((0.052, 0.0), (0.052, 0.297), 0.5)], "apart"),
         ([((0.05, 0.0), (0.05, 0.297), math.pi)], "below pi"),
         ([((0.05, 0.0), (0.05, 0.297))], "must be \\(p0, p1, angle\\)"),
+        ([((0.05, 0.0), (0.05, 0.297), "steep")], "must be a number"),
     ],
 )
 def test_bad_rulings_are_named(rulings, message):
@@ -414,6 +415,9 @@ def test_bad_arguments_are_clear_errors():
         sample_sheet(2, rng, *A4, max_angle=4.0)
     with pytest.raises(ValueError, match="do not fit"):
         sample_sheet(40, rng, *A4)
+    # Strips required wider than the ruling spacing the sampler can give: no layout ever passes.
+    with pytest.raises(ValueError, match="no valid layout of 5 rulings in 5 tries; last problem: two rulings"):
+        sample_sheet(5, rng, *A4, smooth_steps=1, min_strip=0.05, max_tries=5)
 
 
 # -- OBJ ------------------------------------------------------------------------------------
