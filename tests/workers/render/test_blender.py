@@ -216,12 +216,17 @@ def test_another_process_renders_the_same_bytes(renderer, tmp_path):
     assert here.alpha.tobytes() == other["alpha"].tobytes()
 
 
-def test_projected_corners_bound_the_rendered_mask(renderer):
+@pytest.mark.parametrize(
+    ("size", "principal", "focal", "tilt", "height_m"),
+    [
+        ((96, 80), (41.3, 39.7), 95.0, (-0.1, 0.08, 0.4), 1.8),  # landscape
+        ((64, 96), (30.2, 50.6), 70.0, (-0.1, 0.08, 1.2), 2.2),  # portrait: shifts still in width units
+    ],
+)
+def test_projected_corners_bound_the_rendered_mask(renderer, size, principal, focal, tilt, height_m):
     # Off-centre principal point, a non-square image and a tilted, shifted camera: every
     # convention (intrinsics, shifts in width units, R/t axes) shows in where the sheet lands.
-    camera = make_camera(
-        centre=(0.12, -0.08, 1.8), tilt=(-0.1, 0.08, 0.4), focal=95.0, principal=(41.3, 39.7), size=(96, 80)
-    )
+    camera = make_camera(centre=(0.12, -0.08, height_m), tilt=tilt, focal=focal, principal=principal, size=size)
     scene = flat_scene(camera=camera)
     out = renderer.render(scene)
     corners, depth = camera.project(scene.vertices)
@@ -382,3 +387,21 @@ def test_bent_sheet_matches_raster_backend(renderer):
         light_direction=np.array([0.0, 0.0, 1.0]),
     )
     assert_backends_agree(renderer, scene)
+
+
+HAS_PIPELINE = importlib.util.find_spec("workers.render.pipeline") is not None
+
+
+@pytest.mark.skipif(not HAS_PIPELINE, reason="workers/render/pipeline.py has not landed yet")
+@pytest.mark.parametrize(("condition", "difficulty"), [("de", "hard"), ("po", "medium")])
+def test_render_theta_boxes_agree_between_backends(renderer, condition, difficulty):
+    from workers.render.parameters import generate_parameters  # noqa: PLC0415
+    from workers.render.pipeline import render_theta  # noqa: PLC0415
+
+    theta = generate_parameters(condition, difficulty, 1, seed=4, image_size=64)[0]
+    cycles = render_theta(theta, backend="blender", samples=SAMPLES)
+    raster = render_theta(theta, backend="raster")
+    assert cycles.image.shape == raster.image.shape == (64, 64, 3)
+    np.testing.assert_allclose(cycles.box, raster.box, atol=1.0)
+    # Same texture, light and background: the images differ by anti-aliasing and filtering only.
+    assert np.abs(cycles.image.astype(np.int16) - raster.image.astype(np.int16)).mean() < 4.0
