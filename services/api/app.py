@@ -124,7 +124,7 @@ class BrokerProbe:
         )
 
     def check(self) -> dict[str, Any]:
-        """``{"status": "ok" | "error" | "skipped", ...}`` within about ``timeout_s``."""
+        """``{"status": "ok" | "error" | "skipped", ...}``; a silent broker costs about twice ``timeout_s``."""
         reason = self.skipped_reason
         if reason:
             return {"status": "skipped", "detail": reason}

@@ -82,9 +82,9 @@ def client(database_url) -> TestClient:
     return TestClient(create_app(broker_timeout_s=0.5, ping_timeout_s=0.3))
 
 
-def client_with(**overrides) -> TestClient:
+def client_with(broker_timeout_s: float = 0.5, **overrides) -> TestClient:
     settings = get_settings().model_copy(update=overrides)
-    return TestClient(create_app(settings, broker_timeout_s=0.5, ping_timeout_s=0.3))
+    return TestClient(create_app(settings, broker_timeout_s=broker_timeout_s, ping_timeout_s=0.3))
 
 
 T0 = datetime(2026, 1, 1, 12, 0, tzinfo=timezone.utc)
@@ -549,6 +549,27 @@ def test_health_with_the_broker_unreachable_answers_quickly(client):
     assert body["broker"]["status"] == "error"
     assert "refused" in body["broker"]["detail"].lower()
     assert elapsed < 5.0  # a bound against hanging on retries, not a benchmark
+
+
+@pytest.fixture
+def silent_broker_url():
+    """A port that accepts connections and never answers: the broker hung, not down."""
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(8)
+        yield f"redis://127.0.0.1:{listener.getsockname()[1]}/0"
+
+
+def test_a_silent_broker_is_an_error_after_the_timeout_not_a_hang(database_url, silent_broker_url):
+    client = client_with(broker_url=silent_broker_url, broker_timeout_s=0.2)
+    started = time.perf_counter()
+    health = client.get("/health")
+    queues = client.get("/queues")
+    elapsed = time.perf_counter() - started
+    assert health.status_code == 200 and health.json()["broker"]["status"] == "error"
+    assert "timeout" in health.json()["broker"]["detail"].lower()
+    assert queues.status_code == 503 and "unreachable" in queues.json()["detail"]
+    assert elapsed < 5.0
 
 
 def test_health_skips_the_broker_in_eager_mode(database_url):
