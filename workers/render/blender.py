@@ -228,7 +228,7 @@ class BlenderRenderer:
         if device is not None:
             if device not in DEVICES:
                 raise ValueError(f"device must be one of {DEVICES}, got {device!r}")
-            if device == "GPU":
+            if device == "GPU" and self._scene.cycles.device != "GPU":  # device discovery is slow: once
                 self._enable_gpu()
             self._scene.cycles.device = device
 
