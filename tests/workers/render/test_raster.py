@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -56,10 +57,27 @@ def test_coverage_is_exactly_the_pixel_centres_inside_the_projected_sheet():
     output = render_scene(flat_scene())
     expected = expected_rectangle_mask(SIZE, WIDTH_M, HEIGHT_M, canonical_distance())
     assert np.array_equal(output.mask, expected)
-    assert np.array_equal(output.alpha, output.mask.astype(np.float32))
+    assert np.array_equal(render_scene(flat_scene(), antialias=False).alpha, expected.astype(np.float32))
     # The canonical framing: the longer side spans 65% of the image.
     columns = np.flatnonzero(output.mask.any(axis=0))
     assert abs((columns[-1] + 1 - columns[0]) - 0.65 * SIZE) <= 1.0
+
+
+def test_antialiased_alpha_measures_edge_coverage():
+    scene = flat_scene(roll=0.2)  # slanted edges
+    output = render_scene(scene)
+    mask, alpha = output.mask, output.alpha
+    inner = cv2.erode(mask.astype(np.uint8), None).astype(bool)
+    near = cv2.dilate(mask.astype(np.uint8), None).astype(bool)
+    assert (alpha[inner] == 1).all() and (alpha[~near] == 0).all()
+    assert ((alpha > 0) & (alpha < 1)).sum() > 50  # a soft edge all around
+    assert (alpha[mask] > 0).all() and alpha.min() >= 0 and alpha.max() <= 1
+    focal = intrinsics(SIZE)[0, 0]
+    true_area = (focal / canonical_distance()) ** 2 * WIDTH_M * HEIGHT_M
+    assert abs(alpha.sum() - true_area) < 0.01 * true_area
+    # Partly covered pixels outside the mask take their covered neighbours' colour, not black.
+    fringe = (alpha > 0) & ~mask
+    assert fringe.any() and (output.rgb[fringe].sum(axis=1) > 0.1).all()
 
 
 def test_texture_is_upright_unmirrored_and_unchanged_on_a_front_facing_sheet():
@@ -232,7 +250,7 @@ def test_coverage_and_z_test_match_a_brute_force_reference_on_a_folded_sheet():
     from workers.render.raster import rasterize_face_ids
 
     pix, depth = scene.camera.project(scene.vertices)
-    ids, _ = rasterize_face_ids(pix, depth, scene.faces, 48, 48)
+    ids, _, _ = rasterize_face_ids(pix, depth, scene.faces, 48, 48)
     reference = brute_force_face_ids(scene)
     assert (reference >= 0).sum() > 300
     assert np.array_equal((ids >= 0).reshape(48, 48), reference >= 0)
