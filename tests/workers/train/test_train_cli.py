@@ -143,7 +143,7 @@ def test_unreadable_checkpoint_is_a_clear_error(tmp_path, dataset):
     assert f"cannot load checkpoint {garbage}" in result.output
     missing = runner.invoke(make_app(), ["evaluate", "--model", str(tmp_path / "nope.pt"), "--data", str(dataset)])
     assert missing.exit_code == 1 and "does not exist" in missing.output
-    image = next((dataset / "images").iterdir())
+    image = next((dataset / "images").glob("*.png"))
     drawn = runner.invoke(make_app(), ["detect", "--model", str(garbage), str(image), "--out-dir", str(tmp_path / "d")])
     assert drawn.exit_code == 1 and "cannot load checkpoint" in drawn.output
 
@@ -179,7 +179,8 @@ def test_draw_detections_boxes_and_labels_only_above_threshold():
 
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory, dataset) -> dict[str, Path]:
-    """One tiny checkpoint per detector family, two iterations each."""
+    """One tiny checkpoint per detector family: one iteration of one 64-px image each (the
+    commands' plumbing is under test here, not learning)."""
     pytest.importorskip("workers.train.training")
     out = tmp_path_factory.mktemp("models")
     checkpoints, outputs = {}, {}
@@ -188,8 +189,8 @@ def trained(tmp_path_factory, dataset) -> dict[str, Path]:
         result = runner.invoke(
             make_app(),
             [
-                "train", "--detector", family, "--data", str(dataset), "--iterations", "2",
-                "--input-size", "96", "--batch-size", "2", "--seed", "1", "--threads", "2", "--out", str(path),
+                "train", "--detector", family, "--data", str(dataset), "--iterations", "1",
+                "--input-size", "64", "--batch-size", "1", "--seed", "1", "--threads", "2", "--out", str(path),
             ],
         )
         assert result.exit_code == 0, result.output
@@ -203,7 +204,7 @@ def test_train_writes_checkpoint_and_reports_throughput_and_loss(trained, family
     path = trained["checkpoints"][family]
     output = trained["outputs"][family]
     assert path.is_file() and path.stat().st_size > 0
-    assert "2 iterations" in output
+    assert "1 iterations" in output
     assert "images/s" in output
     loss = float(output.split("final loss ")[1].split()[0])
     assert math.isfinite(loss)
@@ -213,7 +214,7 @@ def test_train_warm_start_from_checkpoint(trained, dataset, tmp_path):
     result = runner.invoke(
         make_app(),
         [
-            "train", "--detector", "yolo", "--data", str(dataset), "--iterations", "1", "--input-size", "96",
+            "train", "--detector", "yolo", "--data", str(dataset), "--iterations", "1", "--input-size", "64",
             "--init", str(trained["checkpoints"]["yolo"]), "--threads", "2", "--out", str(tmp_path / "next.pt"),
         ],
     )
@@ -240,24 +241,8 @@ def test_evaluate_prints_tables_and_writes_json(trained, dataset, tmp_path):
     assert "AP50" in payload["coco"]
 
 
-def test_evaluate_maps_dataset_classes_by_name(trained, tmp_path):
-    """The same images with category ids swapped give the same score: labels follow names."""
-    model = trained["checkpoints"]["yolo"]
-    scores = []
-    for order in ((1, 2), (2, 1)):
-        data = write_dataset(tmp_path / f"order{order[0]}", category_order=order)
-        target = tmp_path / f"order{order[0]}.json"
-        result = runner.invoke(
-            make_app(), ["evaluate", "--model", str(model), "--data", str(data), "--json", str(target), "--threshold", "0"]
-        )
-        assert result.exit_code == 0, result.output
-        payload = json.loads(target.read_text())
-        scores.append((payload["map_unthresholded"], payload["per_class"]))
-    assert scores[0] == scores[1]
-
-
 def test_detect_writes_annotated_copies(trained, dataset, tmp_path):
-    images = sorted((dataset / "images").iterdir())[:2]
+    images = sorted((dataset / "images").glob("*.png"))[:2]
     out_dir = tmp_path / "drawn"
     result = runner.invoke(
         make_app(),
