@@ -25,7 +25,13 @@ Conventions match ``scene.py`` and the raster backend:
   colour: Cycles' premultiplied value divided by alpha, 0 where nothing is covered, so that
   compositing is ``colour × alpha + background × (1 − alpha)`` as for the raster backend.
 * Determinism: fixed seed, no animated seed, no adaptive sampling, no denoiser: the same
-  scene renders to the same bytes.
+  scene renders to the same bytes, in this process or another.
+* Speed (measured at 256², 16 samples): nearly all the time is path tracing, linear in the
+  samples; sync and the EXR round trip cost a few tens of ms. Shadow rays cost ~25% and
+  changed no pixel of the pipeline's images (off); adaptive sampling at 16 samples changed no
+  pixel either (its convergence checks start too late; off); the light tree is off (one
+  light); persistent data is off (Cycles then misses edits to the texture pixels, and a
+  resync is cheap); one tile per image; as many threads as the process may use.
 """
 
 from __future__ import annotations
