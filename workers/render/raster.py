@@ -53,34 +53,36 @@ SRGB_TO_LINEAR = _srgb_decode_table()
 
 
 class _TexturePyramids:
-    """Linear-light mip levels of the textures in use, keyed by array identity (a reference is
-    kept, so an id cannot be reused while cached)."""
+    """Linear-light mip levels of the textures in use, only the levels asked for, keyed by
+    array identity (a reference is kept, so an id cannot be reused while cached)."""
 
     def __init__(self, capacity: int = 32):
         self.capacity = capacity
-        self._items: OrderedDict[int, tuple[np.ndarray, list[np.ndarray]]] = OrderedDict()
+        self._items: OrderedDict[int, tuple[np.ndarray, dict[int, np.ndarray]]] = OrderedDict()
 
     def level(self, texture: np.ndarray, footprint_px: float) -> np.ndarray:
         key = id(texture)
         item = self._items.get(key)
         if item is None or item[0] is not texture:
-            base = SRGB_TO_LINEAR[np.ascontiguousarray(texture[:, :, :3])]
-            item = (texture, [base])
+            item = (texture, {})
             self._items[key] = item
             if len(self._items) > self.capacity:
                 self._items.popitem(last=False)
         else:
             self._items.move_to_end(key)
-        levels = item[1]
-        # Smallest level still at least as large as the sheet's footprint on screen.
+        # The smallest power-of-two reduction still at least as large as the sheet's footprint.
+        h, w = texture.shape[:2]
         index = 0
-        while True:
-            h, w = levels[index].shape[:2]
-            if max(h, w) / 2.0 < footprint_px or min(h, w) < 4:
-                return levels[index]
-            if index + 1 == len(levels):
-                levels.append(cv2.resize(levels[index], ((w + 1) // 2, (h + 1) // 2), interpolation=cv2.INTER_AREA))
+        while max(h, w) / 2.0 ** (index + 1) >= footprint_px and min(h, w) / 2.0 ** (index + 1) >= 4:
             index += 1
+        levels = item[1]
+        if index not in levels:
+            linear = SRGB_TO_LINEAR[texture[:, :, :3]]
+            if index:
+                size = (-(-w // 2**index), -(-h // 2**index))
+                linear = cv2.resize(linear, size, interpolation=cv2.INTER_AREA)
+            levels[index] = linear
+        return levels[index]
 
 
 _PYRAMIDS = _TexturePyramids()

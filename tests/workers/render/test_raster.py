@@ -257,3 +257,16 @@ def test_coverage_and_z_test_match_a_brute_force_reference_on_a_folded_sheet():
     differ = ids.reshape(48, 48) != reference
     # Where they differ, both faces must be at the same depth (a shared edge): compare depths.
     assert differ.sum() <= 0.01 * (reference >= 0).sum()
+
+
+def test_minified_texture_is_filtered_not_aliased():
+    # A 1-texel checkerboard of 512x512 on a sheet about 40 pixels wide: sampling the full-size
+    # texture would return a random-looking mix of black and white texels; the mip level
+    # matching the footprint returns their average (linear 0.5).
+    checks = (np.indices((512, 512)).sum(axis=0) % 2 * 255).astype(np.uint8)
+    texture = np.repeat(checks[:, :, None], 3, axis=2)
+    output = render_scene(flat_scene(texture))
+    inner = cv2.erode(output.mask.astype(np.uint8), None, iterations=2).astype(bool)
+    values = output.rgb[inner, 0]
+    assert values.mean() == pytest.approx(0.5, abs=0.02)
+    assert values.std() < 0.02
