@@ -148,14 +148,6 @@ class _Border:
         x, y = min(max(x, 0.0), w), min(max(y, 0.0), h)
         return [x, w + y, w + h + (w - x), 2 * w + h + (h - y)][side] % self.length
 
-    def side(self, s: float) -> int:
-        """0 bottom, 1 right, 2 top, 3 left (a corner belongs to the side it starts)."""
-        return int(np.searchsorted(self.corners, s % self.length, side="right") - 1)
-
-    def corner_distance(self, s: float) -> float:
-        d = np.abs(self.corners - (s % self.length))
-        return float(np.min(np.minimum(d, self.length - d)))
-
 
 # -- options ---------------------------------------------------------------------------------
 
@@ -280,21 +272,21 @@ def _point_segment_distances(points: np.ndarray, a: np.ndarray, b: np.ndarray) -
 def _validate_layout(border: _Border, chords: list[_Chord], options: _Options) -> None:
     """RulingLayoutError naming the first problem: ends at corners or on one side, crossing
     rulings, ends nearly shared, strips narrower than ``min_strip``."""
-    names = ["bottom", "right", "top", "left"]
-    for c in chords:
-        for s in (c.s0, c.s1):
-            if border.corner_distance(s) < options.corner_gap:
-                x, y = border.point(s)
-                raise RulingLayoutError(
-                    f"ruling end ({x:.4g}, {y:.4g}) is within {options.corner_gap:.3g} of a sheet corner"
-                )
-        if border.side(c.s0) == border.side(c.s1):
-            raise RulingLayoutError(f"a ruling has both ends on the {names[border.side(c.s0)]} side")
-    if len(chords) < 2:
-        return
     length = border.length
     s0 = np.array([c.s0 for c in chords])
     s1 = np.array([c.s1 for c in chords])
+    ends = np.stack([s0, s1], axis=1).ravel()
+    to_corner = np.abs(ends[:, None] - border.corners[None]) % length
+    near = np.flatnonzero(np.minimum(to_corner, length - to_corner).min(axis=1) < options.corner_gap)
+    if len(near):
+        x, y = border.point(ends[near[0]])
+        raise RulingLayoutError(f"ruling end ({x:.4g}, {y:.4g}) is within {options.corner_gap:.3g} of a sheet corner")
+    side0, side1 = (np.searchsorted(border.corners, s % length, side="right") - 1 for s in (s0, s1))
+    if np.any(side0 == side1):
+        names = ["bottom", "right", "top", "left"]
+        raise RulingLayoutError(f"a ruling has both ends on the {names[side0[side0 == side1][0]]} side")
+    if len(chords) < 2:
+        return
     p0 = np.array([c.p0 for c in chords])
     p1 = np.array([c.p1 for c in chords])
     pair = np.triu(np.ones((len(chords), len(chords)), bool), k=1)
@@ -397,15 +389,20 @@ class _MeshBuilder:
         self.border = border
         self.chords = chords
         self.options = options
-        self.points: list[np.ndarray] = []
-        self.is_corner: list[bool] = []
+        self.blocks: list[np.ndarray] = []
+        self.corner_blocks: list[np.ndarray] = []
+        self.count = 0
 
     def _add(self, points: np.ndarray, corner: bool) -> list[int]:
-        start = len(self.points)
-        for p in np.atleast_2d(points):
-            self.points.append(np.asarray(p, np.float64))
-            self.is_corner.append(corner)
-        return list(range(start, len(self.points)))
+        block = np.asarray(points, np.float64).reshape(-1, 2)
+        self.blocks.append(block)
+        self.corner_blocks.append(np.full(len(block), corner))
+        self.count += len(block)
+        return list(range(self.count - len(block), self.count))
+
+    @property
+    def is_corner(self) -> np.ndarray:
+        return np.concatenate(self.corner_blocks)
 
     def build(self) -> tuple[np.ndarray, list[_Region]]:
         border, chords, step = self.border, self.chords, self.options.mesh_step
@@ -431,22 +428,23 @@ class _MeshBuilder:
                 s_next += border.length
             next_point = np.array(border.point(s_next))
             # Subdivide along the border (one side between two breaks: corners are breaks).
-            border_ids += self._add(_subdivide(point, next_point, step), corner=False) if s_next - s > 0 else []
+            border_ids += self._add(_subdivide(point, next_point, step), corner=False)
         position_in_border = {v: i for i, v in enumerate(border_ids)}
         # Rulings: interior vertices, in the direction p0 -> p1.
         ruling_inner = []
         for c_index, c in enumerate(chords):
             inner = _subdivide(c.p0, c.p1, step)
-            ruling_inner.append(self._add(inner, corner=False) if len(inner) else [])
+            ruling_inner.append(self._add(inner, corner=False))
 
         regions = self._trace_regions(border_ids, position_in_border, end_vertex, ruling_inner)
-        return np.array(self.points), regions
+        return np.concatenate(self.blocks), regions
 
     def _trace_regions(self, border_ids, position_in_border, end_vertex, ruling_inner) -> list[_Region]:
         n_border = len(border_ids)
+        is_corner = self.is_corner
         if not self.chords:
             chain = list(border_ids)
-            return [_Region(chain, [v for v in chain if self.is_corner[v]], [])]
+            return [_Region(chain, [v for v in chain if is_corner[v]], [])]
         ends = sorted(end_vertex, key=lambda e: position_in_border[end_vertex[e]])
         following = {e: ends[(i + 1) % len(ends)] for i, e in enumerate(ends)}
         visited: set[int] = set()
@@ -472,66 +470,102 @@ class _MeshBuilder:
                 current = partner
                 if current == first:
                     break
-            regions.append(_Region(chain, [v for v in chain if self.is_corner[v]], crossings))
+            regions.append(_Region(chain, [v for v in chain if is_corner[v]], crossings))
         return regions
 
 
-def _edge_frames(polygon: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Unit outward normals and offsets of a counter-clockwise convex polygon's edges."""
-    edges = np.roll(polygon, -1, axis=0) - polygon
-    normals = np.stack([edges[:, 1], -edges[:, 0]], axis=1)
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
-    return normals, np.einsum("ij,ij->i", normals, polygon)
+@dataclass(frozen=True)
+class _RegionEdges:
+    """The corners (sheet corners and ruling ends) and edges of every region, stacked."""
+
+    start: np.ndarray  # index of each region's first corner
+    region: np.ndarray  # region of each corner
+    points: np.ndarray  # (n, 2) corner positions, counter-clockwise per region
+    vectors: np.ndarray  # (n, 2) edge from each corner to the next one of its region
+    lengths: np.ndarray
+    normals: np.ndarray  # (n, 2) unit, outward
+    offsets: np.ndarray  # normals . points
+
+    @classmethod
+    def of(cls, regions: list[_Region], points: np.ndarray) -> _RegionEdges:
+        counts = np.array([len(region.corner_ids) for region in regions])
+        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
+        region = np.repeat(np.arange(len(regions)), counts)
+        following = start[region] + (np.arange(len(region)) - start[region] + 1) % counts[region]
+        corner_points = points[np.concatenate([r.corner_ids for r in regions])]
+        vectors = corner_points[following] - corner_points
+        lengths = np.linalg.norm(vectors, axis=1)
+        normals = np.stack([vectors[:, 1], -vectors[:, 0]], axis=1) / lengths[:, None]
+        offsets = np.einsum("ij,ij->i", normals, corner_points)
+        return cls(start, region, corner_points, vectors, lengths, normals, offsets)
+
+    def depth(self, query: np.ndarray) -> np.ndarray:
+        """(n, regions): how far outside each region each point lies (negative: inside)."""
+        return np.maximum.reduceat(query @ self.normals.T - self.offsets, self.start, axis=1)
+
+    def areas(self) -> np.ndarray:
+        following = self.points + self.vectors
+        cross = self.points[:, 0] * following[:, 1] - self.points[:, 1] * following[:, 0]
+        return 0.5 * np.bincount(self.region, weights=cross, minlength=len(self.start))
 
 
-def _polygon_area(polygon: np.ndarray) -> float:
-    x, y = polygon[:, 0], polygon[:, 1]
-    return 0.5 * float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1)))
-
-
-def _triangulate_region(
-    region: _Region, points: np.ndarray, grid: np.ndarray, options: _Options
-) -> tuple[np.ndarray, np.ndarray]:
-    """Faces (global ids, ccw) and the interior grid points used, for one convex region."""
+def _triangulate_regions(
+    regions: list[_Region],
+    edges: _RegionEdges,
+    points: np.ndarray,
+    is_corner: np.ndarray,
+    grid: np.ndarray,
+    options: _Options,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Triangulate every convex region from its boundary chain plus the grid points well
+    inside it. Returns faces (ids into ``points`` followed by the interior points, ccw), the
+    region of each face, the interior points and the region of each."""
     from scipy.spatial import Delaunay  # noqa: PLC0415 - scipy comes with scikit-image (render extra)
 
-    polygon = points[region.corner_ids]
-    normals, offsets = _edge_frames(polygon)
+    # Grid points at least `margin` inside a region belong to it (to one region at most).
     margin = 0.35 * options.mesh_step
-    inside = np.all(grid @ normals.T - offsets <= -margin, axis=1)
-    interior = grid[inside]
+    depth = edges.depth(grid)
+    grid_region = np.where(np.any(depth <= -margin, axis=1), np.argmin(depth, axis=1), -1)
 
-    # Bulge the boundary points of every straight edge outward (see _BULGE). The chain starts
-    # at a corner, so chain position k lies on the edge of the last corner at or before it.
-    chain = np.array(region.chain)
-    corner_set = set(region.corner_ids)
-    corner_positions = np.array([k for k, v in enumerate(region.chain) if v in corner_set])
-    edge = np.searchsorted(corner_positions, np.arange(len(chain)), side="right") - 1
-    a = points[chain[corner_positions[edge]]]
-    b = points[chain[corner_positions[(edge + 1) % len(corner_positions)]]]
-    ab = b - a
-    lengths = np.linalg.norm(ab, axis=1)
-    t = np.sum((points[chain] - a) * ab, axis=1) / lengths**2
-    bulged = points[chain] + normals[edge] * (_BULGE * lengths * 4.0 * t * (1.0 - t))[:, None]
+    # Bulge the boundary points of every straight edge outward (see _BULGE). Each chain starts
+    # at a corner, so a chain point lies on the edge of the last corner at or before it.
+    chains = [np.asarray(region.chain) for region in regions]
+    chain_all = np.concatenate(chains)
+    edge = np.cumsum(is_corner[chain_all]) - 1  # global edge index, since regions are stacked in order
+    lengths = edges.lengths[edge]
+    t = np.einsum("ij,ij->i", points[chain_all] - edges.points[edge], edges.vectors[edge]) / lengths**2
+    bulged = points[chain_all] + edges.normals[edge] * (_BULGE * lengths * 4.0 * t * (1.0 - t))[:, None]
 
-    local = np.vstack([bulged, interior])
-    triangulation = Delaunay(local)
-    if len(triangulation.coplanar):
-        raise RuntimeError("paper model: Delaunay dropped boundary points of a region (please report)")
-    simplices = triangulation.simplices.astype(np.int64)
-    true_local = np.vstack([points[chain], interior])
-    tri = true_local[simplices]
+    faces, face_regions, interiors = [], [], []
+    n_boundary = len(points)
+    n_interior = 0
+    chain_stop = np.cumsum([len(c) for c in chains])
+    for r, chain in enumerate(chains):
+        interior = grid[grid_region == r]
+        triangulation = Delaunay(np.vstack([bulged[chain_stop[r] - len(chain) : chain_stop[r]], interior]))
+        if len(triangulation.coplanar):
+            raise RuntimeError("paper model: Delaunay dropped boundary points of a region (please report)")
+        ids = np.concatenate([chain, n_boundary + n_interior + np.arange(len(interior))])
+        faces.append(ids[triangulation.simplices])
+        face_regions.append(np.full(len(triangulation.simplices), r))
+        interiors.append(interior)
+        n_interior += len(interior)
+    faces_arr = np.concatenate(faces).astype(np.int64)
+    face_regions_arr = np.concatenate(face_regions).astype(np.int64)
+    interior_points = np.concatenate(interiors)
+    interior_regions = np.repeat(np.arange(len(regions)), [len(i) for i in interiors])
+
+    # Counter-clockwise in the true (unbulged) flat frame; no sliver; regions exactly tiled.
+    tri = np.concatenate([points, interior_points])[faces_arr]
     areas = 0.5 * (
         (tri[:, 1, 0] - tri[:, 0, 0]) * (tri[:, 2, 1] - tri[:, 0, 1])
         - (tri[:, 1, 1] - tri[:, 0, 1]) * (tri[:, 2, 0] - tri[:, 0, 0])
     )
-    simplices[areas < 0] = simplices[areas < 0][:, [0, 2, 1]]
-    region_area = _polygon_area(polygon)
-    if np.min(np.abs(areas)) <= 1e-9 * options.mesh_step**2 or not math.isclose(
-        float(np.abs(areas).sum()), region_area, rel_tol=1e-9
-    ):
+    faces_arr[areas < 0] = faces_arr[areas < 0][:, [0, 2, 1]]
+    covered = np.bincount(face_regions_arr, weights=np.abs(areas), minlength=len(regions))
+    if np.min(np.abs(areas)) <= 1e-9 * options.mesh_step**2 or not np.allclose(covered, edges.areas(), rtol=1e-9, atol=0):
         raise RuntimeError("paper model: degenerate triangulation of a region (please report)")
-    return simplices, interior
+    return faces_arr, face_regions_arr, interior_points, interior_regions
 
 
 def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
@@ -630,6 +664,8 @@ def _assemble(
     """Regions, their rigid transforms, the self-intersection checks, then the mesh."""
     builder = _MeshBuilder(border, chords, options)
     points, regions = builder.build()
+    is_corner = builder.is_corner
+    edges = _RegionEdges.of(regions, points)
 
     # Region graph: each ruling borders exactly two regions.
     sides: dict[int, list[tuple[int, int, int]]] = {}
@@ -645,12 +681,7 @@ def _assemble(
         neighbours[r1].append((r0, chord_index, s0, e0))
 
     # Reference region: the one holding the sheet centre (the deepest inside, if on a ruling).
-    centre = np.array([width / 2.0, height / 2.0])
-    depth_inside = []
-    for region in regions:
-        normals, offsets = _edge_frames(points[region.corner_ids])
-        depth_inside.append(float(np.min(offsets - normals @ centre)))
-    reference = int(np.argmax(depth_inside))
+    reference = int(np.argmin(edges.depth(np.array([[width / 2.0, height / 2.0]]))[0]))
 
     # Bends adding up along a path: a sheet curled past max_total_bend is rejected.
     bend_from = np.zeros((n_regions, n_regions))
@@ -713,40 +744,31 @@ def _assemble(
     ny = max(1, round(height / options.mesh_step))
     gx, gy = np.meshgrid((np.arange(nx) + 0.5) * width / nx, (np.arange(ny) + 0.5) * height / ny)
     grid = np.stack([gx.ravel(), gy.ravel()], axis=1)
-    all_points = list(points)
-    faces, face_regions = [], []
-    region_vertices = []
-    for r, region in enumerate(regions):
-        local_faces, interior = _triangulate_region(region, points, grid, options)
-        interior_ids = np.arange(len(all_points), len(all_points) + len(interior))
-        all_points += list(interior)
-        ids = np.concatenate([np.array(region.chain, np.int64), interior_ids])
-        faces.append(ids[local_faces])
-        face_regions.append(np.full(len(local_faces), r, np.int64))
-        region_vertices.append(ids)
-    flat = np.array(all_points, np.float64)
-    faces_arr = np.concatenate(faces)
-    face_regions_arr = np.concatenate(face_regions)
+    faces, face_regions, interior, interior_regions = _triangulate_regions(regions, edges, points, is_corner, grid, options)
+    flat = np.concatenate([points, interior])
 
+    # Each vertex moves with the region holding it; a vertex on a ruling with the neighbour
+    # nearest the reference (both agree there, up to round-off).
+    rank = np.empty(n_regions, np.int64)
+    rank[order] = np.arange(n_regions)
+    owner_rank = np.full(len(points), n_regions)
+    for r, region in enumerate(regions):
+        np.minimum.at(owner_rank, region.chain, rank[r])
+    owner = np.concatenate([np.asarray(order)[owner_rank], interior_regions])
     flat3 = np.column_stack([flat, np.zeros(len(flat))]) - origin
-    vertices = np.empty_like(flat3)
-    placed = np.zeros(len(flat), bool)
-    for r in order:  # parents first: a vertex on a ruling takes its parent's transform
-        ids = region_vertices[r][~placed[region_vertices[r]]]
-        vertices[ids] = flat3[ids] @ rotations[r].T + translations[r]
-        placed[ids] = True
+    vertices = np.einsum("vij,vj->vi", np.array(rotations)[owner], flat3) + np.array(translations)[owner]
 
     fold_lines = [(tuple(map(float, c.p0)), tuple(map(float, c.p1)), float(c.angle)) for c in chords]
     return SheetMesh(
         flat=flat,
         vertices=vertices,
-        faces=faces_arr,
+        faces=faces,
         uv=flat / np.array([width, height]),
         width=float(width),
         height=float(height),
         rulings=list(guides),
         fold_lines=fold_lines,
-        face_regions=face_regions_arr,
+        face_regions=face_regions,
     )
 
 
