@@ -20,7 +20,8 @@ class ConfigError(ValueError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
+    # inf/nan have no place in a config, and PostgreSQL's JSON columns cannot store them.
+    model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
 
 
 class AssetsConfig(_Section):
@@ -98,6 +99,36 @@ class DetectorConfig(_Section):
     device: Literal["auto", "cpu", "cuda"] = "auto"
     # Torch intra-op threads; 0 lets torch choose.
     num_threads: int = Field(default=0, ge=0)
+    # Learning-rate schedule of one train_detector call: linear warm-up from 0.1% over
+    # warmup_iterations, then constant or a cosine decay to min_lr_fraction × learning_rate.
+    warmup_iterations: int = Field(default=50, ge=0)
+    lr_schedule: Literal["constant", "cosine"] = "cosine"
+    min_lr_fraction: float = Field(default=0.05, ge=0.0, le=1.0)
+    # Gradient norm clip (0 disables); random initialisation is unstable without it.
+    grad_clip_norm: float = Field(default=10.0, ge=0.0)
+    # R-CNN anchors (and proposal scale) span this range, as fractions of input_size:
+    # at 128 px, 10 px objects up to the whole image.
+    anchor_size_range: tuple[float, float] = (0.08, 1.0)
+    # Width of the R-CNN box head's two fully connected layers (torchvision: 1024).
+    representation_size: int = Field(default=256, ge=8, le=4096)
+    # RPN proposals kept per image after NMS (torchvision's COCO values: 2000 / 1000).
+    rpn_proposals_train: int = Field(default=300, ge=1)
+    rpn_proposals_test: int = Field(default=100, ge=1)
+    # RoIs sampled per image for the box head's loss (torchvision: 512).
+    roi_samples_per_image: int = Field(default=128, ge=1)
+    # Edge Boxes proposals per image for the fast_rcnn family (the whole-image box included).
+    edge_boxes: int = Field(default=200, ge=1, le=5000)
+    # Detections returned per image, and the score below which none is returned.
+    detections_per_image: int = Field(default=20, ge=1)
+    box_score_threshold: float = Field(default=0.05, ge=0.0, lt=1.0)
+
+    @field_validator("anchor_size_range")
+    @classmethod
+    def _anchor_range(cls, value: tuple[float, float]) -> tuple[float, float]:
+        low, high = value
+        if not 0 < low < high <= 4:
+            raise ValueError(f"must be two fractions of input_size with 0 < low < high <= 4, got {list(value)}")
+        return value
 
 
 class EvaluationConfig(_Section):

@@ -47,7 +47,10 @@ def get_experiment(session: Session, experiment_id: int) -> Experiment:
 
 
 def _iso(when: datetime | None) -> str | None:
-    return when.isoformat() if when else None
+    # SQLite hands datetimes back without their zone; every stored time is UTC.
+    if when is None:
+        return None
+    return (when if when.tzinfo else when.replace(tzinfo=timezone.utc)).isoformat()
 
 
 def _seconds_between(start: datetime | None, end: datetime | None) -> float | None:

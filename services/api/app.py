@@ -13,7 +13,6 @@ of the Celery app import them only inside task bodies, and are never imported he
 # No `from __future__ import annotations`: FastAPI must resolve the dependency annotations
 # declared inside create_app at runtime, and string annotations cannot see those locals.
 import json
-import math
 import secrets
 import threading
 from collections.abc import Iterator
@@ -254,18 +253,6 @@ def _reject_constant(name: str) -> None:
     raise ValueError(f"{name} is not a JSON number")
 
 
-def _require_finite(value: Any, key: str = "") -> None:
-    """Refuse NaN and ±inf anywhere in a config (YAML's .nan and .inf), naming the key."""
-    if isinstance(value, float) and not math.isfinite(value):
-        raise ConfigError(f"invalid experiment config:\n  {key}: must be a finite number, got {value}")
-    if isinstance(value, dict):
-        for name, item in value.items():
-            _require_finite(item, f"{key}.{name}" if key else str(name))
-    elif isinstance(value, (list, tuple)):
-        for index, item in enumerate(value):
-            _require_finite(item, f"{key}[{index}]")
-
-
 async def read_config(request: Request) -> ExperimentConfig:
     """The request body as a validated experiment config (JSON or YAML)."""
     media_type = _media_type(request)
@@ -296,7 +283,6 @@ async def read_config(request: Request) -> ExperimentConfig:
             config = parse_config(data)
         else:
             config = parse_config_text(document)
-        _require_finite(config.model_dump(mode="python"))
         return config
     except ConfigError as error:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error)) from None

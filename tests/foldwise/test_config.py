@@ -38,6 +38,7 @@ def test_paper_config_has_the_papers_values():
         ({"name": "x", "render": {"backend": "eevee"}}, "render.backend"),
         ({"name": "x", "render": {"image_size": 8}}, "render.image_size"),
         ({"name": "x", "bogus": 1}, "bogus: unknown key"),
+        ({"name": "x", "detector": {"learning_rate": float("inf")}}, "detector.learning_rate"),
         ({"seed": 1}, "name: Field required"),
         ({"name": "   "}, "name"),
     ],

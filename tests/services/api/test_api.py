@@ -394,7 +394,7 @@ def test_two_creations_get_distinct_ids(client):
         # JSON has no NaN or Infinity (Python's parser would take them; PostgreSQL's JSON would not).
         ("application/json", '{"name": "x", "detector": {"learning_rate": Infinity}}', "Infinity is not a JSON number"),
         ("application/json", '{"name": "x", "evaluation": {"score_threshold": NaN}}', "NaN is not a JSON number"),
-        ("application/yaml", "name: x\ndetector:\n  learning_rate: .inf\n", "detector.learning_rate: must be a finite"),
+        ("application/yaml", "name: x\ndetector:\n  learning_rate: .inf\n", "detector.learning_rate: Input should be a finite number"),
     ],
 )
 def test_invalid_configs_are_422_naming_the_problem(client, seeded, database_url, content_type, body, named):

@@ -1,0 +1,66 @@
+"""`foldwise run configs/smoke.yaml`: the real renderer and detector, in one process.
+
+The whole of Algorithm 1 on the embedded default (SQLite, eager Celery): afterwards the
+database holds every θ, every ω with its parent, and every P entry, and the report exists.
+"""
+
+from __future__ import annotations
+
+import csv
+
+from sqlalchemy import select
+from typer.testing import CliRunner
+
+from db.models import Evaluation, Experiment, Model, ParameterSet, RenderStatus, Stage
+from db.session import session_scope
+from foldwise import store
+from foldwise.settings import REPO_ROOT
+
+
+def test_smoke_run_records_everything(database, tmp_path):
+    from services.cli import _register_worker_commands, app
+
+    _register_worker_commands()
+    result = CliRunner().invoke(app, ["run", str(REPO_ROOT / "configs/smoke.yaml"), "--report-dir", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert "fb" in result.output and "plateau" in result.output
+
+    with session_scope() as session:
+        (experiment,) = session.scalars(select(Experiment)).all()
+        stages = session.scalars(select(Stage).order_by(Stage.order)).all()
+        thetas = session.scalars(select(ParameterSet)).all()
+        models = session.scalars(select(Model).order_by(Model.id)).all()
+        evaluations = session.scalars(select(Evaluation)).all()
+        assert experiment.status.value == "finished"
+        assert [(s.condition, s.difficulty) for s in stages] == [("fb", "easy"), ("fb", "hard")]
+        assert all(s.end_reason is not None and s.best_model_id for s in stages)
+
+        # every θ rendered once, to its id-derived file, with a valid box inside the image
+        assert thetas and all(t.status == RenderStatus.rendered for t in thetas)
+        assert len({t.image_path for t in thetas}) == len(thetas)
+        for theta in thetas:
+            assert theta.image_path == store.image_path(experiment.id, theta.id)
+            assert store.resolve(theta.image_path).is_file()
+            x0, y0, x1, y1 = theta.box
+            assert 0 <= x0 < x1 <= 64 and 0 <= y0 < y1 <= 64
+            assert 0 < theta.visible_fraction <= 1
+
+        # every ω has its checkpoint and its parent ω_in; every P entry is there
+        assert len(evaluations) == len(models) == sum(1 for _ in models)
+        by_id = {m.id: m for m in models}
+        for model in models:
+            assert store.resolve(model.checkpoint_path).is_file()
+            assert model.attempts == 1
+            if model.increment > 1:
+                assert by_id[model.parent_id].increment == model.increment - 1
+        assert models[0].parent_id is None
+        second_stage_first = next(m for m in models if m.stage_id == stages[1].id and m.increment == 1)
+        assert second_stage_first.parent_id == stages[0].best_model_id
+        assert all(e.map is None or 0.0 <= e.map <= 1.0 for e in evaluations)
+
+    png = tmp_path / f"experiment-{experiment.id}.png"
+    with open(tmp_path / f"experiment-{experiment.id}.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    assert len(rows) == len(evaluations)
+    assert float(rows[-1]["cumulative_train_seconds"]) > 0
