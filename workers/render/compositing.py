@@ -200,7 +200,10 @@ def place_occluder(
     # Scale about the shape's centroid: for an occluder with its own alpha the image centre
     # may be transparent.
     moments = cv2.moments(shape_f)
-    pivot = (moments["m10"] / moments["m00"], moments["m01"] / moments["m00"]) if moments["m00"] > 0 else ((ow - 1) / 2.0, (oh - 1) / 2.0)
+    if moments["m00"] > 0:
+        pivot = (moments["m10"] / moments["m00"], moments["m01"] / moments["m00"])
+    else:
+        pivot = ((ow - 1) / 2.0, (oh - 1) / 2.0)
     rows, cols = np.nonzero(target_mask)
     best = None
     max_scale = 4.0 * math.hypot(height, width) / max(1.0, min(oh, ow))
@@ -209,21 +212,19 @@ def place_occluder(
         centre = (float(cols[k]), float(rows[k]))  # warpAffine puts pixel (i, j)'s centre at (j, i)
         angle = float(rng.uniform(-math.pi, math.pi))
 
-        def hidden_at(scale: float) -> tuple[int, np.ndarray]:
+        def hidden_at(scale: float) -> int:
             warped = cv2.warpAffine(shape_f, _place(pivot, centre, angle, scale), (width, height), flags=cv2.INTER_LINEAR)
-            return int(np.count_nonzero((warped >= 0.5) & target_mask)), warped
+            return int(np.count_nonzero((warped >= 0.5) & target_mask))
 
         lo, hi = 0.0, max_scale
         for _ in range(steps):
             mid = 0.5 * (lo + hi)
-            hidden, _ = hidden_at(mid)
-            if hidden < need:
+            if hidden_at(mid) < need:
                 lo = mid
             else:
                 hi = mid
         scale = hi
-        hidden, _ = hidden_at(scale)
-        achieved = (in_image - hidden) / amodal_area
+        achieved = (in_image - hidden_at(scale)) / amodal_area
         error = abs(achieved - visible_fraction)
         if best is None or error < best[0]:
             best = (error, centre, angle, scale, achieved)

@@ -8,7 +8,8 @@
 3. ``render``: the 3D backend, ``raster`` (raster.py) or ``blender`` (blender.py);
 4. ``amodal``: the whole silhouette, off-image part included (for the amodal box and the
    visible fraction);
-5. ``occlusion`` (only when θ's visible fraction < 1): place the occluder;
+5. ``occlusion`` (only when θ's visible fraction < 1): place the occluder; a placement
+   more than ``OCCLUSION_TOLERANCE`` from θ's visible fraction is a rejection;
 6. ``annotation``: visible box, amodal box, visible fraction; rejects an unusable target;
 7. ``background``: sRGB encoding of the render and alpha compositing over the background;
    the occluder goes on top;
@@ -32,6 +33,8 @@ from workers.render.parameters import check_theta, derive_seed, resample_theta
 __all__ = ["RenderResult", "RenderRejected", "render_theta", "render_with_resample", "BACKENDS"]
 
 BACKENDS = ("raster", "blender")
+# How far the achieved visible fraction may be from θ's before the placement is rejected.
+OCCLUSION_TOLERANCE = 0.05
 # Independent random streams drawn from θ's seed, one per purpose.
 _SHEET, _BACKGROUND, _OCCLUDER = 1, 2, 3
 
@@ -145,6 +148,11 @@ def render_theta(theta: dict, backend: str = "raster", assets=None, samples: int
             _rng(theta, _OCCLUDER),
         )
         if occlusion is not None:
+            if abs(occlusion.achieved_fraction - occlusion.target_fraction) > OCCLUSION_TOLERANCE:
+                raise RenderRejected(
+                    f"occluder {theta['occluder']!r} cannot hide the asked share: visible fraction "
+                    f"{occlusion.achieved_fraction:.3f} instead of {occlusion.target_fraction:.3f}"
+                )
             visible_mask = target_mask & ~occlusion.mask
         lap("occlusion")
 

@@ -189,6 +189,16 @@ def test_user_asset_folders(tmp_path):
     assert load_assets(AssetsConfig(objects=tmp_path / "objects")) is load_assets(AssetsConfig(objects=tmp_path / "objects"))
 
 
+def test_an_occluder_that_cannot_hide_enough_is_a_rejection(tmp_path):
+    from foldwise.config import AssetsConfig
+
+    _write(tmp_path / "occluders" / "glass.png", np.zeros((20, 20, 4), np.uint8))  # fully transparent
+    assets = load_assets(AssetsConfig(occluders=tmp_path / "occluders"))
+    theta = generate_parameters("eo", "hard", 1, seed=0, image_size=SIZE, assets=assets)[0]
+    with pytest.raises(RenderRejected, match="cannot hide the asked share"):
+        render_theta(theta, assets=assets)
+
+
 def test_asset_errors_name_the_folder_or_file(tmp_path):
     from foldwise.config import AssetsConfig
 
