@@ -301,7 +301,12 @@ def test_foldwise_services_reach_infrastructure_by_service_name(compose):
 
 def test_token_port_and_password_come_from_the_environment_or_dotenv():
     compose = load_compose(
-        {"FOLDWISE_API_TOKEN": "t0ken", "FOLDWISE_API_PORT": "9001", "POSTGRES_PASSWORD": "pw", "FOLDWISE_API_BIND": "0.0.0.0"}
+        {
+            "FOLDWISE_API_TOKEN": "t0ken",
+            "FOLDWISE_API_PORT": "9001",
+            "POSTGRES_PASSWORD": "pw",
+            "FOLDWISE_API_BIND": "0.0.0.0",
+        }
     )
     api = compose["services"]["api"]
     environment = service_environment(api)
@@ -345,7 +350,10 @@ def test_every_service_command_is_a_real_cli_command(compose):
     commands = {name: service_command(s) for name, s in foldwise_services(compose).items()}
     assert {argv[0] for argv in commands.values()} <= {"foldwise", "celery"}
     # A wrong sub-command or option must fail this same check (else the check proves nothing).
-    control = {"(control) unknown command": ["foldwise", "no-such-role"], "(control) unknown option": ["foldwise", "api", "--hots", "x"]}
+    control = {
+        "(control) unknown command": ["foldwise", "no-such-role"],
+        "(control) unknown option": ["foldwise", "api", "--hots", "x"],
+    }
     processes = {name: run_help(argv) for name, argv in {**commands, **control}.items()}
     results = {name: (process.wait(timeout=60), process.stdout.read()) for name, process in processes.items()}
     for name, (code, output) in results.items():
@@ -421,11 +429,7 @@ def test_image_data_dir_is_the_compose_volume(instructions, compose):
 
 
 def test_everything_copied_exists_and_is_in_the_build_context(instructions):
-    allowed = {
-        line[1:].rstrip("/")
-        for line in DOCKERIGNORE.read_text().splitlines()
-        if line.startswith("!")
-    }
+    allowed = {line[1:].rstrip("/") for line in DOCKERIGNORE.read_text().splitlines() if line.startswith("!")}
     assert "*" in DOCKERIGNORE.read_text().splitlines(), ".dockerignore should allow-list, starting from '*'"
     for keyword, arguments in instructions:
         if keyword != "COPY" or "--from" in arguments:
