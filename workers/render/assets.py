@@ -23,6 +23,7 @@ times by a render worker.
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -158,6 +159,7 @@ class AssetCatalog:
         # Photographs shrunk once per output size: cropping a 1411-pixel retina for a
         # 128-pixel background every time would cost more than rendering the sheet.
         self._shrunk: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
+        self._lock = threading.Lock()
         self._by_name = {
             "objects": {a.name: a for a in self.objects},
             "backgrounds": {a.name: a for a in self.backgrounds},
@@ -215,19 +217,22 @@ class AssetCatalog:
         import cv2
 
         key = (asset.name, size)
-        image = self._shrunk.get(key)
-        if image is not None:
-            self._shrunk.move_to_end(key)
-            return image
+        with self._lock:
+            image = self._shrunk.get(key)
+            if image is not None:
+                self._shrunk.move_to_end(key)
+                return image
         image = asset.load()
         h, w = image.shape[:2]
         limit = int(math.ceil(2.5 * size))
         if min(h, w) > limit:
             factor = limit / min(h, w)
             image = cv2.resize(image, (max(2, round(w * factor)), max(2, round(h * factor))), interpolation=cv2.INTER_AREA)
-        self._shrunk[key] = image
-        if len(self._shrunk) > 256:
-            self._shrunk.popitem(last=False)
+        image.setflags(write=False)
+        with self._lock:
+            self._shrunk[key] = image
+            if len(self._shrunk) > 256:
+                self._shrunk.popitem(last=False)
         return image
 
 

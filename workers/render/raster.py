@@ -29,6 +29,7 @@ not clipped: a θ that brings the sheet that close is not part of Table 3's rang
 from __future__ import annotations
 
 import math
+import threading
 from collections import OrderedDict
 
 import cv2
@@ -59,17 +60,19 @@ class _TexturePyramids:
     def __init__(self, capacity: int = 32):
         self.capacity = capacity
         self._items: OrderedDict[int, tuple[np.ndarray, dict[int, np.ndarray]]] = OrderedDict()
+        self._lock = threading.Lock()  # a threaded worker may render several scenes at once
 
     def level(self, texture: np.ndarray, footprint_px: float) -> np.ndarray:
         key = id(texture)
-        item = self._items.get(key)
-        if item is None or item[0] is not texture:
-            item = (texture, {})
-            self._items[key] = item
-            if len(self._items) > self.capacity:
-                self._items.popitem(last=False)
-        else:
-            self._items.move_to_end(key)
+        with self._lock:
+            item = self._items.get(key)
+            if item is None or item[0] is not texture:
+                item = (texture, {})
+                self._items[key] = item
+                if len(self._items) > self.capacity:
+                    self._items.popitem(last=False)
+            else:
+                self._items.move_to_end(key)
         # The smallest power-of-two reduction still at least as large as the sheet's footprint.
         h, w = texture.shape[:2]
         index = 0
