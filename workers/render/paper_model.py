@@ -94,8 +94,9 @@ class SheetMesh:
     ``faces``: (F, 3) int64, counter-clockwise in the flat frame (normals +z before bending).
     ``uv``: (V, 2) = flat / (W, H). ``rulings``: the guiding rulings ``(p0, p1, angle)``
     (flat end points, bending angle in radians, positive = valley fold seen from +z).
-    ``fold_lines``: every ruling the mesh actually folds along (interpolated ones included),
-    same format. ``face_regions``: (F,) index of the rigid region each face belongs to.
+    ``fold_lines``: every ruling the mesh actually folds along, same format: the
+    ``smooth_steps`` interpolated rulings of each guiding ruling in turn, each with its share
+    of the angle. ``face_regions``: (F,) index of the rigid region each face belongs to.
     """
 
     flat: np.ndarray
@@ -243,7 +244,6 @@ class _Chord:
     p0: np.ndarray  # flat end points
     p1: np.ndarray
     angle: float
-    guide: int  # index of the guiding ruling it comes from
 
 
 def _expand(border: _Border, guides: list[tuple[float, float, float]], options: _Options) -> list[_Chord]:
@@ -252,12 +252,10 @@ def _expand(border: _Border, guides: list[tuple[float, float, float]], options: 
     m = options.smooth_steps
     offsets = (np.arange(m) - (m - 1) / 2.0) * options.bend_spacing
     chords = []
-    for index, (s0, s1, angle) in enumerate(guides):
+    for s0, s1, angle in guides:
         for offset in offsets:
             a, b = (s0 + offset) % border.length, (s1 - offset) % border.length
-            chords.append(
-                _Chord(a, b, np.array(border.point(a)), np.array(border.point(b)), angle / m, index)
-            )
+            chords.append(_Chord(a, b, np.array(border.point(a)), np.array(border.point(b)), angle / m))
     return chords
 
 
@@ -374,7 +372,6 @@ class _Region:
     chain: list[int]  # boundary vertex ids, counter-clockwise
     corner_ids: list[int]  # the polygon's corners (sheet corners and ruling ends), counter-clockwise
     crossings: list[tuple[int, int, int]]  # (chord index, vertex id at start, vertex id at end) as traversed
-    faces: np.ndarray | None = None
 
 
 def _subdivide(a: np.ndarray, b: np.ndarray, step: float) -> np.ndarray:
