@@ -239,6 +239,8 @@ def test_sharp_creases_and_other_sheet_shapes():
         (5, (1.0, 1.0), {"smooth_steps": 1}),
         (8, (0.9, 0.6), {"smooth_steps": 5, "mesh_step": 0.04}),
         (1, (0.3, 0.2), {}),
+        (5, (0.01, 0.007), {}),  # tolerances are relative: a 1 cm sheet ...
+        (5, (100.0, 60.0), {}),  # ... and a 100 m one behave alike
     ]:
         mesh = sample_sheet(n, np.random.default_rng(11), *size, **opts)
         assert len(mesh.fold_lines) == n * opts.get("smooth_steps", 3)
