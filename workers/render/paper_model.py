@@ -382,6 +382,9 @@ def _subdivide(a: np.ndarray, b: np.ndarray, step: float) -> np.ndarray:
 
 
 class _MeshBuilder:
+    """Vertices on the border and on every ruling (shared by the regions on both sides), and
+    the regions traced as faces of the border-plus-rulings graph."""
+
     def __init__(self, border: _Border, chords: list[_Chord], options: _Options):
         self.border = border
         self.chords = chords
@@ -429,14 +432,15 @@ class _MeshBuilder:
         position_in_border = {v: i for i, v in enumerate(border_ids)}
         # Rulings: interior vertices, in the direction p0 -> p1.
         ruling_inner = []
-        for c_index, c in enumerate(chords):
-            inner = _subdivide(c.p0, c.p1, step)
-            ruling_inner.append(self._add(inner, corner=False))
+        for chord in chords:
+            ruling_inner.append(self._add(_subdivide(chord.p0, chord.p1, step), corner=False))
 
         regions = self._trace_regions(border_ids, position_in_border, end_vertex, ruling_inner)
         return np.concatenate(self.blocks), regions
 
     def _trace_regions(self, border_ids, position_in_border, end_vertex, ruling_inner) -> list[_Region]:
+        """Walk the border counter-clockwise; at each ruling end, jump along the ruling to its
+        other end and walk on: every closed walk is one region, traced counter-clockwise."""
         n_border = len(border_ids)
         is_corner = self.is_corner
         if not self.chords:
