@@ -251,27 +251,39 @@ def _edge_alpha(ids: np.ndarray, coverage: np.ndarray, mask: np.ndarray, rgb: np
     covered pixels outside the mask (left black by the rasteriser) becomes the mean of their
     covered neighbours, so compositing shows no dark fringe. Elsewhere alpha is the mask."""
     alpha = mask.astype(np.float32)
-    mask_u8 = mask.view(np.uint8)
-    band = cv2.dilate(mask_u8, None) != cv2.erode(mask_u8, None)
-    rows, cols = np.nonzero(band)
-    if rows.size == 0:
-        return alpha
     height, width = mask.shape
-    padded = np.pad(ids, 1, constant_values=-1)
+    mask_rows = np.flatnonzero(mask.any(axis=1))
+    if mask_rows.size == 0:
+        return alpha
+    mask_cols = np.flatnonzero(mask.any(axis=0))
+    # Work in the mask's bounding box grown by one pixel (the band reaches one pixel out).
+    r0, r1 = max(mask_rows[0] - 1, 0), min(mask_rows[-1] + 2, height)
+    c0, c1 = max(mask_cols[0] - 1, 0), min(mask_cols[-1] + 2, width)
+    local_u8 = np.ascontiguousarray(mask[r0:r1, c0:c1]).view(np.uint8)
+    band = cv2.dilate(local_u8, None) != cv2.erode(local_u8, None, borderType=cv2.BORDER_REPLICATE)
+    rows, cols = np.nonzero(band)
+    rows += r0
+    cols += c0
+    padded = np.pad(ids[r0:r1, c0:c1], 1, constant_values=-1)
     neighbour_rows = rows[:, None] + _NEIGHBOURS[None, :, 0]
     neighbour_cols = cols[:, None] + _NEIGHBOURS[None, :, 1]
-    candidates = padded[neighbour_rows + 1, neighbour_cols + 1]  # (n, 5) face ids, -1 for none
-    valid = candidates >= 0
-    p = coverage[np.where(valid, candidates, 0)]  # (n, 5, 9)
-    sx = (cols[:, None] + 0.5 + _AA_OFFSETS[None, :, 0])[:, None, :]  # (n, 1, 4)
-    sy = (rows[:, None] + 0.5 + _AA_OFFSETS[None, :, 1])[:, None, :]
-    w0 = p[:, :, 0, None] * sx + p[:, :, 1, None] * sy + p[:, :, 2, None]
-    w1 = p[:, :, 3, None] * sx + p[:, :, 4, None] * sy + p[:, :, 5, None]
-    inside = (w0 >= -_EDGE_EPS) & (w1 >= -_EDGE_EPS) & (w0 + w1 <= 1.0 + _EDGE_EPS) & valid[:, :, None]
+    candidates = padded[neighbour_rows - r0 + 1, neighbour_cols - c0 + 1]  # (n, 5) face ids, -1 for none
+    sx = (cols[:, None] + 0.5 + _AA_OFFSETS[None, :, 0]).astype(np.float32)  # (n, 4) sample positions
+    sy = (rows[:, None] + 0.5 + _AA_OFFSETS[None, :, 1]).astype(np.float32)
+    planes = coverage[:, :6].astype(np.float32)
+    covered = np.zeros(sx.shape, dtype=bool)
+    for k in range(candidates.shape[1]):
+        face = candidates[:, k]
+        valid = face >= 0
+        p = planes[np.where(valid, face, 0)]
+        w0 = p[:, 0:1] * sx + p[:, 1:2] * sy + p[:, 2:3]
+        w1 = p[:, 3:4] * sx + p[:, 4:5] * sy + p[:, 5:6]
+        covered |= (w0 >= -_EDGE_EPS) & (w1 >= -_EDGE_EPS) & (w0 + w1 <= 1.0 + _EDGE_EPS) & valid[:, None]
     centre = mask[rows, cols]
-    fraction = ((inside.any(axis=1).sum(axis=1) + centre) / 5.0).astype(np.float32)
+    counts = covered.view(np.uint8).sum(axis=1, dtype=np.uint8) + centre
+    fraction = counts.astype(np.float32) / 5.0
     alpha[rows, cols] = fraction
-    fringe = np.flatnonzero(~centre & (fraction > 0))
+    fringe = np.flatnonzero(~centre & (counts > 0))
     if fringe.size:
         r = neighbour_rows[fringe]
         c = neighbour_cols[fringe]
