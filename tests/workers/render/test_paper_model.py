@@ -300,6 +300,25 @@ def test_smooth_bend_spreads_the_angle_over_its_band():
     np.testing.assert_allclose(normals[outside] @ [0, 0, 1], math.cos(1.2), rtol=1e-12)
 
 
+def test_a_bend_through_the_fixed_centre_still_folds_both_sides_the_same_way():
+    width, height = A4
+    # The centre lies inside the band of a smooth 60° bend (interpolated rulings 1 cm apart at
+    # x = 0.096, 0.106, 0.116): the strip holding it stays put, the left part turns by one
+    # share (20°), the right part by two (40°), both towards +z, and 60° apart in all.
+    mesh = build_sheet(width, height, [((0.106, 0.0), (0.106, height), math.radians(60))], bend_spacing=0.01)
+    assert_valid_sheet(mesh)
+    tri = mesh.vertices[mesh.faces]
+    normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    xs = mesh.flat[mesh.faces][:, :, 0]
+    left, right = normals[(xs < 0.096 - 1e-9).all(axis=1)], normals[(xs > 0.116 + 1e-9).all(axis=1)]
+    np.testing.assert_allclose(np.degrees(np.arccos(left @ [0, 0, 1])), 20.0, rtol=1e-9)
+    np.testing.assert_allclose(np.degrees(np.arccos(right @ [0, 0, 1])), 40.0, rtol=1e-9)
+    np.testing.assert_allclose(np.degrees(np.arccos(np.clip(left @ right.T, -1, 1))), 60.0, rtol=1e-9)
+    for edge_x in (0.0, width):
+        assert np.all(mesh.vertices[np.isclose(mesh.flat[:, 0], edge_x), 2] > 0)
+
+
 def test_flaps_folded_through_each_other_are_a_self_intersection():
     width, height = A4
     # Two flaps, 0.4 W wide, folded up by 110° over a middle strip 0.2 W wide: in the x-z
