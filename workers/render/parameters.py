@@ -36,6 +36,7 @@ from foldwise.conditions import ConditionTable, load_condition_table
 
 THETA_VERSION = 1
 CANONICAL = "canonical"
+MAX_IMAGE_SIZE = 8192
 
 # Friendly names accepted wherever a condition is named (CLI, config files typed by hand).
 _EXTRA_ALIASES = {
@@ -159,8 +160,8 @@ def generate_parameters(
         table.check(code, difficulty)
     if n < 0:
         raise ValueError(f"n must be >= 0, got {n}")
-    if not isinstance(image_size, (int, np.integer)) or image_size < 16:
-        raise ValueError(f"image_size must be an integer >= 16, got {image_size!r}")
+    if not isinstance(image_size, (int, np.integer)) or not 16 <= image_size <= MAX_IMAGE_SIZE:
+        raise ValueError(f"image_size must be an integer in [16, {MAX_IMAGE_SIZE}], got {image_size!r}")
     assets = assets or load_assets()
     rng = np.random.default_rng(seed)
     objects = balanced_objects(n, len(assets.objects), rng)
@@ -219,8 +220,12 @@ def check_theta(theta: dict) -> dict:
     if theta["condition"] not in table.conditions:
         raise ValueError(f"θ.condition: unknown condition {theta['condition']!r}")
     size = theta["image_size"]
-    if not isinstance(size, (int, np.integer)) or isinstance(size, bool) or size < 16:
-        raise ValueError(f"θ.image_size: expected an integer >= 16, got {size!r}")
+    if not isinstance(size, (int, np.integer)) or isinstance(size, bool) or not 16 <= size <= MAX_IMAGE_SIZE:
+        raise ValueError(f"θ.image_size: expected an integer in [16, {MAX_IMAGE_SIZE}], got {size!r}")
+    for key in ("seed", "label"):
+        value = theta[key]
+        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < 0:
+            raise ValueError(f"θ.{key}: expected a non-negative integer, got {value!r}")
     for key in table.canonical:
         value = theta[key]
         if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) or not math.isfinite(value):

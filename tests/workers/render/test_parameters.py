@@ -146,3 +146,7 @@ def test_check_theta_names_the_bad_key():
         check_theta({**theta, "rulings": 2.5})
     with pytest.raises(ValueError, match="image_size"):
         check_theta({**theta, "image_size": "128"})
+    with pytest.raises(ValueError, match="seed"):
+        check_theta({**theta, "seed": -1})
+    with pytest.raises(ValueError, match="label"):
+        check_theta({**theta, "label": 1.5})
