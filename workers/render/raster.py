@@ -8,8 +8,9 @@ Two vectorised passes, no Python loop over triangles:
    expanded to (face, pixel) candidates with ``np.repeat``; the z-test keeps, per pixel, the
    candidate of smallest depth with one ``np.minimum.at`` on a key that packs the quantised
    depth above the face index.
-2. Shading. For the covered pixels only: perspective-correct barycentrics of the winning
-   face, UVs, one ``cv2.remap`` (bilinear) into the linear-light texture, times the face's
+2. Shading. For the covered pixels only: perspective-correct UVs of the winning face
+   (u/z, v/z and 1/z are affine on screen), one ``cv2.remap`` (bilinear) into the
+   linear-light texture, times the face's
    Lambertian factor ``irradiance * exposure * max(0, n . l)``, with ``n`` the facet's normal
    turned towards the camera: both sides of the sheet show the texture, as Blender's
    single-sided plane does, and a side facing away from the light is black, as in Cycles.
@@ -20,7 +21,8 @@ sheet's footprint in the image, which keeps minified textures from aliasing.
 
 Edges: ``mask`` is the exact pixel-centre coverage (what boxes are made of). ``alpha``
 anti-aliases the silhouette for compositing: pixels along it get the share of 5 samples the
-sheet covers (the centre and a rotated 4-sample grid), as Cycles' film alpha does for the blender backend.
+sheet covers (the centre and a rotated 4-sample grid), as Cycles' film alpha does for the
+blender backend.
 
 Triangles with a vertex closer than ``NEAR`` to the camera plane (or behind it) are dropped,
 not clipped: a θ that brings the sheet that close is not part of Table 3's ranges.
