@@ -27,6 +27,8 @@ import argparse
 import contextlib
 import json
 import math
+import os
+import platform
 import sys
 import time
 from collections import defaultdict
@@ -93,6 +95,7 @@ def run(n_per_stage: int, samples: int, size: int, backends: list[str], seed: in
             with contextlib.suppress(Exception):
                 render_theta(theta, backend="raster", assets=assets)
 
+    load_before = os.getloadavg()
     seconds = {b: 0.0 for b in backends}
     rendered = {b: 0 for b in backends}
     stage_seconds = {b: defaultdict(float) for b in backends}
@@ -173,9 +176,16 @@ def run(n_per_stage: int, samples: int, size: int, backends: list[str], seed: in
         },
         "speed": speed,
         "wall_seconds": time.perf_counter() - started,
+        # Timings depend on what else runs: say how busy the machine was.
+        "machine": {
+            "cpus_allowed": len(os.sched_getaffinity(0)),
+            "load_average_1min_before": load_before[0],
+            "load_average_1min_after": os.getloadavg()[0],
+            "python": platform.python_version(),
+        },
     }
     if len(backends) == 2:
-        fast, slow = backends
+        fast, slow = "raster", "blender"  # the ratio reads the same whatever order was asked
         report["speed_ratio"] = {
             "of": f"{fast}/{slow} images per second, whole render_theta",
             "value": speed[fast]["images_per_second"] / speed[slow]["images_per_second"],
@@ -213,6 +223,11 @@ def run(n_per_stage: int, samples: int, size: int, backends: list[str], seed: in
         report["mask_iou"] = {
             **summarise(mask_ious),
             "per_condition": {k: summarise(v) for k, v in sorted(mask_by_condition.items())},
+        }
+        report["targets"] = {
+            "mean_box_iou_at_least_0.98": bool(ious) and float(np.mean(ious)) >= 0.98,
+            f"{fast}_at_least_100x_{slow}_whole_pipeline": report["speed_ratio"]["value"] >= 100.0,
+            f"{fast}_at_least_100x_{slow}_render_stage": report["speed_ratio"]["render_stage"] >= 100.0,
         }
         report["worst_5"] = sorted(compared, key=lambda row: row["box_iou"])[:5]
     return report
