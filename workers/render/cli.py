@@ -291,7 +291,7 @@ def register(app: typer.Typer) -> None:
             render_preview(out, image_size, seed, backend, assets, conditions=codes, samples=samples)
             typer.echo(f"wrote {out}")
             return
-        render_dataset(
+        coco = render_dataset(
             out,
             codes,
             resolve_difficulties(difficulty),
@@ -304,6 +304,10 @@ def register(app: typer.Typer) -> None:
             samples=samples,
             echo=typer.echo,
         )
+        if coco.get("failures"):
+            for failure in coco["failures"]:
+                typer.echo(f"failed: {failure['name']}: {failure['reasons'][-1]}", err=True)
+            raise typer.Exit(1)
 
     @app.command("mesh")
     def mesh_command(

@@ -101,3 +101,21 @@ def test_mesh_writes_an_obj(app, tmp_path):
     indices = np.array([[int(p.split("/")[0]) for p in f.split()[1:]] for f in faces])
     assert indices.min() == 1 and indices.max() == len(vertices)
     assert "3 guiding rulings" in result.output
+
+
+def test_images_that_fail_every_resample_are_recorded_and_fail_the_command(app, tmp_path, monkeypatch):
+    import types
+
+    from workers.render import paper_model, pipeline
+
+    def intersecting(*args, **kwargs):
+        raise paper_model.SelfIntersection("always")
+
+    monkeypatch.setattr(pipeline, "_paper_model", lambda: types.SimpleNamespace(
+        sample_sheet=intersecting, SelfIntersection=paper_model.SelfIntersection))
+    result = CliRunner().invoke(app, ["render", "-c", "de", "-d", "hard", "-n", "2", "--max-resamples", "1",
+                                      "--out", str(tmp_path), "--image-size", "32"])
+    assert result.exit_code == 1
+    data = json.loads((tmp_path / "annotations.json").read_text())
+    assert data["images"] == [] and len(data["failures"]) == 2
+    assert data["failures"][0]["reasons"] == ["self-intersecting sheet: always"] * 2
