@@ -177,6 +177,15 @@ def test_extreme_irradiance_gives_finite_scaled_output(renderer, irradiance):
     np.testing.assert_allclose(out.rgb[inside], irradiance * reference.rgb[inside], rtol=1e-4)
 
 
+def test_sheet_behind_the_camera_renders_nothing(renderer):
+    # The camera 2 m above the sheet, turned to look up (+z): the sheet is behind it.
+    looking_up = np.diag([1.0, 1.0, 1.0])
+    camera = make_camera()
+    away = Camera(K=camera.K, R=looking_up, t=-looking_up @ np.array([0.0, 0.0, 2.0]), width=WIDTH, height=HEIGHT)
+    out = renderer.render(flat_scene(camera=away))
+    assert not out.mask.any() and np.all(out.alpha == 0) and np.all(out.rgb == 0)
+
+
 def test_dark_scene_keeps_its_mask(renderer):
     out = renderer.render(flat_scene(irradiance=0.0))
     assert np.all(out.rgb == 0)
