@@ -130,10 +130,17 @@ def _face_planes(pix: np.ndarray, depth: np.ndarray, faces: np.ndarray, uv: np.n
 
 
 def rasterize_face_ids(
-    pix: np.ndarray, depth: np.ndarray, faces: np.ndarray, width: int, height: int, uv: np.ndarray | None = None
+    pix: np.ndarray,
+    depth: np.ndarray,
+    faces: np.ndarray,
+    width: int,
+    height: int,
+    uv: np.ndarray | None = None,
+    z_test: bool = True,
 ):
     """(height*width,) int64 index of the nearest face whose triangle covers each pixel centre
     (-1: none), the per-face texturing planes (None without ``uv``) and coverage planes.
+    Without ``z_test`` the face of a covered pixel is any face covering it (for silhouettes).
 
     Scanline spans: for every face and every pixel row its bounding box crosses, the three
     edge inequalities ``w_k(px, row centre) >= -eps`` are solved for px, which gives the run of
@@ -184,6 +191,9 @@ def rasterize_face_ids(
     local = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(run) - run, run)
     pixel = np.repeat(row * width + col_start, run) + local
     face = np.repeat(span_face, run)
+    if not z_test:
+        ids[pixel] = face
+        return ids, texturing, coverage
     # 1/z along the run: its value at the first pixel centre plus a constant step per pixel.
     start_inverse_depth = c[:, 6] * (col_start + 0.5) + c[:, 7] * py + c[:, 8]
     inverse_depth = np.repeat(start_inverse_depth, run) + np.repeat(c[:, 6], run) * local
@@ -325,19 +335,23 @@ def silhouette(scene: Scene3D, camera: Camera | None = None) -> np.ndarray:
     """(H, W) bool mask of the sheet seen by ``camera`` (default: the scene's), geometry only."""
     camera = camera or scene.camera
     pix, depth = camera.project(np.asarray(scene.vertices, np.float64))
-    ids, _, _ = rasterize_face_ids(pix, depth, np.asarray(scene.faces, np.int64), camera.width, camera.height)
+    faces = np.asarray(scene.faces, np.int64)
+    ids, _, _ = rasterize_face_ids(pix, depth, faces, camera.width, camera.height, z_test=False)
     return (ids >= 0).reshape(camera.height, camera.width)
 
 
-def amodal_extent(scene: Scene3D, image_mask: np.ndarray, max_canvas_factor: float = 16.0):
+def amodal_extent(
+    scene: Scene3D, image_mask: np.ndarray, max_canvas_factor: float = 16.0, max_canvas_pixels: int = 4_000_000
+):
     """The sheet's whole silhouette, including what lies outside the image: (area in pixels,
     box [x0, y0, x1, y1] in image pixel-edge coordinates, or None when nothing projects).
 
     When the sheet's projection stays inside the image, that is ``image_mask`` itself. Otherwise
     the silhouette is rasterised again on a canvas grown to the projected bounding box, aligned
     to whole pixels so the in-image part is sampled at the same pixel centres. A canvas larger
-    than ``max_canvas_factor`` times the image is sampled at a coarser step (the area is then
-    scaled back: an estimate good to the edge pixels of the coarse grid)."""
+    than ``max_canvas_factor`` times the image (or ``max_canvas_pixels``) is sampled at a
+    coarser step (the area is then scaled back: an estimate good to the edge pixels of the
+    coarse grid)."""
     camera = scene.camera
     width, height = camera.width, camera.height
     pix, depth = camera.project(np.asarray(scene.vertices, np.float64))
@@ -352,7 +366,8 @@ def amodal_extent(scene: Scene3D, image_mask: np.ndarray, max_canvas_factor: flo
     x_hi, y_hi = int(max(hi[0], width)), int(max(hi[1], height))
     canvas_w, canvas_h = x_hi - x_lo, y_hi - y_lo
     step = 1
-    while (canvas_w / step) * (canvas_h / step) > max_canvas_factor * width * height:
+    limit = min(max_canvas_factor * width * height, max_canvas_pixels)
+    while (canvas_w / step) * (canvas_h / step) > limit:
         step *= 2
     K = camera.K.copy()
     K[0, 2] -= x_lo

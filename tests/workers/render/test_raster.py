@@ -185,6 +185,10 @@ def test_amodal_extent_counts_the_part_outside_the_image():
     assert box[0] < 0 and box[2] > SIZE  # wider than the image
     assert box[2] - box[0] == pytest.approx(expected_w, abs=1.0)
     assert output.mask.sum() < area
+    # A canvas too large for the budget is sampled coarser: still a close estimate.
+    coarse_area, coarse_box = amodal_extent(scene, output.mask, max_canvas_pixels=3000)
+    assert coarse_area == pytest.approx(expected_w * expected_h, rel=0.06)
+    assert coarse_box[2] - coarse_box[0] == pytest.approx(expected_w, abs=8.0)
 
 
 def test_amodal_extent_inside_the_image_is_the_mask_itself():
