@@ -210,6 +210,26 @@ def rasterize_face_ids(
     return ids, texturing, coverage
 
 
+_REMAP_COLUMNS = 4096  # cv2.remap wants maps under 32767 rows and columns
+
+
+def _sample(texture: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """(n, 3) bilinear samples of ``texture`` at pixel coordinates (x, y) (texel centres at
+    integers), the n points laid out as a few full rows for ``cv2.remap``."""
+    n = x.size
+    columns = min(n, _REMAP_COLUMNS)
+    rows = -(-n // columns)
+    map_x = np.zeros(rows * columns, np.float32)
+    map_y = np.zeros(rows * columns, np.float32)
+    map_x[:n] = x
+    map_y[:n] = y
+    samples = cv2.remap(
+        texture, map_x.reshape(rows, columns), map_y.reshape(rows, columns), cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REPLICATE,
+    )
+    return samples.reshape(-1, 3)[:n]
+
+
 def _footprint_px(pix: np.ndarray, depth: np.ndarray) -> float:
     ok = depth > NEAR
     if not ok.any():
@@ -241,10 +261,8 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
         v = (p[:, 6] * px + p[:, 7] * py + p[:, 8]) / inverse_depth
         texture = _PYRAMIDS.level(scene.texture, _footprint_px(pix, depth))
         th, tw = texture.shape[:2]
-        map_x = (u * tw - 0.5).astype(np.float32).reshape(-1, 1)
-        map_y = ((1.0 - v) * th - 0.5).astype(np.float32).reshape(-1, 1)
-        albedo = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        rgb[covered] = albedo.reshape(-1, 3) * np.take(_face_radiance(scene), face)[:, None]
+        albedo = _sample(texture, u * tw - 0.5, (1.0 - v) * th - 0.5)
+        rgb[covered] = albedo * np.take(_face_radiance(scene), face)[:, None]
     mask = (ids >= 0).reshape(height, width)
     rgb = rgb.reshape(height, width, 3)
     alpha = _edge_alpha(ids.reshape(height, width), coverage, mask, rgb) if antialias else mask.astype(np.float32)

@@ -274,3 +274,9 @@ def test_minified_texture_is_filtered_not_aliased():
     values = output.rgb[inner, 0]
     assert values.mean() == pytest.approx(0.5, abs=0.02)
     assert values.std() < 0.02
+
+
+def test_more_covered_pixels_than_opencv_remap_takes_in_one_row():
+    output = render_scene(flat_scene(size=256, scale=1.6, texture=np.full((4, 4, 3), 255, np.uint8)))
+    assert output.mask.sum() > 40_000  # cv2.remap refuses maps of 32767 rows or more
+    np.testing.assert_allclose(output.rgb[output.mask], 1.0, atol=1e-5)
