@@ -6,11 +6,14 @@ Also the home of the small compose reader (variable interpolation, service defin
 
 from __future__ import annotations
 
+import os
 import re
 import shlex
+import shutil
 import subprocess
 import sys
 import tomllib
+import zipfile
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -441,3 +444,68 @@ def test_everything_copied_exists_and_is_in_the_build_context(instructions):
                 assert (REPO / name).exists(), f"COPY {source}: no such path in the repository"
     for excluded in (".venv", ".git", "var", "tests"):
         assert excluded not in allowed
+
+
+def test_the_wheel_the_image_installs_carries_the_code_and_migrates_from_outside_the_repository(tmp_path):
+    """The image installs a wheel (not the editable checkout the tests use): build it as the
+    Dockerfile's wheel stage does, from only what that stage copies, and run it from elsewhere."""
+    instructions = dockerfile_instructions(DOCKERFILE.read_text())
+    stage_start = next(i for i, (k, a) in enumerate(instructions) if k == "FROM" and a.endswith(" AS wheel"))
+    stage_end = next(i for i, (k, _) in enumerate(instructions) if k == "FROM" and i > stage_start)
+    source = tmp_path / "src"
+    source.mkdir()
+    for keyword, arguments in instructions[stage_start:stage_end]:
+        if keyword != "COPY":
+            continue
+        for item in arguments.split()[:-1]:
+            path = REPO / item.rstrip("*").rstrip("/")
+            if path.is_dir():
+                shutil.copytree(path, source / path.name, ignore=shutil.ignore_patterns("__pycache__"))
+            elif path.exists():
+                shutil.copy2(path, source / path.name)
+    built = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps", "--no-build-isolation", "--wheel-dir",
+         str(tmp_path / "wheels"), str(source)],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert built.returncode == 0, built.stderr[-2000:]
+    (wheel,) = (tmp_path / "wheels").glob("foldwise-*.whl")
+
+    packaged = set(zipfile.ZipFile(wheel).namelist())
+    modules = {
+        path.relative_to(REPO).as_posix()
+        for package in ("foldwise", "db", "workers", "services")
+        for path in (REPO / package).rglob("*.py")
+        if "__pycache__" not in path.parts
+    }
+    assert modules - packaged == set(), "modules the image would lack"
+    assert any(name.startswith("db/migrations/versions/") for name in packaged)
+
+    # Unpacked ahead of the editable checkout on sys.path, run from a directory that is not
+    # the repository, with the configs where the image puts them.
+    site = tmp_path / "site"
+    zipfile.ZipFile(wheel).extractall(site)
+    configs = shutil.copytree(REPO / "configs", tmp_path / "app" / "configs")
+    database = tmp_path / "data" / "foldwise.db"
+    environment = {
+        **{k: v for k, v in os.environ.items() if not k.startswith("FOLDWISE_")},
+        "PYTHONPATH": str(site),
+        "FOLDWISE_DATA_DIR": str(tmp_path / "data"),
+        "FOLDWISE_CONFIGS_DIR": str(configs),
+    }
+    script = (
+        "import sys, foldwise, db\n"
+        f"assert foldwise.__file__.startswith({str(site)!r}), foldwise.__file__\n"
+        "from foldwise.conditions import load_condition_table\n"
+        "print(sorted(load_condition_table().codes))\n"
+        "from services.cli import main\n"
+        "sys.argv = ['foldwise', 'db', 'upgrade']\n"
+        "main()\n"
+    )
+    ran = subprocess.run(
+        [sys.executable, "-c", script], cwd=tmp_path / "app", env=environment,
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert ran.returncode == 0, ran.stdout[-2000:] + ran.stderr[-2000:]
+    assert "['de', 'eo', 'fb', 'li', 'mb', 'po', 'sc']" in ran.stdout
+    assert "database at head" in ran.stdout and database.is_file()

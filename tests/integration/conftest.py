@@ -12,11 +12,13 @@ the logs' tails.
 
 from __future__ import annotations
 
+import fcntl
 import os
 import secrets
 import signal
 import socket
 import subprocess
+import tempfile
 import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -41,6 +43,8 @@ HOSTS = {"postgres": POSTGRES_ADDRESS[0], "redis": REDIS_ADDRESS[0]}
 STARTUP_TIMEOUT_S = 90.0
 EXPERIMENT_TIMEOUT_S = 240.0
 STOP_TIMEOUT_S = 10.0
+# How long a session waits for another one on this machine to release Redis db 9.
+LOCK_TIMEOUT_S = 300.0
 
 T = TypeVar("T")
 
@@ -376,15 +380,29 @@ def database_url(services_reachable) -> Iterator[str]:
 
 @pytest.fixture(scope="session")
 def broker(services_reachable) -> Iterator[str]:
+    """Redis db 9, empty, and this session's alone: a second session on the machine waits its turn
+    (its FLUSHDB would empty our queues, and its workers would take our tasks)."""
     import redis
 
-    client = redis.Redis.from_url(BROKER_URL)
-    client.flushdb()
-    try:
-        yield BROKER_URL
-    finally:
+    lock_path = Path(tempfile.gettempdir()) / f"foldwise-integration-redis-db{REDIS_DB}.lock"
+    with lock_path.open("w") as lock:
+        deadline = time.monotonic() + LOCK_TIMEOUT_S
+        while True:
+            try:
+                fcntl.flock(lock, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    pytest.fail(f"another integration session has held Redis db {REDIS_DB} for {LOCK_TIMEOUT_S:.0f} s")
+                time.sleep(0.5)
+        client = redis.Redis.from_url(BROKER_URL)
         client.flushdb()
-        client.close()
+        try:
+            yield BROKER_URL
+        finally:
+            client.flushdb()
+            client.close()
+            fcntl.flock(lock, fcntl.LOCK_UN)
 
 
 @pytest.fixture(scope="session")
