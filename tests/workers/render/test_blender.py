@@ -23,6 +23,7 @@ from workers.render.blender import (  # noqa: E402 - only importable with bpy
     camera_intrinsics,
     camera_matrix_world,
     get_renderer,
+    render_scene,
 )
 
 WIDTH, HEIGHT = 96, 72
@@ -118,6 +119,11 @@ def test_get_renderer_keeps_one_renderer_per_process(renderer):
     assert renderer.samples == SAMPLES + 1
     get_renderer(samples=SAMPLES)
     assert len([s for s in bpy.data.scenes if s.name.startswith("foldwise")]) == 1
+    # The module-level helper (raster.render_scene's call shape) renders with that same renderer.
+    renders = renderer.stats["renders"]
+    scene = flat_scene()
+    assert render_scene(scene, samples=SAMPLES).rgb.tobytes() == renderer.render(scene).rgb.tobytes()
+    assert renderer.stats["renders"] == renders + 2
 
 
 def test_canonical_scene_gives_albedo_times_irradiance(renderer):
