@@ -210,6 +210,7 @@ def rasterize_face_ids(
     return ids, texturing, coverage
 
 
+_SHADE_CHUNK = 1 << 18
 _REMAP_COLUMNS = 4096  # cv2.remap wants maps under 32767 rows and columns
 
 
@@ -249,20 +250,24 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
     pix, depth = camera.project(np.asarray(scene.vertices, np.float64))
     ids, texturing, coverage = rasterize_face_ids(pix, depth, faces, width, height, uv=np.asarray(scene.uv, np.float64))
     rgb = np.zeros((height * width, 3), np.float32)
-    covered = np.flatnonzero(ids >= 0)
-    if covered.size:
-        face = ids[covered]
-        rows, cols = np.divmod(covered, width)
-        px = cols + 0.5
-        py = rows + 0.5
-        p = np.take(texturing, face, axis=0)
-        inverse_depth = p[:, 0] * px + p[:, 1] * py + p[:, 2]
-        u = (p[:, 3] * px + p[:, 4] * py + p[:, 5]) / inverse_depth
-        v = (p[:, 6] * px + p[:, 7] * py + p[:, 8]) / inverse_depth
+    covered_all = np.flatnonzero(ids >= 0)
+    if covered_all.size:
         texture = _PYRAMIDS.level(scene.texture, _footprint_px(pix, depth))
         th, tw = texture.shape[:2]
-        albedo = _sample(texture, u * tw - 0.5, (1.0 - v) * th - 0.5)
-        rgb[covered] = albedo * np.take(_face_radiance(scene), face)[:, None]
+        radiance = _face_radiance(scene)
+        # In chunks, so that a sheet filling a large image does not need gigabytes at once.
+        for start in range(0, covered_all.size, _SHADE_CHUNK):
+            covered = covered_all[start:start + _SHADE_CHUNK]
+            face = ids[covered]
+            rows, cols = np.divmod(covered, width)
+            px = cols + 0.5
+            py = rows + 0.5
+            p = np.take(texturing, face, axis=0)
+            inverse_depth = p[:, 0] * px + p[:, 1] * py + p[:, 2]
+            u = (p[:, 3] * px + p[:, 4] * py + p[:, 5]) / inverse_depth
+            v = (p[:, 6] * px + p[:, 7] * py + p[:, 8]) / inverse_depth
+            albedo = _sample(texture, u * tw - 0.5, (1.0 - v) * th - 0.5)
+            rgb[covered] = albedo * np.take(radiance, face)[:, None]
     mask = (ids >= 0).reshape(height, width)
     rgb = rgb.reshape(height, width, 3)
     alpha = _edge_alpha(ids.reshape(height, width), coverage, mask, rgb) if antialias else mask.astype(np.float32)
