@@ -45,10 +45,10 @@ WORKDIR /app
 # constraints file and extras as `make install`, less the dev tools.
 COPY pyproject.toml constraints.txt ./
 RUN mkdir -p foldwise db workers services \
- && touch foldwise/__init__.py db/__init__.py workers/__init__.py services/__init__.py \
+ && touch foldwise/__init__.py db/__init__.py workers/__init__.py services/__init__.py README.md \
  && pip install -c constraints.txt '.[all]' \
  && pip uninstall -y foldwise \
- && rm -rf foldwise db workers services build ./*.egg-info
+ && rm -rf foldwise db workers services README.md build ./*.egg-info
 
 # The code: only the wheel built above (bind-mounted, so it leaves no layer behind).
 RUN --mount=type=bind,from=wheel,source=/wheels,target=/wheels \
@@ -57,9 +57,12 @@ RUN --mount=type=bind,from=wheel,source=/wheels,target=/wheels \
 # Experiment configs and Table 3 (read at run time from FOLDWISE_CONFIGS_DIR).
 COPY configs/ configs/
 
-# The artifact store is the shared volume compose mounts at /data.
+# The artifact store is the shared volume compose mounts at /data. Torch's hub cache lives there
+# too: ImageNet weights put once into /data/torch/hub/checkpoints serve every train worker
+# (nothing is downloaded at run time).
 ENV FOLDWISE_DATA_DIR=/data \
-    FOLDWISE_CONFIGS_DIR=/app/configs
+    FOLDWISE_CONFIGS_DIR=/app/configs \
+    TORCH_HOME=/data/torch
 
 USER foldwise
 VOLUME ["/data"]
