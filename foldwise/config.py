@@ -109,13 +109,16 @@ class DetectorConfig(_Section):
     # R-CNN anchors (and proposal scale) span this range, as fractions of input_size:
     # at 128 px, 10 px objects up to the whole image.
     anchor_size_range: tuple[float, float] = (0.08, 1.0)
+    # Channels of the R-CNN feature pyramid (torchvision: 256; RoIAlign's CPU backward and
+    # the box head scale with it).
+    fpn_channels: int = Field(default=128, ge=8, le=1024)
     # Width of the R-CNN box head's two fully connected layers (torchvision: 1024).
     representation_size: int = Field(default=256, ge=8, le=4096)
     # RPN proposals kept per image after NMS (torchvision's COCO values: 2000 / 1000).
     rpn_proposals_train: int = Field(default=300, ge=1)
     rpn_proposals_test: int = Field(default=100, ge=1)
     # RoIs sampled per image for the box head's loss (torchvision: 512).
-    roi_samples_per_image: int = Field(default=128, ge=1)
+    roi_samples_per_image: int = Field(default=64, ge=1)
     # Edge Boxes proposals per image for the fast_rcnn family (the whole-image box included).
     edge_boxes: int = Field(default=200, ge=1, le=5000)
     # Detections returned per image, and the score below which none is returned.

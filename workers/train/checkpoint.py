@@ -1,0 +1,202 @@
+"""Self-describing detector checkpoints ω, and ``detect_object`` (inference).
+
+A checkpoint is one ``torch.save`` file holding plain data only (loadable with
+``weights_only=True``)::
+
+    {"format": "foldwise-detector", "format_version": 1,
+     "meta": {"family", "backbone", "classes", "input_size", "iterations" (cumulative),
+              "config" (the DetectorConfig), "buffers" (e.g. yolo anchors, as lists), ...},
+     "state_dict": {...}}
+
+``load_detector(path)`` rebuilds the model from ``meta`` alone. Writes are atomic (a temp file
+in the same folder, then rename), so a crash never leaves a half-written ω behind.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+import torch
+from torch import nn
+
+from foldwise.config import DetectorConfig
+
+CHECKPOINT_FORMAT = "foldwise-detector"
+CHECKPOINT_VERSION = 1
+# DetectorConfig fields that change the network's shape or meaning: a warm start must agree.
+ARCHITECTURE_FIELDS = ("family", "backbone")
+
+
+class CheckpointError(ValueError):
+    """A checkpoint that cannot be read, or that does not fit the requested detector."""
+
+
+@dataclass
+class Detector:
+    """A trained detector ω: the model (eval mode) and its self-description."""
+
+    model: nn.Module
+    meta: dict[str, Any]
+    device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+
+    @property
+    def classes(self) -> list[str]:
+        return list(self.meta["classes"])
+
+    @property
+    def config(self) -> DetectorConfig:
+        return DetectorConfig.model_validate(self.meta["config"])
+
+
+def _named_buffers(model: nn.Module) -> dict[str, list]:
+    """Buffers that are not BatchNorm running statistics (e.g. anchors), as JSON-able lists."""
+    skip = ("running_mean", "running_var", "num_batches_tracked")
+    return {
+        name: buffer.detach().cpu().tolist()
+        for name, buffer in model.named_buffers()
+        if not name.endswith(skip) and buffer.numel() <= 4096
+    }
+
+
+def save_checkpoint(model: nn.Module, meta: dict[str, Any], path: str | Path) -> Path:
+    """Write ``model`` and ``meta`` to ``path`` atomically; returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    meta = dict(meta)
+    meta.setdefault("buffers", _named_buffers(model))
+    payload = {
+        "format": CHECKPOINT_FORMAT,
+        "format_version": CHECKPOINT_VERSION,
+        "meta": meta,
+        "state_dict": {name: tensor.detach().cpu() for name, tensor in model.state_dict().items()},
+    }
+    descriptor, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(descriptor, "wb") as handle:
+            torch.save(payload, handle)
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        if os.path.exists(temporary):
+            os.unlink(temporary)
+        raise
+    return path
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The raw checkpoint payload, checked for format and version."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"checkpoint {path} does not exist")
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as error:  # torch raises many types for a corrupt or foreign file
+        raise CheckpointError(f"checkpoint {path} cannot be read: {type(error).__name__}: {error}") from None
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{path} is not a foldwise detector checkpoint")
+    version = payload.get("format_version")
+    if version != CHECKPOINT_VERSION:
+        raise CheckpointError(
+            f"checkpoint {path} has format version {version}; this foldwise reads version {CHECKPOINT_VERSION}"
+        )
+    return payload
+
+
+def check_compatible(meta: dict[str, Any], config: DetectorConfig, classes: Sequence[str], path: str | Path) -> None:
+    """Raise CheckpointError when ω_in cannot initialise a detector of ``config`` for ``classes``."""
+    problems = []
+    for key in ARCHITECTURE_FIELDS:
+        if meta.get(key) != getattr(config, key):
+            problems.append(f"{key}: checkpoint has {meta.get(key)!r}, config asks for {getattr(config, key)!r}")
+    if list(meta.get("classes", [])) != list(classes):
+        problems.append(f"classes: checkpoint has {list(meta.get('classes', []))}, training set has {list(classes)}")
+    if problems:
+        raise CheckpointError(f"cannot warm-start from {path}: " + "; ".join(problems))
+
+
+def resolve_device(device: str | torch.device | None) -> torch.device:
+    """``auto``/None: CUDA when available, else CPU; ``cuda`` without a GPU is an error."""
+    if device is None or str(device) == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    device = torch.device(device)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError("detector.device is 'cuda' but torch sees no CUDA device")
+    return device
+
+
+def model_from_meta(meta: dict[str, Any], config: DetectorConfig | None = None) -> nn.Module:
+    """An untrained model with the architecture described by ``meta`` (or ``config``)."""
+    from workers.train.detectors import build_detector
+
+    config = config or DetectorConfig.model_validate(meta["config"])
+    # Build with random init: the state dict brings the weights (and needs no ImageNet file).
+    config = config.model_copy(update={"pretrained": "none"})
+    return build_detector(config, len(meta["classes"]))
+
+
+def load_state(model: nn.Module, state_dict: dict[str, torch.Tensor], path: str | Path) -> None:
+    try:
+        model.load_state_dict(state_dict)
+    except RuntimeError as error:
+        raise CheckpointError(f"checkpoint {path} does not fit the detector it describes: {error}") from None
+
+
+def load_detector(path: str | Path, device: str | torch.device | None = None) -> Detector:
+    """Rebuild the detector stored at ``path`` from its metadata alone, in eval mode."""
+    payload = read_checkpoint(path)
+    meta = payload["meta"]
+    model = model_from_meta(meta)
+    load_state(model, payload["state_dict"], path)
+    target = resolve_device(device)
+    model.to(target).eval()
+    return Detector(model=model, meta=meta, device=target)
+
+
+def _image_array(image: np.ndarray | str | Path, index: int) -> tuple[np.ndarray, Path | None]:
+    from workers.train.data import as_rgb_uint8, read_image_rgb
+
+    if isinstance(image, (str, Path)):
+        return read_image_rgb(image), Path(image)
+    return as_rgb_uint8(image, where=f"images[{index}]"), None
+
+
+def detect_object(
+    detector: Detector, images: Sequence[np.ndarray | str | Path], batch_size: int = 8
+) -> list[dict[str, np.ndarray]]:
+    """Detections per image: ``boxes`` (n, 4) float32 xyxy in that image's pixels, ``scores``
+    (n,) float32, ``labels`` (n,) int64 0-based class indices, best score first.
+
+    Images are RGB uint8 arrays or paths (read with OpenCV); any size (the model resizes to
+    its input size and maps boxes back).
+    """
+    if batch_size < 1:
+        raise ValueError(f"batch_size must be at least 1, got {batch_size}")
+    model = detector.model
+    model.eval()
+    results: list[dict[str, np.ndarray]] = []
+    with torch.no_grad():
+        for start in range(0, len(images), batch_size):
+            arrays = [_image_array(image, start + i) for i, image in enumerate(images[start : start + batch_size])]
+            cache = getattr(model, "proposal_cache", None)
+            if cache is not None:
+                # Fast R-CNN: fill the proposal cache from files beside the images when present.
+                for array, path in arrays:
+                    cache.proposals(array, path)
+            tensors = [
+                torch.from_numpy(array).to(detector.device).permute(2, 0, 1).float().div_(255) for array, _ in arrays
+            ]
+            for output in model(tensors):
+                results.append(
+                    {
+                        "boxes": output["boxes"].detach().cpu().numpy().astype(np.float32).reshape(-1, 4),
+                        "scores": output["scores"].detach().cpu().numpy().astype(np.float32),
+                        "labels": output["labels"].detach().cpu().numpy().astype(np.int64) - 1,
+                    }
+                )
+    return results

@@ -1,0 +1,148 @@
+"""Training and test samples: a rendered image on disk and its ground-truth boxes.
+
+``load_coco_dataset`` reads the dataset folder written by ``foldwise render --out DIR``
+(``DIR/annotations.json`` in COCO form, images under ``DIR/images/``) and checks every box
+before any training starts, so a bad annotation fails here with the image named, not as a
+NaN loss an hour later.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+# A box may overhang the image by this many pixels (float rounding in the renderer).
+_BORDER_TOLERANCE = 1e-3
+
+
+class DatasetError(ValueError):
+    """A dataset folder or annotation that cannot be used; the message names the file or image."""
+
+
+@dataclass
+class Sample:
+    image_path: Path
+    boxes: np.ndarray  # (n, 4) float32, xyxy in pixels
+    labels: np.ndarray  # (n,) int64, 0-based class index
+    condition: str | None = None
+    difficulty: str | None = None
+
+    def __post_init__(self) -> None:
+        self.image_path = Path(self.image_path)
+        self.boxes = np.asarray(self.boxes, dtype=np.float32).reshape(-1, 4)
+        self.labels = np.asarray(self.labels, dtype=np.int64).reshape(-1)
+        if len(self.boxes) != len(self.labels):
+            raise DatasetError(
+                f"{self.image_path}: {len(self.boxes)} boxes but {len(self.labels)} labels"
+            )
+
+
+def validate_box(box_xyxy, width: float, height: float, where: str) -> None:
+    """Raise DatasetError unless the box is finite, has positive area and lies in the image."""
+    x0, y0, x1, y1 = (float(v) for v in box_xyxy)
+    if not all(math.isfinite(v) for v in (x0, y0, x1, y1)):
+        raise DatasetError(f"{where}: box {[x0, y0, x1, y1]} is not finite")
+    if x1 <= x0 or y1 <= y0:
+        raise DatasetError(f"{where}: degenerate box {[x0, y0, x1, y1]} (zero or negative width or height)")
+    tol = _BORDER_TOLERANCE
+    if x0 < -tol or y0 < -tol or x1 > width + tol or y1 > height + tol:
+        raise DatasetError(
+            f"{where}: box {[x0, y0, x1, y1]} lies outside the {width:g}x{height:g} image"
+        )
+
+
+def load_coco_dataset(directory: str | Path) -> tuple[list[Sample], list[str]]:
+    """Samples (one per image, in the file's order) and the class names in category order.
+
+    Category ids are 1-based; a category's 0-based label is its position in the list of
+    categories sorted by id. ``iscrowd`` is ignored: every annotation is a target.
+    """
+    directory = Path(directory)
+    annotation_path = directory / "annotations.json"
+    if not annotation_path.is_file():
+        raise DatasetError(f"{directory}: no annotations.json (not a dataset folder written by `foldwise render`)")
+    try:
+        document = json.loads(annotation_path.read_text())
+    except json.JSONDecodeError as error:
+        raise DatasetError(f"{annotation_path}: not valid JSON: {error}") from None
+    for key in ("images", "annotations", "categories"):
+        if not isinstance(document.get(key), list):
+            raise DatasetError(f"{annotation_path}: missing list {key!r}")
+
+    categories = sorted(document["categories"], key=lambda c: c["id"])
+    category_ids = [c["id"] for c in categories]
+    if len(set(category_ids)) != len(category_ids):
+        raise DatasetError(f"{annotation_path}: duplicate category ids {category_ids}")
+    if not categories:
+        raise DatasetError(f"{annotation_path}: no categories")
+    label_of_category = {cid: index for index, cid in enumerate(category_ids)}
+    classes = [str(c["name"]) for c in categories]
+
+    images = document["images"]
+    image_by_id: dict = {}
+    for image in images:
+        if image["id"] in image_by_id:
+            raise DatasetError(f"{annotation_path}: duplicate image id {image['id']}")
+        image_by_id[image["id"]] = image
+    boxes_by_image: dict = {image_id: [] for image_id in image_by_id}
+    labels_by_image: dict = {image_id: [] for image_id in image_by_id}
+
+    for annotation in document["annotations"]:
+        image = image_by_id.get(annotation["image_id"])
+        if image is None:
+            raise DatasetError(
+                f"{annotation_path}: annotation {annotation.get('id')} refers to unknown image id {annotation['image_id']}"
+            )
+        where = f"{image['file_name']} (annotation {annotation.get('id')})"
+        if annotation["category_id"] not in label_of_category:
+            raise DatasetError(f"{where}: unknown category_id {annotation['category_id']}")
+        x, y, w, h = (float(v) for v in annotation["bbox"])
+        box = (x, y, x + w, y + h)
+        validate_box(box, float(image["width"]), float(image["height"]), where)
+        boxes_by_image[image["id"]].append(box)
+        labels_by_image[image["id"]].append(label_of_category[annotation["category_id"]])
+
+    samples = []
+    for image in images:
+        path = directory / image["file_name"]
+        if not path.is_file():
+            raise DatasetError(f"{image['file_name']}: image file {path} does not exist")
+        samples.append(
+            Sample(
+                image_path=path,
+                boxes=np.array(boxes_by_image[image["id"]], dtype=np.float32).reshape(-1, 4),
+                labels=np.array(labels_by_image[image["id"]], dtype=np.int64),
+                condition=image.get("condition"),
+                difficulty=image.get("difficulty"),
+            )
+        )
+    return samples, classes
+
+
+def read_image_rgb(path: str | Path) -> np.ndarray:
+    """An image file as (H, W, 3) uint8 RGB; a clear error when it cannot be read."""
+    import cv2
+
+    path = Path(path)
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise DatasetError(f"{path}: cannot read image (missing or not an image)")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def as_rgb_uint8(image: np.ndarray, where: str = "image") -> np.ndarray:
+    """Check (or gently coerce grey to) an (H, W, 3) uint8 RGB array."""
+    image = np.asarray(image)
+    if image.dtype != np.uint8:
+        raise DatasetError(f"{where}: expected uint8 pixels, got {image.dtype}")
+    if image.ndim == 2:
+        image = np.repeat(image[:, :, None], 3, axis=2)
+    if image.ndim != 3 or image.shape[2] != 3:
+        raise DatasetError(f"{where}: expected an (H, W, 3) RGB image, got shape {image.shape}")
+    if image.shape[0] < 1 or image.shape[1] < 1:
+        raise DatasetError(f"{where}: empty image of shape {image.shape}")
+    return np.ascontiguousarray(image)

@@ -1,0 +1,182 @@
+"""Detector families behind one constructor, ``build_detector``.
+
+Every detector follows torchvision's detection interface:
+``forward(images: list[Tensor[3, H, W] in 0..1], targets: list[dict(boxes xyxy, labels 1-based)] | None)``
+returns a dict of named loss tensors in training mode and ``list[dict(boxes, scores, labels)]``
+(labels 1-based, boxes in the input images' pixels) in eval mode.
+
+Families: ``faster_rcnn`` (torchvision's Faster R-CNN), ``fast_rcnn`` (torchvision RoI heads fed
+Edge Boxes proposals) and ``yolo`` (``workers.train.detectors.yolo``). Torch is imported lazily
+so that importing this package stays cheap.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import TYPE_CHECKING
+from urllib.parse import urlparse
+
+import numpy as np
+
+if TYPE_CHECKING:
+    from torch import nn
+
+    from foldwise.config import DetectorConfig
+
+FAMILIES = ("faster_rcnn", "fast_rcnn", "yolo")
+
+# Backbone names accepted by the two R-CNN families, mapped to the torchvision classifier
+# they start from. The "_320" variant differs in torchvision only by its input size, which
+# here comes from ``config.input_size``, so it shares the mobilenet backbone.
+RCNN_BACKBONES = {
+    "mobilenet_v3_large_fpn": "mobilenet_v3_large",
+    "mobilenet_v3_large_320_fpn": "mobilenet_v3_large",
+    "resnet50_fpn_v2": "resnet50",
+}
+
+
+class PretrainedWeightsMissing(FileNotFoundError):
+    """``pretrained: imagenet`` but the ImageNet weights are not in the local torch hub cache."""
+
+
+class DetectorBuildError(ValueError):
+    """A detector configuration that cannot be built; the message names the bad key."""
+
+
+def imagenet_weights_path(classifier: str) -> tuple[Path, str]:
+    """Where torchvision keeps the ImageNet weights of ``classifier`` offline, and their URL."""
+    import torch
+    import torchvision
+
+    weights = torchvision.models.get_model_weights(classifier).IMAGENET1K_V1
+    filename = Path(urlparse(weights.url).path).name
+    return Path(torch.hub.get_dir()) / "checkpoints" / filename, weights.url
+
+
+def load_imagenet_state(classifier: str, backbone_name: str) -> dict:
+    """ImageNet weights of ``classifier`` from the local torch hub cache; never downloads."""
+    import torch
+
+    path, url = imagenet_weights_path(classifier)
+    if not path.is_file():
+        raise PretrainedWeightsMissing(
+            f"detector.pretrained is 'imagenet' but the ImageNet weights for backbone {backbone_name!r} "
+            f"are not in the local torch hub cache: expected {path}. foldwise never downloads weights: "
+            f"copy {path.name} (published at {url}) there, or set detector.pretrained to 'none'."
+        )
+    return torch.load(path, map_location="cpu", weights_only=True)
+
+
+def build_backbone(config: "DetectorConfig") -> "nn.Module":
+    """A feature pyramid (``config.fpn_channels`` channels) on a torchvision classifier.
+
+    Random initialisation trains every layer with ordinary BatchNorm; ImageNet weights freeze
+    the first stages (and, for mobilenet, BatchNorm statistics: small batches) as torchvision's
+    detection models do.
+    """
+    import torchvision
+    from torch import nn
+    from torchvision.models.detection.backbone_utils import BackboneWithFPN
+    from torchvision.ops import FrozenBatchNorm2d
+    from torchvision.ops.feature_pyramid_network import LastLevelMaxPool
+
+    classifier_name = RCNN_BACKBONES.get(config.backbone)
+    if classifier_name is None:
+        raise DetectorBuildError(
+            f"detector.backbone {config.backbone!r} is not supported by the {config.family} detector; "
+            f"known: {', '.join(RCNN_BACKBONES)}"
+        )
+    pretrained = config.pretrained == "imagenet"
+    state = load_imagenet_state(classifier_name, config.backbone) if pretrained else None
+
+    if classifier_name == "mobilenet_v3_large":
+        classifier = torchvision.models.mobilenet_v3_large(
+            weights=None, norm_layer=FrozenBatchNorm2d if pretrained else nn.BatchNorm2d
+        )
+        if state is not None:
+            classifier.load_state_dict(state)
+        body = classifier.features
+        # Stage starts: the stem, each strided block, the last 1x1 conv (as torchvision's extractor).
+        stages = [0] + [i for i, block in enumerate(body) if getattr(block, "_is_cn", False)] + [len(body) - 1]
+        trainable_stages = 3 if pretrained else len(stages)
+        frozen_before = stages[len(stages) - trainable_stages]
+        # Strides 8, 16 and 32: torchvision's own variant reads stride 32 only, too coarse for
+        # 10-pixel objects in 128-pixel images.
+        returned = [stages[2], stages[3], stages[-1]]
+        return_layers = {str(index): str(level) for level, index in enumerate(returned)}
+        in_channels = [body[index].out_channels for index in returned]
+    else:
+        # resnet50_fpn_v2: BatchNorm throughout, like torchvision's fasterrcnn_resnet50_fpn_v2.
+        body = torchvision.models.resnet50(weights=None)
+        if state is not None:
+            body.load_state_dict(state)
+        trainable = ["layer4", "layer3", "layer2"] if pretrained else ["layer4", "layer3", "layer2", "layer1", "conv1", "bn1"]
+        for name, parameter in body.named_parameters():
+            if not name.startswith(tuple(trainable)):
+                parameter.requires_grad_(False)
+        frozen_before = 0
+        return_layers = {f"layer{k}": str(k - 1) for k in (1, 2, 3, 4)}
+        in_channels = [256, 512, 1024, 2048]
+
+    for block in list(body)[:frozen_before] if frozen_before else []:
+        for parameter in block.parameters():
+            parameter.requires_grad_(False)
+    return BackboneWithFPN(
+        body,
+        return_layers,
+        in_channels,
+        config.fpn_channels,
+        extra_blocks=LastLevelMaxPool(),
+        norm_layer=nn.BatchNorm2d if classifier_name == "resnet50" else None,
+    )
+
+
+def feature_map_names(backbone: "nn.Module") -> list[str]:
+    """The FPN levels RoI pooling reads (every level but the extra max-pooled one)."""
+    import torch
+
+    was_training = backbone.training
+    backbone.eval()
+    with torch.no_grad():
+        names = [name for name in backbone(torch.zeros(1, 3, 64, 64)) if name != "pool"]
+    backbone.train(was_training)
+    return names
+
+
+def anchor_sizes(config: "DetectorConfig", levels: int, per_level: int = 2) -> tuple[tuple[float, ...], ...]:
+    """Anchor sizes in input pixels, log-spaced over ``config.anchor_size_range`` × input size.
+
+    Fine levels get the small sizes: e.g. 128 px input, 4 levels: (10, 15), (21, 30), (43, 62), (89, 128).
+    """
+    low, high = config.anchor_size_range
+    sizes = np.geomspace(low * config.input_size, high * config.input_size, levels * per_level)
+    return tuple(tuple(float(round(s, 2)) for s in sizes[i * per_level : (i + 1) * per_level]) for i in range(levels))
+
+
+def build_detector(
+    config: "DetectorConfig",
+    num_classes: int,
+    train_boxes: np.ndarray | None = None,
+    *,
+    train_image_sizes: np.ndarray | None = None,
+) -> "nn.Module":
+    """A fresh detector for ``num_classes`` object classes (background excluded).
+
+    ``train_boxes`` (n, 4) xyxy pixels of the training set only matter to the yolo family (its
+    k-means anchors; ``train_image_sizes`` (n, 2) height, width of each box's image).
+    """
+    if num_classes < 1:
+        raise DetectorBuildError(f"a detector needs at least one class, got num_classes={num_classes}")
+    if config.family == "faster_rcnn":
+        from workers.train.detectors.faster_rcnn import build_faster_rcnn
+
+        return build_faster_rcnn(config, num_classes)
+    if config.family == "fast_rcnn":
+        from workers.train.detectors.fast_rcnn import build_fast_rcnn
+
+        return build_fast_rcnn(config, num_classes)
+    if config.family == "yolo":
+        from workers.train.detectors.yolo import build_yolo
+
+        return build_yolo(config, num_classes, train_boxes, train_image_sizes=train_image_sizes)
+    raise DetectorBuildError(f"detector.family {config.family!r} is unknown; known: {', '.join(FAMILIES)}")

@@ -1,0 +1,68 @@
+"""Faster R-CNN (Ren et al. 2015): torchvision's, sized for small rendered images.
+
+Against torchvision's COCO defaults: input ``config.input_size`` square (min = max size),
+anchors spanning ~8% to 100% of the input over the FPN levels, a third of the proposals and a
+quarter of the sampled RoIs (cheap on a CPU, plenty for one object per image), and a narrow
+box head (``config.representation_size``).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:
+    from torchvision.models.detection import FasterRCNN
+
+    from foldwise.config import DetectorConfig
+
+ASPECT_RATIOS = (0.5, 1.0, 2.0)
+
+
+def build_faster_rcnn(config: "DetectorConfig", num_classes: int) -> "FasterRCNN":
+    """A Faster R-CNN for ``num_classes`` object classes (+ background) on ``config.backbone``."""
+    from torchvision.models.detection import FasterRCNN
+    from torchvision.models.detection.anchor_utils import AnchorGenerator
+    from torchvision.models.detection.faster_rcnn import FastRCNNConvFCHead, FastRCNNPredictor, RPNHead, TwoMLPHead
+    from torchvision.ops import MultiScaleRoIAlign
+
+    from workers.train.detectors import anchor_sizes, build_backbone, feature_map_names
+
+    backbone = build_backbone(config)
+    roi_levels = feature_map_names(backbone)
+    levels = len(roi_levels) + 1  # + the max-pooled level the RPN also reads
+    sizes = anchor_sizes(config, levels)
+    anchor_generator = AnchorGenerator(sizes=sizes, aspect_ratios=(ASPECT_RATIOS,) * levels)
+    anchors_per_location = anchor_generator.num_anchors_per_location()[0]
+    roi_pool = MultiScaleRoIAlign(featmap_names=roi_levels, output_size=7, sampling_ratio=1)
+
+    if config.backbone == "resnet50_fpn_v2":
+        # torchvision's v2 heads: a deeper RPN head and a conv + FC box head with BatchNorm.
+        from torch import nn
+
+        rpn_head = RPNHead(backbone.out_channels, anchors_per_location, conv_depth=2)
+        box_head = FastRCNNConvFCHead(
+            (backbone.out_channels, 7, 7), [256, 256, 256, 256], [config.representation_size], norm_layer=nn.BatchNorm2d
+        )
+    else:
+        rpn_head = RPNHead(backbone.out_channels, anchors_per_location)
+        box_head = TwoMLPHead(backbone.out_channels * 7 * 7, config.representation_size)
+
+    return FasterRCNN(
+        backbone,
+        num_classes=None,
+        min_size=config.input_size,
+        max_size=config.input_size,
+        rpn_anchor_generator=anchor_generator,
+        rpn_head=rpn_head,
+        rpn_pre_nms_top_n_train=2 * config.rpn_proposals_train,
+        rpn_pre_nms_top_n_test=2 * config.rpn_proposals_test,
+        rpn_post_nms_top_n_train=config.rpn_proposals_train,
+        rpn_post_nms_top_n_test=config.rpn_proposals_test,
+        rpn_batch_size_per_image=128,
+        box_roi_pool=roi_pool,
+        box_head=box_head,
+        box_predictor=FastRCNNPredictor(config.representation_size, num_classes + 1),
+        box_batch_size_per_image=config.roi_samples_per_image,
+        box_score_thresh=config.box_score_threshold,
+        box_detections_per_img=config.detections_per_image,
+    )
