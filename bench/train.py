@@ -26,11 +26,14 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import platform
 import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from workers.train.evaluation import json_safe
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
@@ -115,25 +118,45 @@ def family_config(base, family: str, input_size: int, threads: int, batch_size: 
 
 
 def score(checkpoint: Path, test_samples, classes, batch_size: int) -> dict[str, Any]:
-    from workers.train.checkpoint import load_detector
-    from workers.train.evaluation import evaluate_detector
+    """The checkpoint's mAP on the test samples, and its inference speed (detect_object alone)."""
+    from workers.train.checkpoint import detect_object, load_detector
+    from workers.train.evaluation import evaluate_predictions
 
     started = time.perf_counter()
     detector = load_detector(checkpoint)
-    result = evaluate_detector(detector, test_samples, classes, batch_size=batch_size, coco=True)
-    seconds = time.perf_counter() - started
+    if list(detector.meta["classes"]) != list(classes):
+        raise SystemExit(f"{checkpoint}: classes {detector.meta['classes']} differ from the test set's {classes}")
+    loaded = time.perf_counter()
+    predictions = detect_object(detector, [sample.image_path for sample in test_samples], batch_size=batch_size)
+    detected = time.perf_counter()
+    result = evaluate_predictions(
+        predictions,
+        [{"boxes": sample.boxes, "labels": sample.labels} for sample in test_samples],
+        classes,
+        groups=[{"condition": sample.condition, "difficulty": sample.difficulty} for sample in test_samples],
+    )
     return {
         "map": result.map,
         "map_unthresholded": result.map_unthresholded,
         "coco_ap50": result.coco.get("AP50"),
         "coco_ap": result.coco.get("AP"),
         "per_class": {name: item.ap for name, item in result.per_class.items()},
-        "eval_seconds": seconds,
-        "inference_images_per_s": len(test_samples) / seconds if seconds > 0 else None,
+        "detections_kept": sum(item.num_detections_kept for item in result.per_class.values()),
+        "true_positives": sum(item.true_positives for item in result.per_class.values()),
+        "load_seconds": loaded - started,
+        "inference_seconds": detected - loaded,
+        "inference_images_per_s": len(test_samples) / (detected - loaded) if detected > loaded else None,
+        "eval_seconds": time.perf_counter() - started,
     }
 
 
-def fixed_budget(args, base, input_size: int, train_samples, test_samples, classes) -> dict[str, Any]:
+def fixed_budget(args, base, input_size: int, train_samples, test_samples, classes, publish) -> dict[str, Any]:
+    """Train each family for the same iterations; speed and the mAP it reaches.
+
+    Training images/s comes from the difference of a 1-iteration and an N-iteration run, so the
+    fixed costs inside train_detector (reading images, building the model, Edge Boxes proposals,
+    saving the checkpoint) cancel out.
+    """
     from workers.train.training import train_detector
 
     families = {}
@@ -141,20 +164,43 @@ def fixed_budget(args, base, input_size: int, train_samples, test_samples, class
         config = family_config(base, family, input_size, args.threads, args.batch_size)
         checkpoint = RESULTS / "checkpoints" / f"fixed-{family}.pt"
         checkpoint.parent.mkdir(parents=True, exist_ok=True)
-        print(f"[{family}] training {args.iterations} iterations", file=sys.stderr)
+        print(f"[{family}] warm-up iteration, then {args.iterations} iterations", file=sys.stderr)
+        warmup = train_detector(train_samples, None, 1, config, classes, checkpoint, seed=args.seed)
         stats = train_detector(train_samples, None, args.iterations, config, classes, checkpoint, seed=args.seed)
+        step_seconds = stats.seconds - warmup.seconds
+        per_s = (stats.images_seen - warmup.images_seen) / step_seconds if step_seconds > 0 and args.iterations > 1 else None
         scores = score(checkpoint, test_samples, classes, args.eval_batch_size)
         families[family] = {
             "config": config.model_dump(mode="json"),
-            "train": stats.to_dict(),
-            "train_images_per_s": stats.images_seen / stats.seconds if stats.seconds > 0 else None,
+            "train": {k: v for k, v in stats.to_dict().items() if k != "losses"},
+            "loss_first_last": [stats.losses[0], stats.final_loss] if getattr(stats, "losses", None) else None,
+            "train_images_per_s": per_s,
+            "fixed_train_overhead_s": warmup.seconds,
             **scores,
         }
-        print(f"[{family}] {json.dumps({k: families[family][k] for k in ('train_images_per_s', 'inference_images_per_s', 'map', 'map_unthresholded')})}", file=sys.stderr)
+        summary = {k: families[family][k] for k in ("train_images_per_s", "inference_images_per_s", "map", "map_unthresholded")}
+        print(f"[{family}] {json.dumps(json_safe(summary))}", file=sys.stderr)
+        publish(families)
     return families
 
 
-def to_target(args, base, input_size: int, train_samples, test_samples, classes) -> dict[str, Any]:
+def target_summary(config, reached, iterations, seconds, train_seconds, images_seen, history) -> dict[str, Any]:
+    best = max(history, key=lambda p: -1.0 if math.isnan(p["map"]) else p["map"])
+    return {
+        "config": config.model_dump(mode="json"),
+        "reached": reached,
+        "iterations": iterations,
+        "seconds": seconds,
+        "train_seconds": train_seconds,
+        "train_images_per_s": images_seen / train_seconds if train_seconds > 0 else None,
+        "final_map": history[-1]["map"],
+        "best_map": best["map"],
+        "best_at_iterations": best["iterations"],
+        "history": history,
+    }
+
+
+def to_target(args, base, input_size: int, train_samples, test_samples, classes, publish) -> dict[str, Any]:
     from workers.train.training import train_detector
 
     families = {}
@@ -188,29 +234,21 @@ def to_target(args, base, input_size: int, train_samples, test_samples, classes)
                 "train_seconds": train_seconds,
                 "final_loss": stats.final_loss,
                 "nonfinite_steps": len(stats.nonfinite_steps),
-                **{k: scores[k] for k in ("map", "map_unthresholded", "coco_ap50", "per_class")},
+                **{k: scores[k] for k in ("map", "map_unthresholded", "coco_ap50", "per_class", "detections_kept", "true_positives", "eval_seconds")},
             }
             history.append(point)
-            print(f"[{family}] {json.dumps({k: point[k] for k in ('iterations', 'seconds', 'map', 'map_unthresholded', 'final_loss')})}", file=sys.stderr)
+            summary = {k: point[k] for k in ("iterations", "seconds", "map", "map_unthresholded", "final_loss")}
+            print(f"[{family}] {json.dumps(json_safe(summary))}", file=sys.stderr)
+            families[family] = target_summary(config, reached, iterations, time.perf_counter() - started, train_seconds, images_seen, history)
+            publish(families)  # a run cut short still leaves every evaluation so far in --out
             current = scores["map"]
             if current is not None and not math.isnan(current) and current >= args.target_map:
                 reached = True
+                families[family]["reached"] = True
+                publish(families)
                 break
             if elapsed >= args.time_budget:
                 break
-        best = max(history, key=lambda p: -1.0 if math.isnan(p["map"]) else p["map"])
-        families[family] = {
-            "config": config.model_dump(mode="json"),
-            "reached": reached,
-            "iterations": iterations,
-            "seconds": time.perf_counter() - started,
-            "train_seconds": train_seconds,
-            "train_images_per_s": images_seen / train_seconds if train_seconds > 0 else None,
-            "final_map": history[-1]["map"],
-            "best_map": best["map"],
-            "best_at_iterations": best["iterations"],
-            "history": history,
-        }
     return families
 
 
@@ -238,7 +276,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     import torch
 
     torch.set_num_threads(args.threads)
+    import torchvision  # noqa: F401  (imported up front: its import is not the first family's training time)
+
     from workers.train.data import load_coco_dataset
+    from workers.train.detectors import fast_rcnn, faster_rcnn, yolo  # noqa: F401
 
     quick = quick_settings()
     base = quick["detector"]
@@ -274,16 +315,27 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "score_threshold": 0.8,
             "iou_threshold": 0.5,
         },
-        "machine": {"python": platform.python_version(), "torch": torch.__version__, "cuda": torch.cuda.is_available()},
-        "families": runner(args, base, input_size, train_samples, test_samples, classes),
+        "machine": {
+            "python": platform.python_version(),
+            "torch": torch.__version__,
+            "cuda": torch.cuda.is_available(),
+            "cpus": os.cpu_count(),
+            "load_average_at_start": list(os.getloadavg()),
+        },
+        "families": {},
     }
-    from workers.train.evaluation import json_safe
 
-    text = json.dumps(json_safe(report), indent=2, allow_nan=False)
-    print(text)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
+    def publish(families: dict[str, Any]) -> str:
+        report["families"] = families
+        text = json.dumps(json_safe(report), indent=2, allow_nan=False)
+        if args.out:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            args.out.write_text(text)
+        return text
+
+    families = runner(args, base, input_size, train_samples, test_samples, classes, publish)
+    report["machine"]["load_average_at_end"] = list(os.getloadavg())
+    print(publish(families))
     return report
 
 

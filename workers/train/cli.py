@@ -133,7 +133,7 @@ def train(
     throughput = stats.images_seen / stats.seconds if stats.seconds > 0 else float("nan")
     typer.echo(
         f"done: {stats.iterations} iterations in {stats.seconds:.1f} s on {stats.device}, "
-        f"{throughput:.2f} images/s, final loss {stats.final_loss:.4f}"
+        f"{throughput:.2f} images/s (set-up included), final loss {stats.final_loss:.4f}"
     )
     if stats.nonfinite_steps:
         typer.secho(f"{len(stats.nonfinite_steps)} non-finite loss steps were skipped", fg=typer.colors.YELLOW)
