@@ -129,6 +129,20 @@ def _face_planes(pix: np.ndarray, depth: np.ndarray, faces: np.ndarray, uv: np.n
     return coverage, texturing, usable, x, y
 
 
+_SCRATCH = threading.local()
+
+
+def _z_buffer(size: int) -> np.ndarray:
+    """This thread's empty z-test buffer of at least ``size`` keys. Reused between calls (and
+    emptied by resetting only the pixels touched): filling a fresh image-sized buffer every
+    call costs more than the z-test itself."""
+    buffer = getattr(_SCRATCH, "z_buffer", None)
+    if buffer is None or buffer.size < size:
+        buffer = np.full(size, _EMPTY_KEY, dtype=np.int64)
+        _SCRATCH.z_buffer = buffer
+    return buffer
+
+
 def rasterize_face_ids(
     pix: np.ndarray,
     depth: np.ndarray,
@@ -203,10 +217,12 @@ def rasterize_face_ids(
     span = max(hi_depth - lo_depth, 1e-12)
     quantised = ((depth_at - lo_depth) * ((_DEPTH_LEVELS - 1) / span)).astype(np.int64)
     keys = (quantised << _FACE_BITS) | face
-    buffer = np.full(width * height, _EMPTY_KEY, dtype=np.int64)
-    np.minimum.at(buffer, pixel, keys)
-    covered = buffer != _EMPTY_KEY
-    ids[covered] = buffer[covered] & ((1 << _FACE_BITS) - 1)
+    buffer = _z_buffer(width * height)
+    try:
+        np.minimum.at(buffer, pixel, keys)
+        ids[pixel] = buffer[pixel] & ((1 << _FACE_BITS) - 1)
+    finally:
+        buffer[pixel] = _EMPTY_KEY  # leave the scratch buffer empty for the next call
     return ids, texturing, coverage
 
 
