@@ -23,15 +23,15 @@ ENV PYTHONUNBUFFERED=1 \
     PIP_DISABLE_PIP_VERSION_CHECK=1 \
     PIP_ROOT_USER_ACTION=ignore
 
-# What bpy 5.0.1 links against outside its wheel (read off `ldd`/`readelf -d` of bpy's shared
-# objects): X11 client libraries, libxkbcommon, the GL dispatch libraries (libgl1 brings libglx0)
-# and libopengl0; libegl1 because bpy dlopens libEGL.so.1 when it runs headless. No X server,
-# no Mesa drivers: Cycles renders on the CPU (or CUDA/OptiX from the host driver).
+# What bpy 5.0.1 links against outside its wheel (`ldd`/`readelf -d` of its shared objects): X11
+# client libraries, libxkbcommon and the GL dispatch library. Checked on a bare Debian bookworm
+# with only these installed: `import bpy` and a Cycles render through workers/render/blender.py
+# work. No X server and no EGL: Cycles renders on the CPU (or CUDA/OptiX from the host driver)
+# without a GL context. Left out on purpose: libxt6 and libopengl0 (only bpy's bundled MaterialX
+# GLSL Python module wants them) and libegl1 (EEVEE's offscreen context; foldwise uses Cycles).
 RUN apt-get update \
  && apt-get install -y --no-install-recommends \
-        libx11-6 libxext6 libxrender1 libxfixes3 libxi6 libxt6 libxkbcommon0 \
-        libsm6 libice6 \
-        libgl1 libegl1 libopengl0 \
+        libx11-6 libxext6 libxrender1 libxfixes3 libxi6 libxkbcommon0 libsm6 libice6 libgl1 \
  && rm -rf /var/lib/apt/lists/*
 
 RUN useradd --create-home --uid 1000 --shell /usr/sbin/nologin foldwise \
