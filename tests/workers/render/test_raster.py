@@ -280,3 +280,12 @@ def test_more_covered_pixels_than_opencv_remap_takes_in_one_row():
     output = render_scene(flat_scene(size=256, scale=1.6, texture=np.full((4, 4, 3), 255, np.uint8)))
     assert output.mask.sum() > 40_000  # cv2.remap refuses maps of 32767 rows or more
     np.testing.assert_allclose(output.rgb[output.mask], 1.0, atol=1e-5)
+
+
+def test_renders_do_not_leak_into_each_other_through_reused_buffers():
+    first = render_scene(flat_scene(size=48, yaw=0.3))
+    render_scene(flat_scene(size=96, scale=2.0))  # a larger image, covering everything
+    render_scene(flat_scene(size=32, roll=1.0))
+    again = render_scene(flat_scene(size=48, yaw=0.3))
+    assert np.array_equal(first.mask, again.mask)
+    assert np.array_equal(first.rgb, again.rgb) and np.array_equal(first.alpha, again.alpha)
