@@ -6,6 +6,7 @@ Also the home of the small compose reader (variable interpolation, service defin
 
 from __future__ import annotations
 
+import importlib.util
 import os
 import re
 import shlex
@@ -509,3 +510,67 @@ def test_the_wheel_the_image_installs_carries_the_code_and_migrates_from_outside
     assert ran.returncode == 0, ran.stdout[-2000:] + ran.stderr[-2000:]
     assert "['de', 'eo', 'fb', 'li', 'mb', 'po', 'sc']" in ran.stdout
     assert "database at head" in ran.stdout and database.is_file()
+
+
+# The shared libraries bpy's extension module needs from the system (its NEEDED entries, through
+# the libraries bundled in the wheel), and the Debian package that provides each in the image.
+# A library missing here is one a new bpy wants: find its package (`dpkg -S`) and add both.
+BASE_IMAGE = "in python:3.11-slim-bookworm"
+SYSTEM_LIBRARY_PACKAGES = {
+    "ld-linux-x86-64.so.2": BASE_IMAGE,
+    "libc.so.6": BASE_IMAGE,
+    "libdl.so.2": BASE_IMAGE,
+    "libm.so.6": BASE_IMAGE,
+    "libpthread.so.0": BASE_IMAGE,
+    "librt.so.1": BASE_IMAGE,
+    "libutil.so.1": BASE_IMAGE,
+    "libgcc_s.so.1": BASE_IMAGE,
+    "libstdc++.so.6": BASE_IMAGE,
+    "libGL.so.1": "libgl1",
+    "libICE.so.6": "libice6",
+    "libSM.so.6": "libsm6",
+    "libX11.so.6": "libx11-6",
+    "libXext.so.6": "libxext6",
+    "libXfixes.so.3": "libxfixes3",
+    "libXi.so.6": "libxi6",
+    "libXrender.so.1": "libxrender1",
+    "libxkbcommon.so.0": "libxkbcommon0",
+}
+
+
+def needed_system_libraries(extension: Path) -> set[str]:
+    """Sonames ``extension`` needs, directly or through libraries in its own ``lib/`` folder."""
+    bundled = {path.name: path for path in (extension.parent / "lib").glob("*.so*")}
+    seen: set[Path] = set()
+    system: set[str] = set()
+    todo = [extension]
+    while todo:
+        path = todo.pop()
+        if path in seen:
+            continue
+        seen.add(path)
+        dynamic = subprocess.run(["readelf", "-d", str(path)], capture_output=True, text=True, check=True).stdout
+        for soname in re.findall(r"\(NEEDED\)\s+Shared library: \[(.+?)\]", dynamic):
+            if soname in bundled:
+                todo.append(bundled[soname])
+            else:
+                system.add(soname)
+    return system
+
+
+def test_image_has_the_system_libraries_bpy_links_against(instructions):
+    spec = importlib.util.find_spec("bpy")
+    if spec is None or not spec.origin:
+        pytest.skip("bpy is not installed here")
+    if shutil.which("readelf") is None:
+        pytest.skip("readelf (binutils) is not installed here")
+    needed = needed_system_libraries(Path(spec.origin))
+    assert needed, f"no NEEDED entries read from {spec.origin}"
+    unknown = needed - set(SYSTEM_LIBRARY_PACKAGES)
+    assert not unknown, f"bpy needs {sorted(unknown)}: add their Debian packages to the Dockerfile and this table"
+    apt_installs = [a for k, a in instructions if k == "RUN" and "apt-get install" in a]
+    assert len(apt_installs) == 1
+    installed = set(apt_installs[0].split("apt-get install", 1)[1].split("&&")[0].split())
+    for soname in sorted(needed):
+        package = SYSTEM_LIBRARY_PACKAGES[soname]
+        assert package == BASE_IMAGE or package in installed, f"{soname}: the image does not install {package}"
