@@ -289,3 +289,16 @@ def test_renders_do_not_leak_into_each_other_through_reused_buffers():
     again = render_scene(flat_scene(size=48, yaw=0.3))
     assert np.array_equal(first.mask, again.mask)
     assert np.array_equal(first.rgb, again.rgb) and np.array_equal(first.alpha, again.alpha)
+
+
+@pytest.mark.parametrize("angle, dx, dy", [(0.0, -1, 0), (math.pi / 2, 0, 1), (math.pi, 1, 0)])
+def test_position_offset_moves_the_camera_in_the_plane_facing_the_sheet(angle, dx, dy):
+    size = 128
+    base = render_scene(flat_scene(size=size)).mask
+    moved = render_scene(flat_scene(size=size, offset_m=0.5, offset_angle=angle)).mask
+    shift_px = intrinsics(size)[0, 0] * 0.5 / canonical_distance()
+    (y0, x0), (y1, x1) = (np.argwhere(m).mean(axis=0) for m in (base, moved))
+    # The camera moves right (angle 0) or up (pi/2): the sheet slides left or down in the image.
+    assert x1 - x0 == pytest.approx(dx * shift_px, abs=0.6)
+    assert y1 - y0 == pytest.approx(dy * shift_px, abs=0.6)
+    assert moved.sum() == pytest.approx(base.sum(), rel=0.03)  # same depth: same size
