@@ -302,3 +302,18 @@ def test_position_offset_moves_the_camera_in_the_plane_facing_the_sheet(angle, d
     assert x1 - x0 == pytest.approx(dx * shift_px, abs=0.6)
     assert y1 - y0 == pytest.approx(dy * shift_px, abs=0.6)
     assert moved.sum() == pytest.approx(base.sum(), rel=0.03)  # same depth: same size
+
+
+def test_scale_multiplies_the_sheet_and_roll_turns_it_about_the_optical_axis():
+    size = 128
+
+    def extent(mask):
+        rows = np.flatnonzero(mask.any(axis=1))
+        cols = np.flatnonzero(mask.any(axis=0))
+        return cols[-1] + 1 - cols[0], rows[-1] + 1 - rows[0]
+
+    width, height = extent(render_scene(flat_scene(size=size)).mask)
+    half_w, half_h = extent(render_scene(flat_scene(size=size, scale=0.5)).mask)
+    assert half_w == pytest.approx(width / 2, abs=1) and half_h == pytest.approx(height / 2, abs=1)
+    rolled_w, rolled_h = extent(render_scene(flat_scene(size=size, roll=math.pi / 2)).mask)
+    assert (rolled_w, rolled_h) == pytest.approx((height, width), abs=1)
