@@ -142,9 +142,10 @@ def test_experiment_finishes_exactly_once_after_the_scheduler_is_killed(stack, a
     time.sleep(1.0)
     assert summary(api, experiment_id)["status"] == "running"
 
-    stack.start("scheduler")  # the same compose command, as `restart: unless-stopped` would
+    restarted = stack.start("scheduler")  # the same compose command, as `restart: unless-stopped` would
     final = wait_until_finished(stack, api, experiment_id)
     assert final["counts"]["evaluations"] > at_kill["counts"]["evaluations"]
+    assert "Finish" in restarted.log(), "the restarted scheduler did not finish the experiment"
 
     with records() as session:
         thetas = session.scalars(
@@ -156,8 +157,10 @@ def test_experiment_finishes_exactly_once_after_the_scheduler_is_killed(stack, a
         )
         stages = session.scalars(select(Stage).where(Stage.experiment_id == experiment_id)).all()
 
-    # Every θ rendered, each to the one file its id names, and nothing else on disk.
-    assert thetas and all(t.status == RenderStatus.rendered for t in thetas)
+    # Every θ rendered, each to the one file its id names, and nothing else on disk (no second
+    # copy, no temporary file left by a duplicate delivery).
+    unrendered = [(t.id, t.status.value, t.error) for t in thetas if t.status != RenderStatus.rendered]
+    assert thetas and not unrendered, unrendered
     paths = [t.image_path for t in thetas]
     assert paths == [store.image_path(experiment_id, t.id) for t in thetas]
     assert len(set(paths)) == len(paths)
