@@ -37,8 +37,9 @@ class AssetsConfig(_Section):
 class RenderConfig(_Section):
     backend: Literal["raster", "blender"] = "raster"
     image_size: int = Field(default=128, ge=32, le=2048)
-    # Cycles samples per pixel for the blender backend.
+    # Cycles samples per pixel and device for the blender backend.
     samples: int = Field(default=16, ge=1, le=4096)
+    device: Literal["CPU", "GPU"] = "CPU"
     # How many times a rejected θ (self-intersecting sheet, invisible target) is redrawn.
     max_resamples: int = Field(default=20, ge=0, le=1000)
     # θ per render task: larger batches amortise task overhead, smaller ones spread better.

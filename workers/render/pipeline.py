@@ -60,7 +60,7 @@ def _rng(theta: dict, purpose: int) -> np.random.Generator:
     return np.random.default_rng(derive_seed(int(theta["seed"]), purpose))
 
 
-def _backend_render(scene, backend: str, samples: int):
+def _backend_render(scene, backend: str, samples: int, device: str = "CPU"):
     if backend == "raster":
         from workers.render.raster import render_scene
 
@@ -68,16 +68,18 @@ def _backend_render(scene, backend: str, samples: int):
     if backend == "blender":
         from workers.render.blender import get_renderer
 
-        return get_renderer(samples=samples).render(scene)
+        return get_renderer(samples=samples, device=device).render(scene)
     raise ValueError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
 
 
-def render_theta(theta: dict, backend: str = "raster", assets=None, samples: int = 16) -> RenderResult:
+def render_theta(
+    theta: dict, backend: str = "raster", assets=None, samples: int = 16, device: str = "CPU"
+) -> RenderResult:
     """Render one θ; RenderRejected (with a reason) when its image cannot be used."""
     from workers.render import compositing
     from workers.render.assets import load_assets
     from workers.render.camera import build_scene, sheet_size
-    from workers.render.raster import amodal_extent
+    from workers.render.raster import amodal_extent, silhouette
 
     if backend not in BACKENDS:
         raise ValueError(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}")
@@ -124,7 +126,7 @@ def render_theta(theta: dict, backend: str = "raster", assets=None, samples: int
     )
     lap("scene")
 
-    output = _backend_render(scene, backend, samples)
+    output = _backend_render(scene, backend, samples, device)
     lap("render")
 
     target_mask = output.mask
@@ -139,8 +141,12 @@ def render_theta(theta: dict, backend: str = "raster", assets=None, samples: int
         if not theta.get("occluder"):
             raise ValueError("θ.occluder: a visible fraction below 1 needs an occluder")
         occluder_rgb, occluder_alpha = assets.occluder(theta["occluder"])
+        # Place the occluder on the geometric silhouette, not on the backend's own mask: the
+        # placement draws a random target pixel, and a one-pixel difference between the
+        # backends' anti-aliased edges would otherwise put it somewhere else entirely.
+        placement_mask = target_mask if backend == "raster" else silhouette(scene)
         occlusion = compositing.place_occluder(
-            target_mask,
+            placement_mask,
             amodal_pixels,
             float(theta["visible_fraction"]),
             occluder_rgb,
@@ -189,7 +195,12 @@ def render_theta(theta: dict, backend: str = "raster", assets=None, samples: int
 
 
 def render_with_resample(
-    theta: dict, backend: str = "raster", max_resamples: int = 20, assets=None, samples: int = 16
+    theta: dict,
+    backend: str = "raster",
+    max_resamples: int = 20,
+    assets=None,
+    samples: int = 16,
+    device: str = "CPU",
 ) -> tuple[RenderResult, dict, list[str]]:
     """Render θ, redrawing it (same condition, difficulty, object) while it is rejected.
 
@@ -204,7 +215,8 @@ def render_with_resample(
         if attempt > 0:
             current = resample_theta(theta, attempt, assets)
         try:
-            return render_theta(current, backend=backend, assets=assets, samples=samples), current, reasons
+            result = render_theta(current, backend=backend, assets=assets, samples=samples, device=device)
+            return result, current, reasons
         except RenderRejected as rejected:
             reasons.append(rejected.reason)
     raise RenderRejected(

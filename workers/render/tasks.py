@@ -55,6 +55,7 @@ def render_parameter_set(parameter_set_id: int) -> str:
             max_resamples=config.render.max_resamples,
             assets=_assets(config.assets),
             samples=config.render.samples,
+            device=config.render.device,
         )
     except RenderRejected as rejected:
         with session_scope() as session:

@@ -408,12 +408,13 @@ HAS_PIPELINE = importlib.util.find_spec("workers.render.pipeline") is not None
 
 
 @pytest.mark.skipif(not HAS_PIPELINE, reason="workers/render/pipeline.py has not landed yet")
-@pytest.mark.parametrize(("condition", "difficulty"), [("de", "hard"), ("po", "medium")])
+@pytest.mark.parametrize(("condition", "difficulty"), [("de", "hard"), ("po", "medium"), ("eo", "hard"), ("eo", "medium")])
 def test_render_theta_boxes_agree_between_backends(renderer, condition, difficulty):
     from workers.render.parameters import generate_parameters  # noqa: PLC0415
     from workers.render.pipeline import render_theta  # noqa: PLC0415
 
     theta = generate_parameters(condition, difficulty, 1, seed=4, image_size=64)[0]
+    # Occluders are placed on the geometric silhouette, so both backends hide the same pixels.
     cycles = render_theta(theta, backend="blender", samples=SAMPLES)
     raster = render_theta(theta, backend="raster")
     assert cycles.image.shape == raster.image.shape == (64, 64, 3)
