@@ -18,6 +18,7 @@ import secrets
 import signal
 import socket
 import subprocess
+import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
@@ -28,8 +29,16 @@ from urllib.parse import urlsplit, urlunsplit
 
 import pytest
 
-# tests/ is on sys.path (pytest's rootdir conftest); the compose reader lives beside its tests.
-from test_compose import REPO, VENV_BIN, load_compose, service_command, service_environment, volume_mounts
+# The compose reader lives beside its own tests, in tests/test_compose.py (tests/ has no package).
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from test_compose import (  # noqa: E402
+    REPO,
+    VENV_BIN,
+    load_compose,
+    service_command,
+    service_environment,
+    volume_mounts,
+)
 
 REDIS_ADDRESS = ("127.0.0.1", 6379)
 POSTGRES_ADDRESS = ("127.0.0.1", 5432)
