@@ -81,6 +81,7 @@ def save_checkpoint(model: nn.Module, meta: dict[str, Any], path: str | Path) ->
             torch.save(payload, handle)
             handle.flush()
             os.fsync(handle.fileno())
+        os.chmod(temporary, 0o644)  # mkstemp makes it private; other roles read checkpoints
         os.replace(temporary, path)
     except BaseException:
         if os.path.exists(temporary):

@@ -1,0 +1,154 @@
+"""Checkpoints describe themselves, load for inference alone and are written atomically."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from foldwise.config import DetectorConfig
+from workers.train import checkpoint as checkpoint_module
+from workers.train.checkpoint import (
+    CHECKPOINT_VERSION,
+    CheckpointError,
+    detect_object,
+    load_detector,
+    read_checkpoint,
+    save_checkpoint,
+)
+from workers.train.data import DatasetError, Sample
+from workers.train.training import train_detector
+
+torch.set_num_threads(1)
+
+CLASSES = ["astronaut", "coffee"]
+
+
+def config(**changes) -> DetectorConfig:
+    small = dict(
+        input_size=64, batch_size=2, num_threads=1, device="cpu", rpn_proposals_train=40, rpn_proposals_test=20,
+        roi_samples_per_image=32, edge_boxes=30, box_score_threshold=0.0, detections_per_image=10,
+    )
+    return DetectorConfig(**{**small, **changes})
+
+
+def write_images(folder, n=3, size=(64, 64), seed=0):
+    rng = np.random.default_rng(seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    paths, arrays = [], []
+    for index in range(n):
+        image = rng.integers(40, 120, (*size, 3)).astype(np.uint8)
+        image[10:40, 12:50] = (200, 60 + 40 * index, 30)
+        path = folder / f"{index}.png"
+        cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        paths.append(path)
+        arrays.append(image)
+    return paths, arrays
+
+
+@pytest.fixture(scope="module", params=["faster_rcnn", "fast_rcnn"])
+def trained(request, tmp_path_factory):
+    """A detector trained for two steps, its checkpoint path and some test images."""
+    folder = tmp_path_factory.mktemp(request.param)
+    paths, arrays = write_images(folder / "images")
+    samples = [Sample(path, [[12, 10, 50, 40]], [index % 2]) for index, path in enumerate(paths)]
+    path = folder / "omega.pt"
+    train_detector(samples, None, 2, config(family=request.param), CLASSES, path, seed=0)
+    return request.param, path, paths, arrays
+
+
+def test_checkpoint_describes_itself(trained):
+    family, path, _, _ = trained
+    payload = read_checkpoint(path)
+    assert payload["format_version"] == CHECKPOINT_VERSION
+    meta = payload["meta"]
+    assert meta["family"] == family and meta["backbone"] == "mobilenet_v3_large_fpn"
+    assert meta["classes"] == CLASSES and meta["input_size"] == 64 and meta["iterations"] == 2
+    assert DetectorConfig.model_validate(meta["config"]) == config(family=family)
+    assert isinstance(meta["buffers"], dict)
+    assert oct(path.stat().st_mode & 0o777) == oct(0o644)
+
+
+def test_round_trip_gives_identical_detections(trained, tmp_path):
+    family, path, paths, arrays = trained
+    detector = load_detector(path)
+    assert not detector.model.training and detector.classes == CLASSES and detector.meta["family"] == family
+    first = detect_object(detector, paths, batch_size=2)
+    copy = save_checkpoint(detector.model, detector.meta, tmp_path / "copy.pt")
+    reloaded = load_detector(copy)
+    second = detect_object(reloaded, arrays, batch_size=2)  # arrays or their files: same pixels
+    assert len(first) == len(second) == 3
+    for a, b in zip(first, second):
+        assert len(a["boxes"]) > 0
+        for key in ("boxes", "scores", "labels"):
+            np.testing.assert_array_equal(a[key], b[key])
+    # Another batch size batches differently: the same up to float rounding.
+    for a, b in zip(first, detect_object(reloaded, arrays, batch_size=3)):
+        assert a["scores"][0] == pytest.approx(b["scores"][0], abs=1e-5)
+
+
+def test_detections_are_numpy_zero_based_in_original_pixels(trained, tmp_path):
+    _, path, _, _ = trained
+    detector = load_detector(path, device="cpu")
+    paths, arrays = write_images(tmp_path / "big", n=2, size=(90, 150), seed=3)
+    results = detect_object(detector, [arrays[0], paths[1]], batch_size=1)
+    for result in results:
+        boxes, scores, labels = result["boxes"], result["scores"], result["labels"]
+        assert boxes.dtype == np.float32 and boxes.shape == (len(scores), 4)
+        assert scores.dtype == np.float32 and labels.dtype == np.int64
+        assert labels.min() >= 0 and labels.max() < len(CLASSES)
+        assert boxes[:, 0::2].max() <= 150 and boxes[:, 1::2].max() <= 90
+        assert boxes[:, 0::2].max() > 64 or boxes[:, 1::2].max() > 64  # mapped back past the 64 px input
+        assert np.all(np.diff(scores) <= 0)
+    assert detect_object(detector, []) == []
+    with pytest.raises(DatasetError, match=r"images\[0\].*RGB"):
+        detect_object(detector, [np.zeros((10, 10, 4), np.uint8)])
+    with pytest.raises(ValueError, match="batch_size"):
+        detect_object(detector, arrays, batch_size=0)
+
+
+def test_unreadable_or_foreign_files_are_clear_errors(tmp_path):
+    with pytest.raises(CheckpointError, match="does not exist"):
+        load_detector(tmp_path / "missing.pt")
+    (tmp_path / "junk.pt").write_bytes(b"definitely not torch")
+    with pytest.raises(CheckpointError, match="cannot be read"):
+        load_detector(tmp_path / "junk.pt")
+    torch.save({"weights": torch.zeros(2)}, tmp_path / "foreign.pt")
+    with pytest.raises(CheckpointError, match="not a foldwise detector checkpoint"):
+        load_detector(tmp_path / "foreign.pt")
+
+
+def test_other_format_version_is_refused(trained, tmp_path):
+    _, path, _, _ = trained
+    payload = read_checkpoint(path)
+    payload["format_version"] = CHECKPOINT_VERSION + 1
+    torch.save(payload, tmp_path / "future.pt")
+    with pytest.raises(CheckpointError, match=f"format version {CHECKPOINT_VERSION + 1}"):
+        load_detector(tmp_path / "future.pt")
+
+
+def test_state_that_does_not_fit_its_meta_is_an_error(trained, tmp_path):
+    _, path, _, _ = trained
+    payload = read_checkpoint(path)
+    payload["meta"]["classes"] = ["a", "b", "c"]  # the predictor has 2 + 1 outputs, not 3 + 1
+    torch.save(payload, tmp_path / "lying.pt")
+    with pytest.raises(CheckpointError, match="does not fit"):
+        load_detector(tmp_path / "lying.pt")
+
+
+def test_failed_write_keeps_the_previous_checkpoint_and_leaves_no_temp_file(trained, tmp_path, monkeypatch):
+    _, path, _, _ = trained
+    detector = load_detector(path)
+    target = tmp_path / "omega.pt"
+    save_checkpoint(detector.model, detector.meta, target)
+    before = target.read_bytes()
+
+    def broken_save(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(checkpoint_module.torch, "save", broken_save)
+    with pytest.raises(OSError, match="disk full"):
+        save_checkpoint(detector.model, {**detector.meta, "iterations": 99}, target)
+    assert target.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["omega.pt"]

@@ -1,0 +1,184 @@
+"""build_detector: each family follows torchvision's detection interface on small images."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from foldwise.config import DetectorConfig
+from workers.train.detectors import (
+    DetectorBuildError,
+    PretrainedWeightsMissing,
+    anchor_sizes,
+    build_detector,
+    imagenet_weights_path,
+)
+from workers.train.detectors.fast_rcnn import tensor_to_uint8
+
+torch.set_num_threads(1)
+
+SMALL = dict(input_size=64, rpn_proposals_train=40, rpn_proposals_test=20, roi_samples_per_image=32, edge_boxes=30)
+
+
+def batch(size=64, seed=0, empty_second=False):
+    """Two noisy images with a textured rectangle each (the second one empty if asked)."""
+    rng = np.random.default_rng(seed)
+    images, targets = [], []
+    for index in range(2):
+        pixels = rng.integers(60, 120, (size, size, 3)).astype(np.uint8)
+        box = np.array([[8 + 4 * index, 10, 40 + 4 * index, 50]], np.float32)
+        labels = np.array([index + 1])
+        if empty_second and index == 1:
+            box, labels = np.zeros((0, 4), np.float32), np.zeros((0,), np.int64)
+        else:
+            x0, y0, x1, y1 = box[0].astype(int)
+            pixels[y0:y1, x0:x1] = rng.integers(150, 255, 3)
+            pixels[y0:y1:4, x0:x1] = 0
+        images.append(torch.from_numpy(pixels).permute(2, 0, 1).float() / 255)
+        targets.append({"boxes": torch.from_numpy(box), "labels": torch.as_tensor(labels, dtype=torch.int64)})
+    return images, targets
+
+
+EXPECTED_LOSSES = {
+    "faster_rcnn": {"loss_classifier", "loss_box_reg", "loss_objectness", "loss_rpn_box_reg"},
+    "fast_rcnn": {"loss_classifier", "loss_box_reg"},
+}
+
+
+@pytest.mark.parametrize("family", ["faster_rcnn", "fast_rcnn"])
+def test_training_forward_returns_finite_named_losses_that_backpropagate(family):
+    torch.manual_seed(0)
+    model = build_detector(DetectorConfig(family=family, **SMALL), num_classes=3)
+    model.train()
+    images, targets = batch()
+    losses = model(images, targets)
+    assert set(losses) == EXPECTED_LOSSES[family]
+    assert all(value.dim() == 0 and torch.isfinite(value) for value in losses.values())
+    sum(losses.values()).backward()
+    head_weight = dict(model.named_parameters())["roi_heads.box_predictor.cls_score.weight"]
+    assert head_weight.shape == (4, DetectorConfig(**SMALL).representation_size)  # 3 classes + background
+    assert head_weight.grad is not None and torch.isfinite(head_weight.grad).all()
+
+
+@pytest.mark.parametrize("family", ["faster_rcnn", "fast_rcnn"])
+def test_images_without_objects_are_valid_training_data(family):
+    torch.manual_seed(0)
+    model = build_detector(DetectorConfig(family=family, **SMALL), num_classes=2)
+    model.train()
+    images, targets = batch(empty_second=True)
+    losses = model(images, targets)
+    assert all(torch.isfinite(value) for value in losses.values())
+    only_empty = model(images[1:], targets[1:])
+    assert all(torch.isfinite(value) for value in only_empty.values())
+    assert float(only_empty["loss_box_reg"].detach()) == 0.0  # nothing to regress to
+
+
+@pytest.mark.parametrize("family", ["faster_rcnn", "fast_rcnn"])
+def test_eval_forward_gives_boxes_in_each_input_images_pixels(family):
+    torch.manual_seed(0)
+    config = DetectorConfig(family=family, box_score_threshold=0.0, detections_per_image=7, **SMALL)
+    model = build_detector(config, num_classes=3).eval()
+    rng = np.random.default_rng(1)
+    # Not the input size, not square: the model resizes and maps boxes back.
+    images = [torch.from_numpy(rng.integers(0, 256, (h, w, 3)).astype(np.uint8)).permute(2, 0, 1).float() / 255
+              for h, w in [(80, 120), (50, 40)]]
+    with torch.no_grad():
+        outputs = model(images)
+    assert len(outputs) == 2
+    for output, image in zip(outputs, images):
+        height, width = image.shape[-2:]
+        boxes, scores, labels = output["boxes"], output["scores"], output["labels"]
+        assert boxes.shape[1] == 4 and len(boxes) == len(scores) == len(labels) <= 7
+        assert len(boxes) > 0  # an untrained model with no score threshold still proposes
+        assert (boxes[:, 0::2] <= width + 1e-3).all() and (boxes[:, 1::2] <= height + 1e-3).all()
+        assert (boxes >= 0).all()
+        assert labels.min() >= 1 and labels.max() <= 3  # 1-based, background never returned
+        assert ((scores >= 0) & (scores <= 1)).all()
+
+
+def test_fast_rcnn_proposals_come_from_the_image_only_and_are_cached():
+    torch.manual_seed(0)
+    model = build_detector(DetectorConfig(family="fast_rcnn", **SMALL), num_classes=2).eval()
+    images, _ = batch(seed=4)
+    pixels = tensor_to_uint8(images[0])
+    np.testing.assert_array_equal(pixels.astype(np.float32) / 255, images[0].permute(1, 2, 0).numpy())
+    cache = model.proposal_cache
+    misses = cache.misses
+    with torch.no_grad():
+        first = model(images)
+        second = model(images)
+    assert cache.misses == misses + 2 and cache.hits >= 2
+    for a, b in zip(first, second):
+        assert torch.equal(a["boxes"], b["boxes"])
+    proposals = model.proposals_for(images[0])
+    assert proposals.shape[1] == 4 and len(proposals) <= SMALL["edge_boxes"]
+    assert proposals[-1].tolist() == [0, 0, 64, 64]
+
+
+def test_fast_rcnn_training_requires_targets():
+    model = build_detector(DetectorConfig(family="fast_rcnn", **SMALL), num_classes=2).train()
+    with pytest.raises(ValueError, match="targets are required"):
+        model(batch()[0])
+
+
+def test_mobilenet_320_variant_and_resnet_v2_build():
+    torch.manual_seed(0)
+    variant = build_detector(DetectorConfig(backbone="mobilenet_v3_large_320_fpn", **SMALL), num_classes=2)
+    reference = build_detector(DetectorConfig(**SMALL), num_classes=2)
+    assert [k for k, _ in variant.named_parameters()] == [k for k, _ in reference.named_parameters()]
+    resnet = build_detector(DetectorConfig(backbone="resnet50_fpn_v2", **SMALL), num_classes=2).eval()
+    with torch.no_grad():
+        (output,) = resnet([torch.rand(3, 64, 64)])
+    assert output["boxes"].shape[1] == 4
+    assert all(p.requires_grad for p in resnet.backbone.parameters())  # random init trains every layer
+
+
+def test_anchor_sizes_span_the_configured_range():
+    config = DetectorConfig(input_size=128)
+    sizes = anchor_sizes(config, levels=4)
+    flat = [s for level in sizes for s in level]
+    assert len(sizes) == 4 and all(len(level) == 2 for level in sizes)
+    assert flat == sorted(flat)
+    assert flat[0] == pytest.approx(0.08 * 128) and flat[-1] == pytest.approx(128)
+
+
+def test_bad_configuration_is_a_clear_error():
+    with pytest.raises(DetectorBuildError, match="detector.backbone 'vgg16'"):
+        build_detector(DetectorConfig(backbone="vgg16", **SMALL), num_classes=2)
+    with pytest.raises(DetectorBuildError, match="at least one class"):
+        build_detector(DetectorConfig(**SMALL), num_classes=0)
+
+
+def test_yolo_family_is_dispatched_to_its_module():
+    yolo = pytest.importorskip("workers.train.detectors.yolo")
+    model = build_detector(DetectorConfig(family="yolo", **SMALL), num_classes=2, train_boxes=np.array([[0, 0, 20, 30.0]]))
+    assert isinstance(model, torch.nn.Module) and type(model).__module__ == yolo.__name__
+
+
+def test_pretrained_imagenet_without_cached_weights_names_the_expected_file(tmp_path, monkeypatch):
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))
+    expected, _ = imagenet_weights_path("mobilenet_v3_large")
+    assert expected.parent == tmp_path / "hub" / "checkpoints"
+    with pytest.raises(PretrainedWeightsMissing) as error:
+        build_detector(DetectorConfig(pretrained="imagenet", **SMALL), num_classes=2)
+    message = str(error.value)
+    assert str(expected) in message and "never downloads" in message and "pretrained" in message
+
+
+def test_pretrained_imagenet_loads_the_cached_classifier_weights(tmp_path, monkeypatch):
+    import torchvision
+
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))
+    path, _ = imagenet_weights_path("mobilenet_v3_large")
+    path.parent.mkdir(parents=True)
+    torch.manual_seed(123)
+    classifier = torchvision.models.mobilenet_v3_large(weights=None)
+    torch.save(classifier.state_dict(), path)
+    torch.manual_seed(0)
+    model = build_detector(DetectorConfig(pretrained="imagenet", **SMALL), num_classes=2)
+    body = model.backbone.body
+    torch.testing.assert_close(body["0"][0].weight, classifier.features[0][0].weight)
+    torch.testing.assert_close(body["16"][1].running_mean, classifier.features[16][1].running_mean)
+    assert not body["0"][0].weight.requires_grad  # early stages frozen when fine-tuning
+    assert body["16"][0].weight.requires_grad

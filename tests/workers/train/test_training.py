@@ -1,0 +1,270 @@
+"""train_detector: seeded, warm-startable, and a non-finite step never reaches the weights."""
+
+from __future__ import annotations
+
+import json
+import math
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from foldwise.config import DetectorConfig
+from workers.train import training
+from workers.train.checkpoint import CheckpointError, read_checkpoint
+from workers.train.data import Sample
+from workers.train.training import (
+    TrainingDiverged,
+    TrainStats,
+    compute_losses,
+    image_tensor,
+    learning_rate_at,
+    sample_batches,
+    sample_target,
+    train_detector,
+)
+
+torch.set_num_threads(1)
+
+CLASSES = ["red", "green", "blue"]
+COLOURS = [(220, 40, 40), (40, 220, 40), (40, 40, 220)]
+
+
+def config(**changes) -> DetectorConfig:
+    small = dict(
+        input_size=64, batch_size=2, num_threads=1, device="cpu", warmup_iterations=2,
+        rpn_proposals_train=40, rpn_proposals_test=20, roi_samples_per_image=32, edge_boxes=30,
+    )
+    return DetectorConfig(**{**small, **changes})
+
+
+def synthetic_samples(folder, n=6, size=64, seed=0, empty=False) -> list[Sample]:
+    """Noise images with one striped coloured rectangle (the class) each, written as PNG."""
+    rng = np.random.default_rng(seed)
+    folder.mkdir(parents=True, exist_ok=True)
+    samples = []
+    for index in range(n):
+        image = rng.integers(60, 130, (size, size, 3)).astype(np.uint8)
+        label = index % len(CLASSES)
+        w, h = rng.integers(size // 3, size - 8, 2)
+        x0, y0 = rng.integers(0, size - w), rng.integers(0, size - h)
+        boxes, labels = np.zeros((0, 4), np.float32), np.zeros((0,), np.int64)
+        if not empty:
+            image[y0 : y0 + h, x0 : x0 + w] = COLOURS[label]
+            image[y0 : y0 + h : 5, x0 : x0 + w] = 0
+            boxes, labels = np.array([[x0, y0, x0 + w, y0 + h]], np.float32), np.array([label])
+        path = folder / f"{index}.png"
+        cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
+        samples.append(Sample(path, boxes, labels, condition="fb", difficulty="easy"))
+    return samples
+
+
+def state(path):
+    return read_checkpoint(path)["state_dict"]
+
+
+def assert_same_state(a, b):
+    assert a.keys() == b.keys()
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+@pytest.mark.parametrize("family", ["faster_rcnn", "fast_rcnn"])
+def test_same_seed_same_weights_other_seed_other_weights(tmp_path, family):
+    samples = synthetic_samples(tmp_path / "images")
+    runs = [
+        train_detector(samples, None, 2, config(family=family), CLASSES, tmp_path / f"{name}.pt", seed=seed)
+        for name, seed in [("a", 7), ("b", 7), ("c", 8)]
+    ]
+    assert_same_state(state(tmp_path / "a.pt"), state(tmp_path / "b.pt"))
+    assert runs[0].losses == runs[1].losses
+    other = state(tmp_path / "c.pt")
+    assert any(not torch.equal(value, other[key]) for key, value in state(tmp_path / "a.pt").items())
+    stats = runs[0]
+    assert (stats.iterations, stats.images_seen, stats.device) == (2, 4, "cpu")
+    assert len(stats.losses) == 2 and all(math.isfinite(v) for v in stats.losses)
+    assert stats.final_loss == pytest.approx(np.mean(stats.losses))
+    assert stats.nonfinite_steps == []
+
+
+def test_warm_start_continues_from_the_checkpoint_weights(tmp_path):
+    samples = synthetic_samples(tmp_path / "images")
+    parent = tmp_path / "parent.pt"
+    train_detector(samples, None, 2, config(), CLASSES, parent, seed=1)
+
+    # ω_in's loss on the first batch the warm start will draw, under the same seed.
+    from workers.train.checkpoint import load_detector
+
+    model = load_detector(parent).model.train()
+    seed = 5
+    first_batch = sample_batches(len(samples), 3, config().batch_size, seed)[0]
+    torch.manual_seed(seed)
+    images = [image_tensor(cv2.cvtColor(cv2.imread(str(samples[i].image_path)), cv2.COLOR_BGR2RGB), torch.device("cpu"))
+              for i in first_batch]
+    targets = [sample_target(samples[i], torch.device("cpu")) for i in first_batch]
+    expected = float(sum(compute_losses(model, images, targets).values()).detach())
+
+    child = tmp_path / "child.pt"
+    stats = train_detector(samples, parent, 3, config(), CLASSES, child, seed=seed)
+    assert stats.losses[0] == pytest.approx(expected, rel=1e-5)
+    fresh = train_detector(samples, None, 1, config(), CLASSES, tmp_path / "fresh.pt", seed=seed)
+    assert fresh.losses[0] != pytest.approx(expected, rel=1e-3)  # a fresh start is a different model
+    meta = read_checkpoint(child)["meta"]
+    assert meta["iterations"] == 5 and meta["parent"] == str(parent)
+
+    # ω_in may be overwritten by ω (the benchmark trains in chunks into one file).
+    train_detector(samples, child, 1, config(), CLASSES, child, seed=seed)
+    assert read_checkpoint(child)["meta"]["iterations"] == 6
+
+
+def test_warm_start_from_another_family_or_class_list_is_a_clear_error(tmp_path):
+    samples = synthetic_samples(tmp_path / "images", n=3)
+    parent = tmp_path / "parent.pt"
+    train_detector(samples, None, 1, config(), CLASSES, parent)
+    with pytest.raises(CheckpointError, match="classes: checkpoint has"):
+        train_detector(samples, parent, 1, config(), ["red", "green", "cyan"], tmp_path / "x.pt")
+    with pytest.raises(CheckpointError, match="family: checkpoint has 'faster_rcnn', config asks for 'fast_rcnn'"):
+        train_detector(samples, parent, 1, config(family="fast_rcnn"), CLASSES, tmp_path / "y.pt")
+    with pytest.raises(CheckpointError, match="does not exist"):
+        train_detector(samples, tmp_path / "missing.pt", 1, config(), CLASSES, tmp_path / "z.pt")
+    assert not (tmp_path / "x.pt").exists() and not (tmp_path / "y.pt").exists()
+
+
+def finite_weights(path):
+    return all(torch.isfinite(value).all() for value in state(path).values() if value.is_floating_point())
+
+
+def inject_nan_at(monkeypatch, steps, kind="loss"):
+    """Make compute_losses non-finite (its value, or only its gradient) at the given steps."""
+    calls = {"n": 0}
+
+    def patched(model, images, targets):
+        losses = compute_losses(model, images, targets)
+        step = calls["n"]
+        calls["n"] += 1
+        if step in steps:
+            if kind == "loss":
+                losses["loss_classifier"] = losses["loss_classifier"] * float("nan")
+            else:  # finite value, non-finite gradient: d sqrt(x)/dx at x = 0 is infinite
+                weight = next(p for p in model.parameters() if p.requires_grad)
+                losses["poison"] = torch.sqrt((weight * 0).sum())
+        return losses
+
+    monkeypatch.setattr(training, "compute_losses", patched)
+
+
+@pytest.mark.parametrize("kind", ["loss", "gradient"])
+def test_nonfinite_step_is_skipped_recorded_and_halves_the_learning_rate(tmp_path, monkeypatch, kind):
+    samples = synthetic_samples(tmp_path / "images")
+    inject_nan_at(monkeypatch, {1, 2}, kind)
+    cfg = config(lr_schedule="constant", warmup_iterations=0, learning_rate=0.02)
+    stats = train_detector(samples, None, 4, cfg, CLASSES, tmp_path / "out.pt")
+    assert finite_weights(tmp_path / "out.pt")
+    assert [entry["step"] for entry in stats.nonfinite_steps] == [1, 2]
+    assert [entry["lr"] for entry in stats.nonfinite_steps] == pytest.approx([0.02, 0.01])
+    expected_reason = "non-finite loss" if kind == "loss" else "non-finite gradient"
+    assert all(entry["reason"] == expected_reason for entry in stats.nonfinite_steps)
+    assert set(stats.nonfinite_steps[0]["loss_terms"]) >= {"loss_classifier", "loss_box_reg"}
+    assert math.isnan(stats.losses[1]) and math.isnan(stats.losses[2])
+    assert math.isfinite(stats.losses[0]) and math.isfinite(stats.losses[3])
+    assert math.isfinite(stats.final_loss)
+    as_json = json.loads(json.dumps(stats.to_dict(), allow_nan=False))  # strict JSON: nan → null
+    assert as_json["losses"][1] is None
+
+
+def test_skipped_step_leaves_weights_and_batchnorm_statistics_untouched(tmp_path, monkeypatch):
+    samples = synthetic_samples(tmp_path / "images")
+    train_detector(samples, None, 0, config(), CLASSES, tmp_path / "start.pt", seed=3)
+
+    def poisoned(model, images, targets):
+        return compute_losses(model, [image * float("nan") for image in images], targets)
+
+    monkeypatch.setattr(training, "compute_losses", poisoned)
+    stats = train_detector(samples, tmp_path / "start.pt", 2, config(max_nonfinite_steps=2), CLASSES, tmp_path / "out.pt")
+    assert len(stats.nonfinite_steps) == 2
+    assert_same_state(state(tmp_path / "start.pt"), state(tmp_path / "out.pt"))
+
+
+def test_repeated_nonfinite_steps_raise_training_diverged(tmp_path, monkeypatch):
+    samples = synthetic_samples(tmp_path / "images", n=3)
+    inject_nan_at(monkeypatch, set(range(100)))
+    with pytest.raises(TrainingDiverged, match=r"3 non-finite steps .*max_nonfinite_steps = 2"):
+        train_detector(samples, None, 10, config(max_nonfinite_steps=2), CLASSES, tmp_path / "out.pt")
+    assert not (tmp_path / "out.pt").exists()
+    with pytest.raises(TrainingDiverged, match="1 non-finite steps"):
+        train_detector(samples, None, 10, config(max_nonfinite_steps=0), CLASSES, tmp_path / "out.pt")
+
+
+def test_images_without_objects_train(tmp_path):
+    samples = synthetic_samples(tmp_path / "images", n=3, empty=True)
+    stats = train_detector(samples, None, 2, config(), CLASSES, tmp_path / "out.pt")
+    assert all(math.isfinite(v) for v in stats.losses)
+    assert finite_weights(tmp_path / "out.pt")
+
+
+def test_zero_iterations_writes_the_initial_model(tmp_path):
+    stats = train_detector([], None, 0, config(), CLASSES, tmp_path / "init.pt")
+    assert stats.iterations == 0 and stats.losses == [] and math.isnan(stats.final_loss)
+    assert read_checkpoint(tmp_path / "init.pt")["meta"]["iterations"] == 0
+
+
+def test_bad_training_input_is_rejected_before_work(tmp_path):
+    samples = synthetic_samples(tmp_path / "images", n=2)
+    with pytest.raises(ValueError, match="S_tr is empty"):
+        train_detector([], None, 1, config(), CLASSES, tmp_path / "o.pt")
+    with pytest.raises(ValueError, match="outside 0..1"):
+        train_detector([Sample(samples[0].image_path, [[1, 1, 5, 5]], [2])], None, 1, config(), ["red", "green"], tmp_path / "o.pt")
+    with pytest.raises(ValueError, match="degenerate"):
+        train_detector([Sample(samples[0].image_path, [[5, 5, 5, 9]], [0])], None, 1, config(), CLASSES, tmp_path / "o.pt")
+    with pytest.raises(ValueError, match="duplicates"):
+        train_detector(samples, None, 1, config(), ["a", "a", "b"], tmp_path / "o.pt")
+    with pytest.raises(ValueError, match="iterations"):
+        train_detector(samples, None, -1, config(), CLASSES, tmp_path / "o.pt")
+    assert not (tmp_path / "o.pt").exists()
+
+
+def test_num_threads_is_applied_during_training_and_restored(tmp_path, monkeypatch):
+    samples = synthetic_samples(tmp_path / "images", n=2)
+    seen = []
+    original = training.compute_losses
+
+    def spy(model, images, targets):
+        seen.append(torch.get_num_threads())
+        return original(model, images, targets)
+
+    monkeypatch.setattr(training, "compute_losses", spy)
+    torch.set_num_threads(2)
+    try:
+        train_detector(samples, None, 1, config(num_threads=1), CLASSES, tmp_path / "o.pt")
+        assert seen == [1] and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)
+
+
+def test_learning_rate_warms_up_then_decays():
+    cfg = config(learning_rate=0.1, warmup_iterations=10, lr_schedule="cosine", min_lr_fraction=0.05)
+    rates = [learning_rate_at(step, 100, cfg) for step in range(100)]
+    assert rates[0] == pytest.approx(1e-4)
+    assert rates[10] == pytest.approx(0.1)
+    assert rates[-1] == pytest.approx(0.005)
+    assert all(a <= b for a, b in zip(rates[:10], rates[1:11]))
+    assert all(a >= b for a, b in zip(rates[10:], rates[11:]))
+    constant = config(learning_rate=0.1, warmup_iterations=0, lr_schedule="constant")
+    assert {learning_rate_at(step, 50, constant) for step in range(50)} == {0.1}
+    assert learning_rate_at(0, 1, cfg) == pytest.approx(0.1)  # one step: no room for warm-up
+
+
+def test_batches_are_seeded_draws_with_replacement():
+    a = sample_batches(5, 200, 4, seed=3)
+    assert a.shape == (200, 4) and a.min() >= 0 and a.max() <= 4
+    assert np.array_equal(a, sample_batches(5, 200, 4, seed=3))
+    assert not np.array_equal(a, sample_batches(5, 200, 4, seed=4))
+    assert set(np.unique(a)) == set(range(5))
+
+
+def test_train_stats_to_dict_is_json():
+    stats = TrainStats(2, 1.5, 8, float("nan"), [{"step": 0, "loss_terms": {"a": float("inf")}, "lr": 0.1}], "cpu", [float("nan"), 1.0])
+    data = json.loads(json.dumps(stats.to_dict(), allow_nan=False))
+    assert data["final_loss"] is None and data["losses"] == [None, 1.0]
+    assert data["nonfinite_steps"][0]["loss_terms"]["a"] is None
