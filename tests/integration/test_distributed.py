@@ -118,6 +118,11 @@ def test_experiment_posted_to_the_api_runs_through_the_workers(stack, api, recor
     totals = stats.get(stack.worker_name(train_worker), {}).get("total", {})
     assert totals.get(TRAIN_TASK, 0) >= len(models) and RENDER_TASK not in totals, totals
 
+    # The API, started from the same compose environment, sees the same broker and workers.
+    queues = api.get("/queues")
+    assert queues.status_code == 200, queues.text
+    assert {stack.worker_name(p) for p in render_workers + train_workers} <= set(queues.json()["workers"])
+
 
 def test_experiment_finishes_exactly_once_after_the_scheduler_is_killed(stack, api, records):
     experiment_id = submit(api, stack)
