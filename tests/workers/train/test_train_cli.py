@@ -6,14 +6,13 @@ import json
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 import typer
 from typer.testing import CliRunner
 
 from workers.train.cli import draw_detections, register
-
-cv2 = pytest.importorskip("cv2")
 
 CLASSES = ["red_card", "blue_card"]
 COLOURS = [(220, 40, 40), (40, 60, 220)]
@@ -135,7 +134,6 @@ def test_missing_init_checkpoint_is_a_clear_error(tmp_path, dataset):
 
 
 def test_unreadable_checkpoint_is_a_clear_error(tmp_path, dataset):
-    pytest.importorskip("workers.train.checkpoint")
     garbage = tmp_path / "garbage.pt"
     garbage.write_bytes(b"this is not a checkpoint")
     result = runner.invoke(make_app(), ["evaluate", "--model", str(garbage), "--data", str(dataset)])
@@ -181,7 +179,6 @@ def test_draw_detections_boxes_and_labels_only_above_threshold():
 def trained(tmp_path_factory, dataset) -> dict[str, Path]:
     """One tiny checkpoint per detector family: one iteration of one 64-px image each (the
     commands' plumbing is under test here, not learning)."""
-    pytest.importorskip("workers.train.training")
     out = tmp_path_factory.mktemp("models")
     checkpoints, outputs = {}, {}
     for family in ("faster_rcnn", "fast_rcnn", "yolo"):
