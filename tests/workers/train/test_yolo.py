@@ -319,6 +319,14 @@ def test_eval_output_is_in_original_pixels_for_non_square_images(monkeypatch):
         torch.testing.assert_close(output["boxes"][0], truth[0], atol=1e-3, rtol=0)
 
 
+def test_inference_settings_come_from_the_config_unless_overridden():
+    config = _config(64, box_score_threshold=0.3, detections_per_image=9)
+    model = build_yolo(config, 2, None)
+    assert (model.score_threshold, model.detections_per_image) == (0.3, 9)
+    model = build_yolo(config, 2, None, score_threshold=0.01)
+    assert (model.score_threshold, model.detections_per_image) == (0.01, 9)
+
+
 def test_random_model_eval_shapes_and_detection_cap():
     torch.manual_seed(0)
     model = build_yolo(_config(80), 5, None, score_threshold=0.0, detections_per_image=11).eval()

@@ -781,7 +781,8 @@ def build_yolo(
     state dict then brings the anchors) uses :func:`default_anchors` as the placeholder.
     The anchor count comes from ``num_anchors``, else ``config.num_anchors`` where the config
     has one, else 5. ``options`` go to :class:`YOLOv2Detector` (grid_stride, head_width, loss
-    weights, score_threshold, nms_iou, detections_per_image).
+    weights, score_threshold, nms_iou, detections_per_image); the score threshold and the
+    detection cap default to the config's ``box_score_threshold`` and ``detections_per_image``.
     """
     k = num_anchors if num_anchors is not None else getattr(config, "num_anchors", DEFAULT_NUM_ANCHORS)
     input_size = int(config.input_size)
@@ -798,6 +799,10 @@ def build_yolo(
         else:
             longer_side = float(input_size)
         anchors = kmeans_anchors(wh / longer_side, k, seed=seed)
+    # Inference settings shared with the other families, where the config has them.
+    for option, key in (("score_threshold", "box_score_threshold"), ("detections_per_image", "detections_per_image")):
+        if option not in options and hasattr(config, key):
+            options[option] = getattr(config, key)
     return YOLOv2Detector(
         backbone=config.backbone,
         num_classes=num_classes,
