@@ -6,9 +6,20 @@ rectangle into convex regions; each region moves rigidly, by the product of the 
 about the rulings on its path from the *reference* region (the one holding the sheet centre,
 which stays fixed). Two regions that share a ruling apply the same transform to it, so the
 bent surface is exactly isometric to the flat sheet -- provided the mesh has its vertices ON
-the rulings and no triangle straddles one. That is why every region is triangulated on its
-own (boundary vertices shared along rulings and border, interior points from a grid): a
-regular grid pushed through the region transforms would shorten every edge crossing a fold.
+the rulings and no triangle straddles one (a regular grid pushed through the region
+transforms would shorten every edge crossing a fold).
+
+The mesh. Every region is a convex polygon (the rectangle cut by non-crossing lines) that
+stays planar, and both renderers shade per face with perspective-correct texture mapping, so
+vertices inside a region add nothing to the image. By default (``max_edge=None``) the mesh is
+therefore minimal and exact: its vertices are the four sheet corners and the ruling ends
+(each one vertex, shared by the two regions that meet there, so the mesh is watertight), and
+each region is triangulated from its corners alone, with the largest smallest angle possible.
+A region's corners are strictly convex (a ruling end is never at a sheet corner and rulings
+never touch), so no triangle has three collinear points. A sheet with ``n`` fold lines has
+``2n + 4`` vertices and ``2n + 2`` triangles. ``max_edge`` asks for a refined mesh instead
+(for displacement, say): border and rulings subdivided into edges no longer than it, and
+grid points inside each region, Delaunay-triangulated region by region.
 
 Conventions (see ``SheetMesh``): flat coordinates in metres in ``[0, W] x [0, H]`` (x right,
 y up); the 3D sheet frame puts the flat point (x, y) at (x - W/2, y - H/2, 0) before
@@ -39,6 +50,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
+from functools import lru_cache
 from os import PathLike
 from typing import Any, Sequence
 
@@ -47,14 +59,17 @@ import numpy as np
 Point = tuple[float, float]
 Ruling = tuple[Point, Point, float]
 
-# Relative outward bulge given to boundary points before Delaunay triangulation: it makes
-# collinear boundary points strictly convex, so Qhull keeps every one of them as a hull vertex
-# and never builds a triangle from three points of one straight edge (its circumcircle, of
-# radius ~600 edge lengths, always holds another point of the region).
+# Relative outward bulge given to boundary points before Delaunay triangulation (refined mesh
+# only): it makes collinear boundary points strictly convex, so Qhull keeps every one of them
+# as a hull vertex and never builds a triangle from three points of one straight edge (its
+# circumcircle, of radius ~600 edge lengths, always holds another point of the region).
 _BULGE = 2e-4
+# A refined mesh with more grid points than this is a mistake (max_edge far too small).
+_MAX_GRID_POINTS = 1_000_000
 
 _OPTION_NAMES = {
     "mesh_step",
+    "max_edge",
     "smooth_steps",
     "bend_spacing",
     "min_gap",
@@ -91,7 +106,8 @@ class SheetMesh:
     ``flat``: (V, 2) float64 vertex positions on the flat sheet, metres, in [0, W] x [0, H].
     ``vertices``: (V, 3) float64 deformed positions in the sheet frame (flat point (x, y)
     sits at (x - W/2, y - H/2, 0) before bending; the region holding the centre is fixed).
-    ``faces``: (F, 3) int64, counter-clockwise in the flat frame (normals +z before bending).
+    ``faces``: (F, 3) int64, counter-clockwise in the flat frame (normals +z before bending),
+    grouped region by region.
     ``uv``: (V, 2) = flat / (W, H). ``rulings``: the guiding rulings ``(p0, p1, angle)``
     (flat end points, bending angle in radians, positive = valley fold seen from +z).
     ``fold_lines``: every ruling the mesh actually folds along, same format: the
@@ -121,20 +137,23 @@ class _Border:
         self.height = height
         self.length = 2.0 * (width + height)
         self.corners = np.array([0.0, width, width + height, 2.0 * width + height])
+        self.breaks = np.append(self.corners, self.length)  # side k is [breaks[k], breaks[k + 1]]
+        self.corner_points = np.array([[0.0, 0.0], [width, 0.0], [width, height], [0.0, height]])
+
+    def points(self, s: np.ndarray) -> np.ndarray:
+        """(n, 2) flat points at perimeter positions ``s`` (any real numbers, taken modulo)."""
+        w, h = self.width, self.height
+        s = np.asarray(s, np.float64).ravel() % self.length
+        # Piecewise linear along the four sides (s >= 0 after the modulo). The final clamp
+        # keeps round-off from pushing a border point off the sheet (uv stays in [0, 1]).
+        out = np.empty((len(s), 2))
+        out[:, 0] = np.minimum(s, w) - np.minimum(np.maximum(s - (w + h), 0.0), w)
+        out[:, 1] = np.minimum(np.maximum(s - w, 0.0), h) - np.maximum(s - (2.0 * w + h), 0.0)
+        return np.minimum(np.maximum(out, 0.0, out=out), (w, h), out=out)
 
     def point(self, s: float) -> Point:
-        w, h = self.width, self.height
-        s = s % self.length
-        if s <= w:
-            x, y = s, 0.0
-        elif s <= w + h:
-            x, y = w, s - w
-        elif s <= 2 * w + h:
-            x, y = w - (s - w - h), h
-        else:
-            x, y = 0.0, h - (s - 2 * w - h)
-        # Round-off must not push a border point off the sheet (uv stays in [0, 1]).
-        return (min(max(x, 0.0), w), min(max(y, 0.0), h))
+        x, y = self.points(np.array([s]))[0].tolist()
+        return (x, y)
 
     def position(self, point: Sequence[float], tol: float) -> float:
         """``s`` of a border point; RulingLayoutError when the point is off the border."""
@@ -156,6 +175,7 @@ class _Border:
 @dataclass(frozen=True)
 class _Options:
     mesh_step: float
+    max_edge: float | None
     smooth_steps: int
     bend_spacing: float
     min_gap: float
@@ -193,6 +213,14 @@ def _options(width: float, height: float, opts: dict) -> _Options:
     mesh_step = _positive("mesh_step", get("mesh_step", default_step))
     if mesh_step > min(width, height):
         raise ValueError(f"mesh_step {mesh_step:g} is larger than the sheet's short side {min(width, height):g}")
+    max_edge = opts.get("max_edge")
+    if max_edge is not None:
+        max_edge = _positive("max_edge", max_edge)
+        if (width / max_edge) * (height / max_edge) > _MAX_GRID_POINTS:
+            raise ValueError(
+                f"max_edge {max_edge:g} on a {width:g} x {height:g} sheet would make a mesh of over "
+                f"{_MAX_GRID_POINTS} vertices"
+            )
     smooth_steps = get("smooth_steps", 3)
     if isinstance(smooth_steps, bool) or not isinstance(smooth_steps, (int, np.integer)) or smooth_steps < 1:
         raise ValueError(f"smooth_steps must be an integer >= 1 (1 = sharp crease), got {smooth_steps!r}")
@@ -210,6 +238,7 @@ def _options(width: float, height: float, opts: dict) -> _Options:
         raise ValueError(f"clearance must be a non-negative finite number, got {clearance!r}")
     options = _Options(
         mesh_step=mesh_step,
+        max_edge=max_edge,
         smooth_steps=int(smooth_steps),
         bend_spacing=_positive("bend_spacing", get("bend_spacing", 0.75 * mesh_step)),
         min_gap=_positive("min_gap", get("min_gap", mesh_step)),
@@ -238,115 +267,133 @@ def _check_sheet_size(width: Any, height: Any) -> tuple[float, float]:
 
 
 @dataclass(frozen=True)
-class _Chord:
-    s0: float  # perimeter positions of the two ends
-    s1: float
-    p0: np.ndarray  # flat end points
-    p1: np.ndarray
-    angle: float
+class _Chords:
+    """Every fold line, as arrays: perimeter positions of both ends, flat end points, angle."""
+
+    s0: np.ndarray  # (n,)
+    s1: np.ndarray  # (n,)
+    p0: np.ndarray  # (n, 2)
+    p1: np.ndarray  # (n, 2)
+    angle: np.ndarray  # (n,) radians
+
+    def __len__(self) -> int:
+        return len(self.angle)
+
+    def as_rulings(self) -> list[Ruling]:
+        return _rulings(self.p0, self.p1, self.angle)
 
 
-def _expand(border: _Border, guides: list[tuple[float, float, float]], options: _Options) -> list[_Chord]:
+def _rulings(p0: np.ndarray, p1: np.ndarray, angle: np.ndarray) -> list[Ruling]:
+    return [((x0, y0), (x1, y1), a) for (x0, y0), (x1, y1), a in zip(p0.tolist(), p1.tolist(), angle.tolist())]
+
+
+def _expand(border: _Border, guides: np.ndarray, options: _Options) -> tuple[_Chords, list[Ruling]]:
     """Interpolated rulings: each guiding ruling (s0, s1, angle) becomes a nested family
-    (s0 + o, s1 - o) of ``smooth_steps`` rulings sharing its angle equally."""
+    (s0 + o, s1 - o) of ``smooth_steps`` rulings sharing its angle equally. Also returns the
+    guiding rulings with their flat end points."""
     m = options.smooth_steps
     offsets = (np.arange(m) - (m - 1) / 2.0) * options.bend_spacing
-    chords = []
-    for s0, s1, angle in guides:
-        for offset in offsets:
-            a, b = (s0 + offset) % border.length, (s1 - offset) % border.length
-            chords.append(_Chord(a, b, np.array(border.point(a)), np.array(border.point(b)), angle / m))
-    return chords
+    s0 = ((guides[:, :1] + offsets) % border.length).ravel()
+    s1 = ((guides[:, 1:2] - offsets) % border.length).ravel()
+    n, g = len(s0), len(guides)
+    ends = border.points(np.concatenate([s0, s1, guides[:, 0], guides[:, 1]]))  # one call for all
+    chords = _Chords(s0, s1, ends[:n], ends[n : 2 * n], np.repeat(guides[:, 2] / m, m))
+    return chords, _rulings(ends[2 * n : 2 * n + g], ends[2 * n + g :], guides[:, 2])
 
 
-def _point_segment_distances(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Distance from points[i] to segment (a[j], b[j]), as an (n, m) array."""
-    ab = (b - a)[None]
-    ap = points[:, None] - a[None]
-    t = np.clip(np.sum(ap * ab, axis=2) / np.sum(ab * ab, axis=2), 0.0, 1.0)
-    return np.linalg.norm(ap - t[..., None] * ab, axis=2)
-
-
-def _validate_layout(border: _Border, chords: list[_Chord], options: _Options) -> None:
-    """RulingLayoutError naming the first problem: ends at corners or on one side, crossing
-    rulings, ends nearly shared, strips narrower than ``min_strip``."""
-    length = border.length
-    s0 = np.array([c.s0 for c in chords])
-    s1 = np.array([c.s1 for c in chords])
-    ends = np.stack([s0, s1], axis=1).ravel()
-    to_corner = np.abs(ends[:, None] - border.corners[None]) % length
-    near = np.flatnonzero(np.minimum(to_corner, length - to_corner).min(axis=1) < options.corner_gap)
-    if len(near):
-        x, y = border.point(ends[near[0]])
-        raise RulingLayoutError(f"ruling end ({x:.4g}, {y:.4g}) is within {options.corner_gap:.3g} of a sheet corner")
-    side0, side1 = (np.searchsorted(border.corners, s % length, side="right") - 1 for s in (s0, s1))
-    if np.any(side0 == side1):
-        names = ["bottom", "right", "top", "left"]
-        raise RulingLayoutError(f"a ruling has both ends on the {names[side0[side0 == side1][0]]} side")
-    if len(chords) < 2:
+def _validate_layout(border: _Border, chords: _Chords, options: _Options) -> None:
+    """RulingLayoutError naming the first problem: ends at corners or on one side, ends nearly
+    shared, crossing rulings, strips narrower than ``min_strip``."""
+    n = len(chords)
+    if n == 0:
         return
-    p0 = np.array([c.p0 for c in chords])
-    p1 = np.array([c.p1 for c in chords])
-    pair = np.triu(np.ones((len(chords), len(chords)), bool), k=1)
-
-    def cyclic(a, b):
-        d = np.abs(a[:, None] - b[None]) % length
-        return np.minimum(d, length - d)
-
-    gaps = np.minimum.reduce([cyclic(s0, s0), cyclic(s0, s1), cyclic(s1, s0), cyclic(s1, s1)])
-    bad = pair & (gaps < options.min_strip)
-    if bad.any():
-        gap = gaps[bad][0]
-        raise RulingLayoutError(f"two rulings have ends only {gap:.3g} apart (min_strip {options.min_strip:.3g})")
-    # Two chords cross exactly when their ends alternate along the border.
-    span = ((s1 - s0) % length)[:, None]
-    inside0 = (s0[None] - s0[:, None]) % length < span
-    inside1 = (s1[None] - s0[:, None]) % length < span
-    if np.any(pair & (inside0 != inside1)):
-        raise RulingLayoutError("two rulings cross inside the sheet")
-    # Segments that do not cross are closest at an end of one of them.
-    distances = np.minimum.reduce(
-        [
-            _point_segment_distances(p0, p0, p1),
-            _point_segment_distances(p1, p0, p1),
-            _point_segment_distances(p0, p0, p1).T,
-            _point_segment_distances(p1, p0, p1).T,
-        ]
-    )
-    bad = pair & (distances < options.min_strip)
-    if bad.any():
+    ends = np.concatenate([chords.s0, chords.s1])  # end k belongs to chord k % n
+    side = np.searchsorted(border.breaks, ends, side="right") - 1
+    to_corner = np.minimum(ends - border.breaks[side], border.breaks[side + 1] - ends)
+    if to_corner.min() < options.corner_gap:
+        x, y = border.point(ends[np.argmax(to_corner < options.corner_gap)])
+        raise RulingLayoutError(f"ruling end ({x:.4g}, {y:.4g}) is within {options.corner_gap:.3g} of a sheet corner")
+    same_side = side[:n] == side[n:]
+    if same_side.any():
+        names = ["bottom", "right", "top", "left"]
+        raise RulingLayoutError(f"a ruling has both ends on the {names[side[np.argmax(same_side)]]} side")
+    if n < 2:
+        return
+    # Around the border: the closest two ends of different rulings are neighbours (only ends of
+    # one of those two rulings could lie between them, and they would be closer still).
+    order = np.argsort(ends, kind="stable")
+    around = ends[order]
+    gaps = np.concatenate([around[1:], around[:1] + border.length]) - around
+    chord_around = order % n
+    different = chord_around != np.concatenate([chord_around[1:], chord_around[:1]])
+    too_close = different & (gaps < options.min_strip)
+    if too_close.any():
         raise RulingLayoutError(
-            f"two rulings come within {distances[bad][0]:.3g} of each other (min_strip {options.min_strip:.3g})"
+            f"two rulings have ends only {gaps[np.argmax(too_close)]:.3g} apart (min_strip {options.min_strip:.3g})"
+        )
+    # Two chords cross exactly when their ends alternate along the border: read around it,
+    # non-crossing chords pair up like nested brackets.
+    open_chords: list[int] = []
+    for chord in chord_around.tolist():
+        if open_chords and open_chords[-1] == chord:
+            open_chords.pop()
+        else:
+            open_chords.append(chord)
+    if open_chords:
+        raise RulingLayoutError("two rulings cross inside the sheet")
+    # Segments that do not cross are closest at an end of one of them: (2n, n) squared
+    # distances from every end to every ruling.
+    (x0, y0), (dx, dy) = chords.p0.T, (chords.p1 - chords.p0).T
+    ex = np.concatenate([x0, chords.p1[:, 0]])[:, None] - x0  # from each ruling's p0 to every end
+    ey = np.concatenate([y0, chords.p1[:, 1]])[:, None] - y0
+    t = np.minimum(np.maximum((ex * dx + ey * dy) / (dx * dx + dy * dy), 0.0), 1.0)
+    ex -= t * dx
+    ey -= t * dy
+    squared = ex * ex + ey * ey
+    from_ends = np.minimum(squared[:n], squared[n:])  # [i, j]: ends of ruling i to ruling j
+    np.fill_diagonal(from_ends, np.inf)
+    closest = float(np.sqrt(np.min(from_ends)))
+    if closest < options.min_strip:
+        raise RulingLayoutError(
+            f"two rulings come within {closest:.3g} of each other (min_strip {options.min_strip:.3g})"
         )
 
 
-def _sample_guides(
-    n: int, rng: np.random.Generator, border: _Border, options: _Options
-) -> list[tuple[float, float, float]] | None:
-    """Guiding rulings as (s0, s1, angle) with nested ends on two arcs split by two corners,
-    or None when no pair of corners leaves room for ``n`` rulings."""
+@lru_cache(maxsize=256)
+def _arc_splits(
+    width: float, height: float, n: int, keep_off: float, spacing: float
+) -> tuple[tuple[float, tuple[float, tuple[float, ...]], tuple[float, tuple[float, ...]]], ...]:
+    """Pairs of corners i < j that leave room for ``n`` guiding rulings on both arcs between
+    them, as (corner i's position, (free length, inner corners) of arc A, same of arc B)."""
+    length = 2.0 * (width + height)
+    corners = [0.0, width, width + height, 2.0 * width + height]
+    splits = []
+    for i in range(4):
+        for j in range(i + 1, 4):
+            arc_a = corners[j] - corners[i]
+            inner_a = tuple(c - corners[i] for c in corners[i + 1 : j])
+            inner_b = tuple(sorted((corners[i] - c) % length for c in (*corners[:i], *corners[j + 1 :])))
+            free_a = arc_a - 2 * keep_off * (1 + len(inner_a)) - (n - 1) * spacing
+            free_b = length - arc_a - 2 * keep_off * (1 + len(inner_b)) - (n - 1) * spacing
+            if min(free_a, free_b) > 0:
+                splits.append((corners[i], (free_a, inner_a), (free_b, inner_b)))
+    return tuple(splits)
+
+
+def _sample_guides(n: int, rng: np.random.Generator, border: _Border, options: _Options) -> np.ndarray | None:
+    """Guiding rulings as (n, 3) rows (s0, s1, angle) with nested ends on two arcs split by
+    two corners, or None when no pair of corners leaves room for ``n`` rulings."""
     half_band = (options.smooth_steps - 1) / 2.0 * options.bend_spacing
     # Ruling ends (interpolated ones included) keep corner_gap from every corner: from the two
     # corners that bound the arcs, and from the corner in the middle of an arc (if any).
     keep_off = options.corner_gap + half_band
     spacing = 2.0 * half_band + options.min_gap  # between neighbouring guiding rulings' centres
-    corners = border.corners
-    splits = []
-    for i in range(4):
-        for j in range(i + 1, 4):
-            arc_a = corners[j] - corners[i]
-            inner_a = [c - corners[i] for c in corners[i + 1 : j]]
-            arc_b = border.length - arc_a
-            inner_b = sorted((corners[i] - c) % border.length for c in (*corners[:i], *corners[j + 1 :]))
-            free_a = arc_a - 2 * keep_off * (1 + len(inner_a)) - (n - 1) * spacing
-            free_b = arc_b - 2 * keep_off * (1 + len(inner_b)) - (n - 1) * spacing
-            if min(free_a, free_b) > 0:
-                splits.append((i, (free_a, inner_a), (free_b, inner_b)))
+    splits = _arc_splits(border.width, border.height, n, keep_off, spacing)
     if not splits:
         return None
-    i, arc_a, arc_b = splits[int(rng.integers(len(splits)))]
+    start, arc_a, arc_b = splits[int(rng.integers(len(splits)))]
 
-    def increasing(free: float, inner_corners: list[float]) -> np.ndarray:
+    def increasing(free: float, inner_corners: tuple[float, ...]) -> np.ndarray:
         # Uniform among positions at least `spacing` apart (sorted uniforms on the arc shortened
         # by the gaps), then opened up around the arc's inner corners.
         positions = keep_off + np.sort(rng.uniform(0.0, free, n)) + spacing * np.arange(n)
@@ -356,123 +403,77 @@ def _sample_guides(
 
     along_a, along_b = increasing(*arc_a), increasing(*arc_b)
     magnitudes = rng.uniform(options.min_angle, options.max_angle, n)
-    signs = rng.choice([-1.0, 1.0], n)
-    start = corners[i]
-    return [
-        ((start + a) % border.length, (start - b) % border.length, float(sign * magnitude))
-        for a, b, sign, magnitude in zip(along_a, along_b, signs, magnitudes)
-    ]
+    signs = np.array([-1.0, 1.0])[rng.integers(0, 2, n)]  # the draw rng.choice([-1, 1], n) makes
+    return np.stack([(start + along_a) % border.length, (start - along_b) % border.length, signs * magnitudes], axis=1)
 
 
-# -- regions and mesh -------------------------------------------------------------------------
+# -- regions ----------------------------------------------------------------------------------
 
 
-@dataclass
-class _Region:
-    chain: list[int]  # boundary vertex ids, counter-clockwise
-    corner_ids: list[int]  # the polygon's corners (sheet corners and ruling ends), counter-clockwise
-    crossings: list[tuple[int, int, int]]  # (chord index, vertex id at start, vertex id at end) as traversed
+@dataclass(frozen=True)
+class _Layout:
+    """The sheet cut by its rulings. Vertex ids: 0-3 the sheet corners (counter-clockwise from
+    (0, 0)), then 4 + 2c and 5 + 2c the ends p0 and p1 of chord c. Regions' corners are
+    stacked: region r's, counter-clockwise, are ``ids[start[r] : start[r] + counts[r]]``."""
 
-
-def _subdivide(a: np.ndarray, b: np.ndarray, step: float) -> np.ndarray:
-    """Points strictly between a and b at spacing at most ``step``."""
-    n = max(1, math.ceil(np.linalg.norm(b - a) / step - 1e-9))
-    t = np.arange(1, n)[:, None] / n
-    return a + t * (b - a)
-
-
-class _MeshBuilder:
-    """Vertices on the border and on every ruling (shared by the regions on both sides), and
-    the regions traced as faces of the border-plus-rulings graph."""
-
-    def __init__(self, border: _Border, chords: list[_Chord], options: _Options):
-        self.border = border
-        self.chords = chords
-        self.options = options
-        self.blocks: list[np.ndarray] = []
-        self.corner_blocks: list[np.ndarray] = []
-        self.count = 0
-
-    def _add(self, points: np.ndarray, corner: bool) -> list[int]:
-        block = np.asarray(points, np.float64).reshape(-1, 2)
-        self.blocks.append(block)
-        self.corner_blocks.append(np.full(len(block), corner))
-        self.count += len(block)
-        return list(range(self.count - len(block), self.count))
+    points: np.ndarray  # (4 + 2n, 2) flat vertex positions
+    ids: np.ndarray  # stacked region corners
+    counts: np.ndarray  # corners per region
+    start: np.ndarray  # where each region's corners begin in ids
+    crossings: np.ndarray  # (2n, 4) rows (region, chord, start id, end id): a ruling as its region traverses it
 
     @property
-    def is_corner(self) -> np.ndarray:
-        return np.concatenate(self.corner_blocks)
+    def polygons(self) -> list[np.ndarray]:
+        return np.split(self.ids, self.start[1:])
 
-    def build(self) -> tuple[np.ndarray, list[_Region]]:
-        border, chords, step = self.border, self.chords, self.options.mesh_step
-        # Border: corners and ruling ends in perimeter order, subdivided between them.
-        breaks = [(float(s), ("corner", k)) for k, s in enumerate(border.corners)]
-        for c_index, c in enumerate(chords):
-            breaks += [(c.s0, ("end", 2 * c_index)), (c.s1, ("end", 2 * c_index + 1))]
-        breaks.sort(key=lambda item: item[0])
-        end_vertex: dict[int, int] = {}
-        border_ids: list[int] = []
-        for k, (s, (kind, key)) in enumerate(breaks):
-            if kind == "end":
-                chord = chords[key // 2]
-                point = chord.p0 if key % 2 == 0 else chord.p1
-            else:
-                point = np.array(border.point(s))
-            (vertex,) = self._add(point, corner=True)
-            border_ids.append(vertex)
-            if kind == "end":
-                end_vertex[key] = vertex
-            s_next = breaks[(k + 1) % len(breaks)][0]
-            if k + 1 == len(breaks):
-                s_next += border.length
-            next_point = np.array(border.point(s_next))
-            # Subdivide along the border (one side between two breaks: corners are breaks).
-            border_ids += self._add(_subdivide(point, next_point, step), corner=False)
-        position_in_border = {v: i for i, v in enumerate(border_ids)}
-        # Rulings: interior vertices, in the direction p0 -> p1.
-        ruling_inner = []
-        for chord in chords:
-            ruling_inner.append(self._add(_subdivide(chord.p0, chord.p1, step), corner=False))
 
-        regions = self._trace_regions(border_ids, position_in_border, end_vertex, ruling_inner)
-        return np.concatenate(self.blocks), regions
+def _trace_layout(border: _Border, chords: _Chords) -> _Layout:
+    """Walk the border counter-clockwise; at each ruling end, jump along the ruling to its
+    other end and walk on: every closed walk is one region, traced counter-clockwise."""
+    n = len(chords)
+    points = np.empty((4 + 2 * n, 2))
+    points[:4], points[4::2], points[5::2] = border.corner_points, chords.p0, chords.p1
+    if n == 0:
+        return _Layout(points, np.arange(4), np.array([4]), np.array([0]), np.zeros((0, 4), np.int64))
+    positions = np.empty(4 + 2 * n)
+    positions[:4], positions[4::2], positions[5::2] = border.corners, chords.s0, chords.s1
+    sequence = np.argsort(positions, kind="stable").tolist()
+    first_end = next(k for k, vertex in enumerate(sequence) if vertex >= 4)
+    sequence = sequence[first_end:] + sequence[:first_end]
+    # For each end (by vertex id): the sheet corners after it along the border, and the next end.
+    corners_after: list[list[int]] = [[] for _ in range(4 + 2 * n)]
+    next_end = [0] * (4 + 2 * n)
+    current = sequence[0]
+    for vertex in sequence[1:]:
+        if vertex >= 4:
+            next_end[current] = current = vertex
+        else:
+            corners_after[current].append(vertex)
+    next_end[current] = sequence[0]
 
-    def _trace_regions(self, border_ids, position_in_border, end_vertex, ruling_inner) -> list[_Region]:
-        """Walk the border counter-clockwise; at each ruling end, jump along the ruling to its
-        other end and walk on: every closed walk is one region, traced counter-clockwise."""
-        n_border = len(border_ids)
-        is_corner = self.is_corner
-        if not self.chords:
-            chain = list(border_ids)
-            return [_Region(chain, [v for v in chain if is_corner[v]], [])]
-        ends = sorted(end_vertex, key=lambda e: position_in_border[end_vertex[e]])
-        following = {e: ends[(i + 1) % len(ends)] for i, e in enumerate(ends)}
-        visited: set[int] = set()
-        regions = []
-        for first in ends:
-            if first in visited:
-                continue
-            chain: list[int] = []
-            crossings = []
-            current = first
-            while True:
-                visited.add(current)
-                nxt = following[current]
-                # Border arc from `current` to `nxt`, counter-clockwise (end excluded).
-                i, j = position_in_border[end_vertex[current]], position_in_border[end_vertex[nxt]]
-                span = (j - i) % n_border
-                chain += [border_ids[(i + k) % n_border] for k in range(span)]
-                # Then along the ruling from `nxt` to its other end (end excluded).
-                chord_index, partner = nxt // 2, nxt ^ 1
-                inner = ruling_inner[chord_index] if nxt % 2 == 0 else ruling_inner[chord_index][::-1]
-                chain += [end_vertex[nxt]] + inner
-                crossings.append((chord_index, end_vertex[nxt], end_vertex[partner]))
-                current = partner
-                if current == first:
-                    break
-            regions.append(_Region(chain, [v for v in chain if is_corner[v]], crossings))
-        return regions
+    visited = [False] * (4 + 2 * n)
+    ids: list[int] = []
+    counts: list[int] = []
+    crossings: list[tuple[int, int, int, int]] = []
+    for first in sequence:
+        if first < 4 or visited[first]:
+            continue
+        region, size = len(counts), len(ids)
+        current = first
+        while True:
+            visited[current] = True
+            following = next_end[current]
+            partner = following ^ 1  # the other end of the same ruling (ids 4 + 2c, 5 + 2c)
+            ids += [current, *corners_after[current], following]
+            crossings.append((region, (following - 4) >> 1, following, partner))
+            current = partner
+            if current == first:
+                break
+        counts.append(len(ids) - size)
+    counts_arr = np.array(counts)
+    return _Layout(
+        points, np.array(ids), counts_arr, np.cumsum(counts_arr) - counts_arr, np.array(crossings, np.int64)
+    )
 
 
 @dataclass(frozen=True)
@@ -488,17 +489,16 @@ class _RegionEdges:
     offsets: np.ndarray  # normals . points
 
     @classmethod
-    def of(cls, regions: list[_Region], points: np.ndarray) -> _RegionEdges:
-        counts = np.array([len(region.corner_ids) for region in regions])
-        start = np.concatenate([[0], np.cumsum(counts)[:-1]])
-        region = np.repeat(np.arange(len(regions)), counts)
-        following = start[region] + (np.arange(len(region)) - start[region] + 1) % counts[region]
-        corner_points = points[np.concatenate([r.corner_ids for r in regions])]
+    def of(cls, layout: _Layout) -> _RegionEdges:
+        region = np.repeat(np.arange(len(layout.counts)), layout.counts)
+        following = np.arange(1, len(region) + 1)
+        following[layout.start + layout.counts - 1] = layout.start  # each region's last corner
+        corner_points = layout.points[layout.ids]
         vectors = corner_points[following] - corner_points
-        lengths = np.linalg.norm(vectors, axis=1)
-        normals = np.stack([vectors[:, 1], -vectors[:, 0]], axis=1) / lengths[:, None]
+        lengths = np.sqrt(np.einsum("ij,ij->i", vectors, vectors))
+        normals = vectors[:, ::-1] * (1.0, -1.0) / lengths[:, None]
         offsets = np.einsum("ij,ij->i", normals, corner_points)
-        return cls(start, region, corner_points, vectors, lengths, normals, offsets)
+        return cls(layout.start, region, corner_points, vectors, lengths, normals, offsets)
 
     def depth(self, query: np.ndarray) -> np.ndarray:
         """(n, regions): how far outside each region each point lies (negative: inside)."""
@@ -510,70 +510,185 @@ class _RegionEdges:
         return 0.5 * np.bincount(self.region, weights=cross, minlength=len(self.start))
 
 
-def _triangulate_regions(
-    regions: list[_Region],
-    edges: _RegionEdges,
-    points: np.ndarray,
-    is_corner: np.ndarray,
-    grid: np.ndarray,
-    options: _Options,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Triangulate every convex region from its boundary chain plus the grid points well
-    inside it. Returns faces (ids into ``points`` followed by the interior points, ccw), the
-    region of each face, the interior points and the region of each."""
+def _local_transforms(a: np.ndarray, b: np.ndarray, angles: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) homogeneous rotations by ``angles`` about the lines through a[i] and b[i]
+    (Rodrigues; positive = counter-clockwise looking from b towards a)."""
+    axes = b - a
+    axes /= np.sqrt((axes * axes).sum(axis=1))[:, None]
+    sin, cos = np.sin(angles)[:, None, None], np.cos(angles)[:, None, None]
+    cross = np.zeros((len(a), 9))  # the matrix of axis x (.), row by row
+    cross[:, [1, 2, 3, 5, 6, 7]] = axes[:, [2, 1, 2, 0, 1, 0]] * (-1.0, 1.0, 1.0, -1.0, -1.0, 1.0)
+    rotation = cos * np.eye(3) + sin * cross.reshape(-1, 3, 3) + (1.0 - cos) * (axes[:, :, None] * axes[:, None, :])
+    transforms = np.zeros((len(a), 4, 4))
+    transforms[:, :3, :3] = rotation
+    transforms[:, :3, 3] = a - (rotation @ a[:, :, None])[:, :, 0]  # the line stays put
+    transforms[:, 3, 3] = 1.0
+    return transforms
+
+
+# -- meshes ----------------------------------------------------------------------------------
+
+
+def _sin2_smallest_angle(triangles: np.ndarray) -> np.ndarray:
+    """sin² of each triangle's smallest angle (``triangles``: (..., 3, 2); 0 when degenerate
+    or clockwise). The smallest angle faces the shortest edge: sin = 2 area a_min / (a b c)."""
+    edges = triangles[..., [1, 2, 0], :] - triangles  # p1 - p0, p2 - p1, p0 - p2
+    squared = edges[..., 0] ** 2 + edges[..., 1] ** 2
+    twice_area = edges[..., 0, 0] * edges[..., 1, 1] - edges[..., 0, 1] * edges[..., 1, 0]
+    sin2 = twice_area**2 * squared.min(axis=-1) / np.maximum(squared.prod(axis=-1), 1e-300)
+    return np.where(twice_area > 0.0, sin2, 0.0)
+
+
+@lru_cache(maxsize=64)
+def _fan_corners(most: int) -> np.ndarray:
+    """(most, most - 2, 3) corner positions (a, a + j, a + j + 1), before the modulo by a
+    region's corner count: fan from apex a, triangle j."""
+    apex = np.arange(most)[:, None]
+    step = np.arange(1, most - 1)[None]
+    table = np.empty((most, most - 2, 3), np.int64)
+    table[..., 0], table[..., 1], table[..., 2] = apex, apex + step, apex + step + 1
+    table.setflags(write=False)
+    return table
+
+
+def _delaunay_polygon(corners: list[tuple[float, float]]) -> list[tuple[int, int, int]]:
+    """The Delaunay triangulation of a strictly convex polygon (counter-clockwise corners),
+    which has the largest smallest angle of all its triangulations: on each edge (i, j) it
+    puts the corner that sees the edge under the widest angle (its circle holds no other
+    corner), then does the same on the two new edges. Triangles (i, m, j), i < m < j, ccw."""
+    triangles = []
+    pending = [(0, len(corners) - 1)]
+    while pending:
+        i, j = pending.pop()
+        (xi, yi), (xj, yj) = corners[i], corners[j]
+        widest, best = 2.0, i + 1
+        for m in range(i + 1, j):
+            xm, ym = corners[m]
+            ux, uy, vx, vy = xi - xm, yi - ym, xj - xm, yj - ym
+            cosine = (ux * vx + uy * vy) / math.sqrt((ux * ux + uy * uy) * (vx * vx + vy * vy))
+            if cosine < widest:
+                widest, best = cosine, m
+        triangles.append((i, best, j))
+        pending += [(a, b) for a, b in ((i, best), (best, j)) if b - a >= 2]
+    return triangles
+
+
+def _minimal_mesh(layout: _Layout) -> tuple[np.ndarray, np.ndarray]:
+    """Every convex region triangulated from its corners alone, with the largest smallest
+    angle possible. Up to five corners every triangulation is a fan, so the best fan is
+    chosen, for all regions at once (padded to the largest corner count); regions with more
+    corners (rare) get their Delaunay triangulation. Returns (faces, region of each), faces
+    counter-clockwise, region by region."""
+    counts = layout.counts
+    n_regions, most = len(counts), int(counts.max())
+    rows = np.arange(n_regions)
+    padded = np.zeros((n_regions, most), np.int64)
+    padded[np.repeat(rows, counts), np.arange(len(layout.ids)) - np.repeat(layout.start, counts)] = layout.ids
+    k = counts[:, None, None, None]
+    triangles = padded[rows[:, None, None, None], _fan_corners(most) % k]  # (region, apex, j, 3)
+    real = np.arange(most - 2) < counts[:, None] - 2  # (region, j): a k-gon's fan has k - 2 triangles
+    quality = np.where(real[:, None], _sin2_smallest_angle(layout.points[triangles]), np.inf).min(axis=2)
+    quality[np.arange(most) >= counts[:, None]] = -np.inf  # apexes past the region's corners
+    best = quality.argmax(axis=1)
+    if not np.all(quality[rows, best] > 0.0):
+        raise RuntimeError("paper model: degenerate triangle in a region (please report)")
+    faces, face_regions = triangles[rows, best][real], np.repeat(rows, counts - 2)
+    if most <= 5:
+        return faces, face_regions
+    large = np.flatnonzero(counts > 5)
+    kept = ~np.isin(face_regions, large)
+    extra = []
+    for r in large.tolist():
+        ids = padded[r, : counts[r]]
+        extra.append(ids[np.array(_delaunay_polygon(layout.points[ids].tolist()))])
+    faces = np.concatenate([faces[kept], *extra])
+    face_regions = np.concatenate([face_regions[kept], np.repeat(large, counts[large] - 2)])
+    order = np.argsort(face_regions, kind="stable")
+    return faces[order], face_regions[order]
+
+
+def _subdivide(a: np.ndarray, b: np.ndarray, step: float) -> np.ndarray:
+    """Points strictly between a and b at spacing at most ``step``."""
+    n = max(1, math.ceil(float(np.linalg.norm(b - a)) / step - 1e-9))
+    t = np.arange(1, n)[:, None] / n
+    return a + t * (b - a)
+
+
+def _refined_mesh(
+    layout: _Layout, edges: _RegionEdges, width: float, height: float, max_edge: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Every region triangulated from its subdivided boundary plus the grid points well inside
+    it (Delaunay). Points on a ruling are made once and shared by both regions. Returns the
+    flat vertices (layout points first), faces (ccw) and the region of each face."""
     from scipy.spatial import Delaunay  # noqa: PLC0415 - scipy comes with scikit-image (render extra)
 
-    # Grid points at least `margin` inside a region belong to it (to one region at most).
-    margin = 0.35 * options.mesh_step
-    depth = edges.depth(grid)
-    grid_region = np.where(np.any(depth <= -margin, axis=1), np.argmin(depth, axis=1), -1)
+    points = layout.points
+    blocks = [points]
+    n_points = len(points)
+    on_edge: dict[tuple[int, int], np.ndarray] = {}
+    chains, chain_edges = [], []
+    for r, polygon in enumerate(layout.polygons):
+        chain, chain_edge = [], []
+        k = len(polygon)
+        for i in range(k):
+            u, v = int(polygon[i]), int(polygon[(i + 1) % k])
+            key = (min(u, v), max(u, v))
+            inner = on_edge.get(key)
+            if inner is None:
+                new = _subdivide(points[key[0]], points[key[1]], max_edge)
+                inner = np.arange(n_points, n_points + len(new))
+                n_points += len(new)
+                blocks.append(new)
+                on_edge[key] = inner
+            along = [u, *(inner if u < v else inner[::-1]).tolist()]
+            chain += along
+            chain_edge += [edges.start[r] + i] * len(along)
+        chains.append(np.array(chain))
+        chain_edges.append(np.array(chain_edge))
+    boundary = np.concatenate(blocks)
 
-    # Bulge the boundary points of every straight edge outward (see _BULGE). Each chain starts
-    # at a corner, so a chain point lies on the edge of the last corner at or before it.
-    chains = [np.asarray(region.chain) for region in regions]
-    chain_all = np.concatenate(chains)
-    edge = np.cumsum(is_corner[chain_all]) - 1  # global edge index, since regions are stacked in order
+    # Grid points at least `margin` inside a region belong to it (to one region at most).
+    nx = max(1, round(width / max_edge))
+    ny = max(1, round(height / max_edge))
+    gx, gy = np.meshgrid((np.arange(nx) + 0.5) * width / nx, (np.arange(ny) + 0.5) * height / ny)
+    grid = np.stack([gx.ravel(), gy.ravel()], axis=1)
+    depth = edges.depth(grid)
+    grid_region = np.where(np.any(depth <= -0.35 * max_edge, axis=1), np.argmin(depth, axis=1), -1)
+
+    # Bulge the boundary points of every straight edge outward (see _BULGE).
+    chain_all, edge = np.concatenate(chains), np.concatenate(chain_edges)
     lengths = edges.lengths[edge]
-    t = np.einsum("ij,ij->i", points[chain_all] - edges.points[edge], edges.vectors[edge]) / lengths**2
-    bulged = points[chain_all] + edges.normals[edge] * (_BULGE * lengths * 4.0 * t * (1.0 - t))[:, None]
+    t = np.einsum("ij,ij->i", boundary[chain_all] - edges.points[edge], edges.vectors[edge]) / lengths**2
+    bulged = boundary[chain_all] + edges.normals[edge] * (_BULGE * lengths * 4.0 * t * (1.0 - t))[:, None]
 
     faces, face_regions, interiors = [], [], []
-    n_boundary = len(points)
-    n_interior = 0
     chain_stop = np.cumsum([len(c) for c in chains])
+    n_interior = 0
     for r, chain in enumerate(chains):
         interior = grid[grid_region == r]
         triangulation = Delaunay(np.vstack([bulged[chain_stop[r] - len(chain) : chain_stop[r]], interior]))
         if len(triangulation.coplanar):
             raise RuntimeError("paper model: Delaunay dropped boundary points of a region (please report)")
-        ids = np.concatenate([chain, n_boundary + n_interior + np.arange(len(interior))])
+        ids = np.concatenate([chain, len(boundary) + n_interior + np.arange(len(interior))])
         faces.append(ids[triangulation.simplices])
         face_regions.append(np.full(len(triangulation.simplices), r))
         interiors.append(interior)
         n_interior += len(interior)
+    flat = np.concatenate([boundary, *interiors])
     faces_arr = np.concatenate(faces).astype(np.int64)
     face_regions_arr = np.concatenate(face_regions).astype(np.int64)
-    interior_points = np.concatenate(interiors)
-    interior_regions = np.repeat(np.arange(len(regions)), [len(i) for i in interiors])
 
     # Counter-clockwise in the true (unbulged) flat frame; no sliver; regions exactly tiled.
-    tri = np.concatenate([points, interior_points])[faces_arr]
+    tri = flat[faces_arr]
     areas = 0.5 * (
         (tri[:, 1, 0] - tri[:, 0, 0]) * (tri[:, 2, 1] - tri[:, 0, 1])
         - (tri[:, 1, 1] - tri[:, 0, 1]) * (tri[:, 2, 0] - tri[:, 0, 0])
     )
     faces_arr[areas < 0] = faces_arr[areas < 0][:, [0, 2, 1]]
-    covered = np.bincount(face_regions_arr, weights=np.abs(areas), minlength=len(regions))
-    if np.min(np.abs(areas)) <= 1e-9 * options.mesh_step**2 or not np.allclose(covered, edges.areas(), rtol=1e-9, atol=0):
+    covered = np.bincount(face_regions_arr, weights=np.abs(areas), minlength=len(layout.counts))
+    if np.min(np.abs(areas)) <= 1e-9 * max_edge**2 or not np.allclose(covered, edges.areas(), rtol=1e-9, atol=0):
         raise RuntimeError("paper model: degenerate triangulation of a region (please report)")
-    return faces_arr, face_regions_arr, interior_points, interior_regions
-
-
-def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
-    """Rodrigues: rotation by ``angle`` about the unit ``axis``."""
-    x, y, z = axis
-    k = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
-    return np.eye(3) + math.sin(angle) * k + (1.0 - math.cos(angle)) * (k @ k)
+    return flat, faces_arr, face_regions_arr
 
 
 # -- self-intersection ----------------------------------------------------------------------
@@ -582,7 +697,7 @@ def _rotation(axis: np.ndarray, angle: float) -> np.ndarray:
 def _clip_to_slab(polygon: np.ndarray, heights: np.ndarray, clearance: float) -> np.ndarray:
     """The part of a convex polygon (n, 3) with |height| <= clearance (Sutherland-Hodgman
     against the two faces of the slab); with clearance 0, where it meets the plane."""
-    points, values = list(polygon), list(heights)
+    points, values = list(polygon), heights.tolist()
     for sign in (1.0, -1.0):  # keep sign * height <= clearance
         kept_points, kept_values = [], []
         n = len(points)
@@ -605,54 +720,50 @@ def _clip_to_slab(polygon: np.ndarray, heights: np.ndarray, clearance: float) ->
 def _convex_sets_overlap(first: np.ndarray, second: np.ndarray) -> bool:
     """Separating-axis test for two convex 2D point sets given in boundary order (the first a
     polygon, the second a polygon, a segment or a point); touching counts as overlapping."""
-    axes = []
-    for points in (first, second):
-        if len(points) >= 2:
-            edges = np.roll(points, -1, axis=0) - points
-            edges = edges[np.linalg.norm(edges, axis=1) > 0]
-            axes.append(np.stack([-edges[:, 1], edges[:, 0]], axis=1))
-    for axis in np.concatenate(axes):
-        a, b = first @ axis, second @ axis
-        if a.max() < b.min() or b.max() < a.min():
-            return False
-    return True
+    both = [first, second] if len(second) >= 2 else [first]
+    edges = np.concatenate([np.append(points[1:], points[:1], axis=0) - points for points in both])
+    axes = edges[np.einsum("ij,ij->i", edges, edges) > 0][:, ::-1] * (1.0, -1.0)
+    a, b = first @ axes.T, second @ axes.T  # projections on every axis at once
+    return not np.any((a.max(axis=0) < b.min(axis=0)) | (b.max(axis=0) < a.min(axis=0)))
 
 
 def _find_self_intersection(
-    corners: list[np.ndarray], rotations: list[np.ndarray], adjacent: np.ndarray, clearance: float
+    corners: np.ndarray, edges: _RegionEdges, rotations: np.ndarray, adjacent: np.ndarray, clearance: float
 ) -> tuple[int, int] | None:
     """The first pair of non-adjacent regions that pass through each other or come within
     ``clearance`` (measured across the plane of one of them), or None.
 
-    Regions are planar convex polygons (``corners``: (n, 3) bent corner positions). Regions
-    sharing a ruling meet along it and bend by less than pi there, so only non-adjacent pairs
-    can cross. A pair is apart when one polygon lies wholly beyond ``clearance`` on one side of
-    the other's plane; otherwise the slice of one near the other's plane is compared with the
-    other polygon inside that plane. Exact for crossings, coplanar overlaps included.
+    Regions are planar convex polygons (``corners``: bent corner positions, stacked as in
+    ``edges``). Regions sharing a ruling meet along it and bend by less than pi there, so only
+    non-adjacent pairs can cross. Two cheap exact tests, for all pairs at once, set most pairs
+    apart: their bounding boxes grown by ``clearance`` miss each other, or one polygon lies
+    wholly beyond ``clearance`` on one side of the other's plane. For the rest, the slice of
+    one near the other's plane is compared with the other polygon inside that plane. Exact
+    for crossings, coplanar overlaps included.
     """
-    n_regions = len(corners)
-    normals = np.array([rotation[:, 2] for rotation in rotations])
-    origins = np.array([c[0] for c in corners])
-    owner = np.concatenate([np.full(len(c), r) for r, c in enumerate(corners)])
-    stacked = np.concatenate(corners)
+    start = edges.start
+    low = np.minimum.reduceat(corners, start, axis=0) - clearance
+    high = np.maximum.reduceat(corners, start, axis=0) + clearance
+    boxes_meet = np.all((low[:, None] <= high[None]) & (low[None] <= high[:, None]), axis=2)
+    candidates = boxes_meet & ~adjacent
+    candidates[np.tril_indices(len(start))] = False  # each pair once, a < b
+    if not candidates.any():
+        return None
+    normals = rotations[:, :, 2]
+    origins = corners[start]
     # heights[r, k]: height of corner k above the plane of region r.
-    heights = np.einsum("rj,rkj->rk", normals, stacked[None] - origins[:, None])
-    above = np.full((n_regions, n_regions), -np.inf)
-    below = np.full((n_regions, n_regions), np.inf)
-    for r in range(n_regions):
-        above[:, r] = heights[:, owner == r].max(axis=1)
-        below[:, r] = heights[:, owner == r].min(axis=1)
+    heights = normals @ corners.T - np.einsum("rj,rj->r", normals, origins)[:, None]
+    above = np.maximum.reduceat(heights, start, axis=1)  # [a, b]: highest corner of b above a
+    below = np.minimum.reduceat(heights, start, axis=1)
     beyond = (below > clearance) | (above < -clearance)  # [a, b]: b wholly off a's plane
-    for a in range(n_regions):
-        for b in range(a + 1, n_regions):
-            if adjacent[a, b] or beyond[a, b] or beyond[b, a]:
-                continue
-            piece = _clip_to_slab(corners[b], heights[a, owner == b], clearance)
-            if not len(piece):
-                continue
-            basis = rotations[a][:, :2]
-            if _convex_sets_overlap((corners[a] - origins[a]) @ basis, (piece - origins[a]) @ basis):
-                return a, b
+    stop = np.concatenate([start[1:], [len(corners)]])
+    for a, b in zip(*np.nonzero(candidates & ~beyond & ~beyond.T)):
+        piece = _clip_to_slab(corners[start[b] : stop[b]], heights[a, start[b] : stop[b]], clearance)
+        if not len(piece):
+            continue
+        basis = rotations[a][:, :2]
+        if _convex_sets_overlap((corners[start[a] : stop[a]] - origins[a]) @ basis, (piece - origins[a]) @ basis):
+            return int(a), int(b)
     return None
 
 
@@ -660,106 +771,95 @@ def _find_self_intersection(
 
 
 def _assemble(
-    width: float, height: float, border: _Border, chords: list[_Chord], guides: list[Ruling], options: _Options
+    width: float, height: float, border: _Border, chords: _Chords, guides: list[Ruling], options: _Options
 ) -> SheetMesh:
     """Regions, their rigid transforms, the self-intersection checks, then the mesh."""
-    builder = _MeshBuilder(border, chords, options)
-    points, regions = builder.build()
-    is_corner = builder.is_corner
-    edges = _RegionEdges.of(regions, points)
+    layout = _trace_layout(border, chords)
+    edges = _RegionEdges.of(layout)
+    n_regions, n_chords = len(layout.counts), len(chords)
 
-    # Region graph: each ruling borders exactly two regions.
-    sides: dict[int, list[tuple[int, int, int]]] = {}
-    for r, region in enumerate(regions):
-        for chord_index, start, end in region.crossings:
-            sides.setdefault(chord_index, []).append((r, start, end))
-    n_regions = len(regions)
-    adjacent = np.zeros((n_regions, n_regions), bool)
-    neighbours: list[list[tuple[int, int, int, int]]] = [[] for _ in regions]
-    for chord_index, ((r0, s0, e0), (r1, s1, e1)) in sides.items():
-        adjacent[r0, r1] = adjacent[r1, r0] = True
+    # Region graph (a tree): each ruling borders exactly two regions.
+    sides = layout.crossings[np.argsort(layout.crossings[:, 1], kind="stable")]
+    by_chord = sides.tolist()
+    neighbours: list[list[tuple[int, int, int, int]]] = [[] for _ in range(n_regions)]
+    for (r0, chord_index, s0, e0), (r1, _, s1, e1) in zip(by_chord[::2], by_chord[1::2]):
         neighbours[r0].append((r1, chord_index, s1, e1))
         neighbours[r1].append((r0, chord_index, s0, e0))
+    adjacent = np.zeros((n_regions, n_regions), bool)
+    adjacent[sides[0::2, 0], sides[1::2, 0]] = adjacent[sides[1::2, 0], sides[0::2, 0]] = True
 
     # Reference region: the one holding the sheet centre (the deepest inside, if on a ruling).
     reference = int(np.argmin(edges.depth(np.array([[width / 2.0, height / 2.0]]))[0]))
 
-    # Bends adding up along a path: a sheet curled past max_total_bend is rejected.
-    bend_from = np.zeros((n_regions, n_regions))
-    for source in range(n_regions):
-        seen = {source}
-        queue = deque([source])
-        while queue:
-            r = queue.popleft()
-            for other, chord_index, _, _ in neighbours[r]:
-                if other not in seen:
-                    seen.add(other)
-                    bend_from[source, other] = bend_from[source, r] + chords[chord_index].angle
-                    queue.append(other)
-    worst = float(np.max(np.abs(bend_from)))
-    if options.check_self_intersection and worst > options.max_total_bend + 1e-12:
-        raise SelfIntersection(
-            f"bends add up to {math.degrees(worst):.0f} degrees between two regions "
-            f"(limit {math.degrees(options.max_total_bend):.0f}): the sheet would curl into itself"
-        )
-
-    # Rigid transforms, breadth first from the reference region: T_child = T_parent o Rot(ruling).
-    origin = np.array([width / 2.0, height / 2.0, 0.0])
-    rotations = [np.eye(3)] * n_regions
-    translations = [np.zeros(3)] * n_regions
+    # Breadth first from the reference region: each region's parent and the ruling crossed to
+    # reach it (traversed start -> end with the child on the left).
+    parent = list(range(n_regions))
+    via = [(0, 0, 0)] * n_regions  # (chord, start id, end id)
+    depth = [0] * n_regions
     order = [reference]
-    seen = {reference}
-    queue = deque([reference])
-    while queue:
-        parent = queue.popleft()
-        for child, chord_index, start, end in neighbours[parent]:
-            if child in seen:
-                continue
-            seen.add(child)
-            order.append(child)
-            queue.append(child)
-            # The child traverses the ruling start -> end with itself on the left, so a
-            # rotation by +angle about that direction lifts it towards +z (valley fold).
-            a = np.append(points[start], 0.0) - origin
-            b = np.append(points[end], 0.0) - origin
-            axis = (b - a) / np.linalg.norm(b - a)
-            local = _rotation(axis, chords[chord_index].angle)
-            rotations[child] = rotations[parent] @ local
-            translations[child] = rotations[parent] @ (a - local @ a) + translations[parent]
+    for r in order:  # grows while it is read: a breadth-first queue
+        for child, chord_index, start, end in neighbours[r]:
+            if child != reference and parent[child] == child:
+                parent[child], via[child], depth[child] = r, (chord_index, start, end), depth[r] + 1
+                order.append(child)
 
-    # Regions are rigid planar polygons: check them before spending time on the mesh.
-    if options.check_self_intersection:
-        corners = []
-        for r, region in enumerate(regions):
-            flat_corners = np.column_stack([points[region.corner_ids], np.zeros(len(region.corner_ids))]) - origin
-            corners.append(flat_corners @ rotations[r].T + translations[r])
-        found = _find_self_intersection(corners, rotations, adjacent, options.clearance)
+    # Every region's transform T_r = T_parent o Rot(ruling to the parent) and the rulings on
+    # its path from the reference, composed by pointer jumping (log2(depth) batched rounds).
+    # The child traverses its ruling start -> end with itself on the left, so a rotation by
+    # +angle about that direction lifts it towards +z (valley fold).
+    origin = np.array([width / 2.0, height / 2.0, 0.0])
+    flat3 = np.column_stack([layout.points, np.zeros(len(layout.points))]) - origin
+    transforms = np.zeros((n_regions, 4, 4))
+    transforms[:, [0, 1, 2, 3], [0, 1, 2, 3]] = 1.0
+    on_path = np.zeros((n_regions, n_chords))
+    if n_chords:
+        children = np.array(order[1:])
+        chord_index, start, end = np.array([via[c] for c in order[1:]]).T
+        transforms[children] = _local_transforms(flat3[start], flat3[end], chords.angle[chord_index])
+        on_path[children, chord_index] = 1.0
+        jump = np.array(parent)
+        for _ in range(max(depth).bit_length()):
+            transforms = transforms[jump] @ transforms
+            on_path += on_path[jump]
+            jump = jump[jump]
+    rotations, translations = transforms[:, :3, :3], transforms[:, :3, 3]
+
+    if options.check_self_intersection and n_chords:
+        # Bends adding up along a path: a sheet curled past max_total_bend is rejected. The
+        # path between a and b holds the rulings on exactly one of their paths from the reference.
+        to_reference = on_path @ chords.angle
+        shared = (on_path * chords.angle) @ on_path.T
+        worst = float(np.max(np.abs(to_reference[:, None] + to_reference[None] - 2.0 * shared)))
+        if worst > options.max_total_bend + 1e-12:
+            raise SelfIntersection(
+                f"bends add up to {math.degrees(worst):.0f} degrees between two regions "
+                f"(limit {math.degrees(options.max_total_bend):.0f}): the sheet would curl into itself"
+            )
+        # Regions are rigid planar polygons: check them before spending time on the mesh.
+        corners = np.einsum("nij,nj->ni", rotations[edges.region], flat3[layout.ids]) + translations[edges.region]
+        found = _find_self_intersection(corners, edges, rotations, adjacent, options.clearance)
         if found is not None:
             raise SelfIntersection(
                 f"regions {found[0]} and {found[1]} of the bent sheet pass through each other "
                 f"(or come within {options.clearance:.3g} m)"
             )
 
-    # Triangulate each region; vertices on rulings are shared by both neighbours.
-    nx = max(1, round(width / options.mesh_step))
-    ny = max(1, round(height / options.mesh_step))
-    gx, gy = np.meshgrid((np.arange(nx) + 0.5) * width / nx, (np.arange(ny) + 0.5) * height / ny)
-    grid = np.stack([gx.ravel(), gy.ravel()], axis=1)
-    faces, face_regions, interior, interior_regions = _triangulate_regions(regions, edges, points, is_corner, grid, options)
-    flat = np.concatenate([points, interior])
+    if options.max_edge is None:
+        flat = layout.points
+        faces, face_regions = _minimal_mesh(layout)
+    else:
+        flat, faces, face_regions = _refined_mesh(layout, edges, width, height, options.max_edge)
+        flat3 = np.column_stack([flat, np.zeros(len(flat))]) - origin
 
-    # Each vertex moves with the region holding it; a vertex on a ruling with the neighbour
+    # Each vertex moves with a region holding it; a vertex on a ruling with the neighbour
     # nearest the reference (both agree there, up to round-off).
     rank = np.empty(n_regions, np.int64)
     rank[order] = np.arange(n_regions)
-    owner_rank = np.full(len(points), n_regions)
-    for r, region in enumerate(regions):
-        np.minimum.at(owner_rank, region.chain, rank[r])
-    owner = np.concatenate([np.asarray(order)[owner_rank], interior_regions])
-    flat3 = np.column_stack([flat, np.zeros(len(flat))]) - origin
-    vertices = np.einsum("vij,vj->vi", np.array(rotations)[owner], flat3) + np.array(translations)[owner]
+    owner_rank = np.full(len(flat), n_regions)
+    np.minimum.at(owner_rank, faces.ravel(), np.repeat(rank[face_regions], 3))
+    owner = np.asarray(order)[owner_rank]
+    vertices = np.einsum("vij,vj->vi", rotations[owner], flat3) + translations[owner]
 
-    fold_lines = [(tuple(map(float, c.p0)), tuple(map(float, c.p1)), float(c.angle)) for c in chords]
     return SheetMesh(
         flat=flat,
         vertices=vertices,
@@ -767,8 +867,8 @@ def _assemble(
         uv=flat / np.array([width, height]),
         width=float(width),
         height=float(height),
-        rulings=list(guides),
-        fold_lines=fold_lines,
+        rulings=guides,
+        fold_lines=chords.as_rulings(),
         face_regions=face_regions,
     )
 
@@ -779,14 +879,16 @@ def build_sheet(
     """A bent sheet from given guiding rulings ``(p0, p1, angle)`` (flat end points on the
     border, radians, positive = valley fold seen from +z).
 
-    Options (all keyword, lengths in metres): ``mesh_step`` (target edge length, default
-    sqrt(W H)/16, at most min(W, H)/4), ``smooth_steps`` (interpolated rulings per guiding
-    ruling, default 3; 1 is a sharp crease), ``bend_spacing`` (border distance between
-    them, default 0.75 mesh_step),
-    ``corner_gap`` (ruling ends kept this far from corners, default 0.5 mesh_step),
-    ``min_strip`` (least distance between rulings, default 0.3 mesh_step),
-    ``max_total_bend`` (radians, default 3π/2), ``clearance`` (non-neighbouring regions
-    closer than this count as touching, default 0.002 max(W, H)),
+    Options (all keyword, lengths in metres): ``max_edge`` (None, the default: the minimal
+    exact mesh, sheet corners and ruling ends only; a length: a refined mesh, border and
+    rulings subdivided into edges at most that long and grid points at that spacing inside
+    every region), ``mesh_step`` (the layout's length scale, from which the spacings below
+    default; default sqrt(W H)/16, at most min(W, H)/4), ``smooth_steps`` (interpolated
+    rulings per guiding ruling, default 3; 1 is a sharp crease), ``bend_spacing`` (border
+    distance between them, default 0.75 mesh_step), ``corner_gap`` (ruling ends kept this far
+    from corners, default 0.5 mesh_step), ``min_strip`` (least distance between rulings,
+    default 0.3 mesh_step), ``max_total_bend`` (radians, default 3π/2), ``clearance``
+    (non-neighbouring regions closer than this count as touching, default 0.002 max(W, H)),
     ``check_self_intersection`` (default True; False skips both the curl limit and the
     geometric test).
 
@@ -812,9 +914,8 @@ def build_sheet(
                 f"ruling {index}: bending angle {angle!r} must be finite and below pi in magnitude"
             )
         guides.append((border.position(p0, tol), border.position(p1, tol), angle))
-    chords = _expand(border, guides, options)
+    chords, guide_rulings = _expand(border, np.array(guides, np.float64).reshape(-1, 3), options)
     _validate_layout(border, chords, options)
-    guide_rulings = [(border.point(s0), border.point(s1), angle) for s0, s1, angle in guides]
     return _assemble(width, height, border, chords, guide_rulings, options)
 
 
@@ -823,10 +924,10 @@ def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height:
 
     Bending angles are uniform in [min_angle, max_angle] (default 10°–50°) with a random sign.
     Deterministic for the same ``rng`` state. Raises SelfIntersection (with ``.reason``) when
-    the sampled sheet passes through itself: the caller resamples. Other options as in
+    the sampled sheet passes through itself: the caller resamples. Options as in
     ``build_sheet``, plus ``min_gap`` (border distance between the interpolated families of
-    two guiding rulings, default mesh_step) and ``max_tries`` (layouts drawn before giving up
-    on the geometric constraints, default 200).
+    two guiding rulings, default mesh_step), ``min_angle``/``max_angle`` and ``max_tries``
+    (layouts drawn before giving up on the geometric constraints, default 200).
     """
     if isinstance(n_rulings, bool) or not isinstance(n_rulings, (int, np.integer)):
         raise TypeError(f"n_rulings must be an integer, got {n_rulings!r}")
@@ -840,7 +941,8 @@ def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height:
     options = _options(width, height, opts)
     border = _Border(width, height)
     if n_rulings == 0:
-        return _assemble(width, height, border, [], [], options)
+        chords, _ = _expand(border, np.zeros((0, 3)), options)
+        return _assemble(width, height, border, chords, [], options)
     last_problem = None
     for _ in range(options.max_tries):
         guides = _sample_guides(int(n_rulings), rng, border, options)
@@ -851,13 +953,12 @@ def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height:
                 f"{options.mesh_step:g} (each needs about {border_per_ruling:.3g} of border on both ends): "
                 "use fewer rulings, fewer smooth_steps or a smaller mesh_step"
             )
-        chords = _expand(border, guides, options)
+        chords, guide_rulings = _expand(border, guides, options)
         try:
             _validate_layout(border, chords, options)
         except RulingLayoutError as problem:
             last_problem = problem
             continue
-        guide_rulings = [(border.point(s0), border.point(s1), angle) for s0, s1, angle in guides]
         return _assemble(width, height, border, chords, guide_rulings, options)
     raise ValueError(
         f"no valid layout of {n_rulings} rulings in {options.max_tries} tries; last problem: {last_problem}"

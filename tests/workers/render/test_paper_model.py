@@ -7,6 +7,8 @@ faces, rulings) rather than trusting the module's own bookkeeping.
 from __future__ import annotations
 
 import math
+from collections import Counter
+from functools import lru_cache
 
 import numpy as np
 import pytest
@@ -81,6 +83,35 @@ def segment_hits_triangle(p, q, a, b, c) -> np.ndarray:
     return usable & (u >= 0) & (v >= 0) & (u + v <= 1) & (t >= 0) & (t <= 1)
 
 
+def region_polygon(faces: np.ndarray) -> list[int]:
+    """The boundary of a triangulated disk (edges used once), counter-clockwise from its
+    smallest vertex id."""
+    edges = edges_of(faces)
+    uses = Counter(map(frozenset, edges.tolist()))
+    following = {int(a): int(b) for a, b in edges if uses[frozenset((a, b))] == 1}
+    polygon = [min(following)]
+    while following[polygon[-1]] != polygon[0]:
+        polygon.append(following[polygon[-1]])
+    assert len(polygon) == len(following), "a region's boundary is one loop"
+    return polygon
+
+
+def best_smallest_angle(corners: np.ndarray) -> float:
+    """Brute force over every triangulation of a convex polygon (dynamic programming over its
+    corner intervals): the largest smallest angle any of them reaches."""
+
+    @lru_cache(maxsize=None)
+    def best(i: int, j: int) -> float:
+        if j - i < 2:
+            return math.inf
+        return max(
+            min(best(i, m), best(m, j), triangle_angles(corners, np.array([[i, m, j]])).min())
+            for m in range(i + 1, j)
+        )
+
+    return best(0, len(corners) - 1)
+
+
 def count_crossing_triangles(mesh: SheetMesh) -> int:
     """Brute force: pairs of triangles from regions that share no vertex (regions that do
     share one meet along a ruling) where an edge of one pierces the other."""
@@ -119,8 +150,25 @@ def assert_valid_sheet(mesh: SheetMesh) -> None:
 
     # Counter-clockwise, non-degenerate triangles that tile the flat sheet exactly.
     areas = signed_flat_areas(flat, faces)
-    assert areas.min() > 0.02 * width * height / len(faces), "no sliver: every triangle has 2% of the mean area"
+    assert areas.min() > 0, "every triangle is counter-clockwise, none degenerate"
     assert math.isclose(areas.sum(), width * height, rel_tol=1e-12)
+    tol = 1e-9 * scale
+    on_border = np.any(border_sides(flat, width, height, tol), axis=1)
+    minimal = bool(on_border.all())
+    if minimal:
+        # The minimal mesh: sheet corners and ruling ends only (a disk with every vertex on
+        # its boundary has V - 2 triangles), each region triangulated with the largest
+        # smallest angle any triangulation of its corners reaches: no needless sliver.
+        assert len(flat) == 4 + 2 * len(mesh.fold_lines) and len(faces) == len(flat) - 2
+        angles = triangle_angles(flat, faces).min(axis=1)
+        for region in np.unique(mesh.face_regions):
+            mine = mesh.face_regions == region
+            polygon = region_polygon(faces[mine])
+            assert len(polygon) == mine.sum() + 2, "a region's triangles use its corners only"
+            best = best_smallest_angle(flat[polygon])
+            assert angles[mine].min() >= best * (1 - 1e-9), "a region has a needlessly thin triangle"
+    else:
+        assert areas.min() > 0.02 * width * height / len(faces), "no sliver: every triangle has 2% of the mean area"
 
     # Isometry: edge lengths and triangle angles equal the flat sheet's.
     flat3 = np.column_stack([flat, np.zeros(len(flat))])
@@ -134,7 +182,6 @@ def assert_valid_sheet(mesh: SheetMesh) -> None:
     keys, counts = np.unique(np.sort(edges, axis=1), axis=0, return_counts=True)
     assert counts.max() == 2, "an edge belongs to more than two triangles"
     open_edges = keys[counts == 1]
-    tol = 1e-9 * scale
     sides0 = border_sides(flat[open_edges[:, 0]], width, height, tol)
     sides1 = border_sides(flat[open_edges[:, 1]], width, height, tol)
     assert np.all(np.any(sides0 & sides1, axis=1)), "an open edge is not along the sheet border"
@@ -142,10 +189,13 @@ def assert_valid_sheet(mesh: SheetMesh) -> None:
         np.linalg.norm(flat[open_edges[:, 0]] - flat[open_edges[:, 1]], axis=1).sum(), 2 * (width + height), rel_tol=1e-12
     ), "the open edges are exactly the border"
 
-    # Interior vertices: the bent triangle angles around them still add up to 2π.
-    on_border = np.any(border_sides(flat, width, height, tol), axis=1)
+    # The bent triangle angles around every vertex add up as on the flat sheet: 2π inside,
+    # π on a side, π/2 at a sheet corner.
+    n_sides = border_sides(flat, width, height, tol).sum(axis=1)
+    expected = np.choose(n_sides, [2 * np.pi, np.pi, np.pi / 2])
     angle_sums = np.bincount(faces.ravel(), weights=triangle_angles(vertices, faces).ravel(), minlength=len(flat))
-    np.testing.assert_allclose(angle_sums[~on_border], 2 * np.pi, rtol=1e-9)
+    np.testing.assert_allclose(angle_sums, expected, rtol=1e-9)
+    assert np.sum(n_sides == 2) == 4, "the four sheet corners are vertices"
 
     # Rulings: both ends on the border, on two different sides, no two touching or crossing.
     lines = mesh.fold_lines
@@ -158,6 +208,14 @@ def assert_valid_sheet(mesh: SheetMesh) -> None:
         p0, p1 = (np.array([line[k] for line in lines]) for k in (0, 1))
         i, j = np.triu_indices(len(lines), 1)
         assert not np.any(segments_cross(p0[i].T, p1[i].T, p0[j].T, p1[j].T)), "two rulings cross or touch"
+
+    # Every fold line is one edge of the minimal mesh, shared by triangles of two regions.
+    if minimal:
+        for p0, p1, _ in lines:
+            i, j = (int(np.argmin(np.linalg.norm(flat - np.asarray(p), axis=1))) for p in (p0, p1))
+            np.testing.assert_allclose(flat[[i, j]], [p0, p1], rtol=0, atol=tol)
+            along = np.flatnonzero(np.isin(faces, [i, j]).sum(axis=1) == 2)
+            assert len(along) == 2 and mesh.face_regions[along[0]] != mesh.face_regions[along[1]]
 
     # No triangle straddles a ruling: its vertices are all on one side or on the line.
     for p0, p1, _ in lines:
@@ -193,6 +251,27 @@ def assert_valid_sheet(mesh: SheetMesh) -> None:
     np.testing.assert_allclose(vertices[fixed, 2], 0.0, atol=1e-12)
 
 
+def assert_same_surface(fine: SheetMesh, coarse: SheetMesh) -> None:
+    """Both meshes are the same bent sheet: every vertex of ``fine`` sits, in 3D, where the
+    ``coarse`` triangle holding its flat position puts it (regions are planar and rigid, so
+    barycentric interpolation inside a triangle is exact)."""
+    assert fine.rulings == coarse.rulings and fine.fold_lines == coarse.fold_lines
+    tri = coarse.flat[coarse.faces]  # (F, 3, 2)
+    twice_area = signed_flat_areas(coarse.flat, coarse.faces) * 2
+    weights = np.stack(
+        [
+            orientation(tri[:, (k + 1) % 3].T[:, None], tri[:, (k + 2) % 3].T[:, None], fine.flat.T[:, :, None])
+            for k in range(3)
+        ],
+        axis=2,
+    ) / twice_area[None, :, None]  # (V, F, 3) barycentric coordinates
+    holding = np.argmax(weights.min(axis=2), axis=1)
+    assert np.all(weights.min(axis=2).max(axis=1) > -1e-9), "a vertex lies outside the coarse sheet"
+    chosen = weights[np.arange(len(fine.flat)), holding]
+    predicted = np.einsum("vk,vkj->vj", chosen, coarse.vertices[coarse.faces[holding]])
+    np.testing.assert_allclose(fine.vertices, predicted, rtol=0, atol=1e-12 * max(fine.width, fine.height))
+
+
 # -- sampled sheets -------------------------------------------------------------------------
 
 
@@ -205,12 +284,17 @@ def test_sampled_sheets_are_isometric_and_well_meshed(n_rulings):
         except SelfIntersection as error:
             rejected.append(error.reason)
             continue
-        assert len(mesh.rulings) == n_rulings
-        assert 200 <= len(mesh.faces) <= 2500, "meshes stay modest"
+        assert len(mesh.rulings) == n_rulings and len(mesh.fold_lines) == 3 * n_rulings
+        assert len(mesh.faces) == 2 * len(mesh.fold_lines) + 2, "minimal mesh: two triangles per fold line, plus two"
         assert_valid_sheet(mesh)
         # The sheet really bends: every guiding ruling has its angle, and something leaves z=0.
         assert all(math.radians(10) - 1e-12 <= abs(angle) <= math.radians(50) + 1e-12 for *_, angle in mesh.rulings)
         assert np.ptp(mesh.vertices[:, 2]) > 1e-3
+        if seed % 10 == 0:  # the refined mesh of the same draw: the same sheet, more triangles
+            fine = sample_sheet(n_rulings, np.random.default_rng(seed), *A4, max_edge=0.015)
+            assert 200 <= len(fine.faces) <= 2500, "refined meshes stay modest"
+            assert_valid_sheet(fine)
+            assert_same_surface(fine, mesh)
     assert len(rejected) <= len(SEEDS) // 5, f"too many self-intersecting samples: {rejected}"
 
 
@@ -250,6 +334,7 @@ def test_sharp_creases_and_other_sheet_shapes():
 def test_no_rulings_gives_the_flat_sheet():
     mesh = sample_sheet(0, np.random.default_rng(0), *A4)
     assert mesh.rulings == [] and mesh.fold_lines == []
+    assert len(mesh.flat) == 4 and len(mesh.faces) == 2, "two triangles make the flat sheet"
     assert_valid_sheet(mesh)
     np.testing.assert_array_equal(mesh.vertices[:, 2], 0.0)
     np.testing.assert_allclose(mesh.vertices[:, :2], mesh.flat - np.array(A4) / 2)
@@ -258,6 +343,60 @@ def test_no_rulings_gives_the_flat_sheet():
         mesh.vertices[mesh.faces[:, 2]] - mesh.vertices[mesh.faces[:, 0]],
     )
     assert np.all(normals[:, 2] > 0), "faces are counter-clockwise, normals towards +z"
+
+
+def test_refined_mesh_is_the_same_sheet_with_short_edges():
+    width, height = A4
+    coarse = sample_sheet(5, np.random.default_rng(7), width, height)
+    sizes = []
+    for max_edge in (0.05, 0.02, 0.008):
+        fine = sample_sheet(5, np.random.default_rng(7), width, height, max_edge=max_edge)
+        assert_valid_sheet(fine)
+        assert_same_surface(fine, coarse)
+        # Border and rulings are cut into edges no longer than max_edge; grid points fill the
+        # regions' insides (vertices off the border and off every ruling).
+        edges = np.unique(np.sort(edges_of(fine.faces), axis=1), axis=0)
+        lengths = np.linalg.norm(fine.flat[edges[:, 0]] - fine.flat[edges[:, 1]], axis=1)
+        tol = 1e-9 * width
+        on_line = [border_sides(fine.flat, width, height, tol)]  # (V, lines): on the border's sides, the rulings
+        for p0, p1, _ in fine.fold_lines:
+            p0, p1 = np.asarray(p0), np.asarray(p1)
+            direction = (p1 - p0) / np.linalg.norm(p1 - p0)
+            across = (fine.flat[:, 0] - p0[0]) * direction[1] - (fine.flat[:, 1] - p0[1]) * direction[0]
+            on_line.append((np.abs(across) <= tol)[:, None])
+        on_line = np.concatenate(on_line, axis=1)
+        along_lines = np.any(on_line[edges[:, 0]] & on_line[edges[:, 1]], axis=1)
+        assert lengths[along_lines].max() <= max_edge * (1 + 1e-9)
+        on_line = on_line.any(axis=1)
+        assert (~on_line).sum() > 0
+        sizes.append(len(fine.faces))
+    assert len(coarse.faces) < sizes[0] < sizes[1] < sizes[2]
+
+
+def test_a_region_with_many_corners_gets_its_fattest_triangulation():
+    width, height = A4
+    # Four corner cuts leave an octagon in the middle (a tree of regions, not a chain); a
+    # fan from any one corner of it would be thinner than the best triangulation.
+    cuts = [
+        ((0.03, 0.0), (0.0, 0.04), 0.4),
+        ((0.21, 0.05), (0.17, 0.0), -0.5),
+        ((0.16, 0.297), (0.21, 0.25), 0.6),
+        ((0.0, 0.24), (0.05, 0.297), -0.3),
+    ]
+    mesh = build_sheet(width, height, cuts, smooth_steps=1)
+    assert_valid_sheet(mesh)  # checks every region against the best of all its triangulations
+    corners_per_region = np.bincount(mesh.face_regions) + 2
+    assert sorted(corners_per_region.tolist()) == [3, 3, 3, 3, 8]
+    octagon = np.argmax(corners_per_region)
+    fans = []
+    polygon = region_polygon(mesh.faces[mesh.face_regions == octagon])
+    for apex in range(8):
+        order = np.roll(polygon, -apex)
+        fan = np.array([[order[0], order[j], order[j + 1]] for j in range(1, 7)])
+        fans.append(triangle_angles(mesh.flat, fan).min())
+    mine = triangle_angles(mesh.flat, mesh.faces[mesh.face_regions == octagon]).min()
+    assert mine > max(fans) * 1.05
+    assert_same_surface(build_sheet(width, height, cuts, smooth_steps=1, max_edge=0.02), mesh)
 
 
 # -- given rulings --------------------------------------------------------------------------
@@ -432,6 +571,11 @@ def test_bad_arguments_are_clear_errors():
         sample_sheet(2, rng, *A4, wiggle=3)
     with pytest.raises(ValueError, match="smooth_steps"):
         sample_sheet(2, rng, *A4, smooth_steps=0)
+    for max_edge, error in ((0.0, ValueError), (-0.01, ValueError), (float("inf"), ValueError), ("fine", TypeError)):
+        with pytest.raises(error, match="max_edge"):
+            sample_sheet(2, rng, *A4, max_edge=max_edge)
+    with pytest.raises(ValueError, match="max_edge 1e-05 .* over 1000000 vertices"):
+        sample_sheet(2, rng, *A4, max_edge=1e-5)
     with pytest.raises(ValueError, match="max_angle"):
         sample_sheet(2, rng, *A4, max_angle=4.0)
     with pytest.raises(ValueError, match="do not fit"):
