@@ -421,6 +421,8 @@ class _Layout:
     counts: np.ndarray  # corners per region
     start: np.ndarray  # where each region's corners begin in ids
     crossings: np.ndarray  # (2n, 4) rows (region, chord, start id, end id): a ruling as its region traverses it
+    first_crossing: np.ndarray  # where each region's rows begin in crossings (they are stacked region by region)
+    sides: list[list[tuple[int, int, int]]]  # per chord: its two (region, start id, end id)
 
     @property
     def polygons(self) -> list[np.ndarray]:
@@ -434,11 +436,14 @@ def _trace_layout(border: _Border, chords: _Chords) -> _Layout:
     points = np.empty((4 + 2 * n, 2))
     points[:4], points[4::2], points[5::2] = border.corner_points, chords.p0, chords.p1
     if n == 0:
-        return _Layout(points, np.arange(4), np.array([4]), np.array([0]), np.zeros((0, 4), np.int64))
+        no_crossings = np.zeros((0, 4), np.int64)
+        return _Layout(points, np.arange(4), np.array([4]), np.array([0]), no_crossings, np.array([0]), [])
     positions = np.empty(4 + 2 * n)
     positions[:4], positions[4::2], positions[5::2] = border.corners, chords.s0, chords.s1
     sequence = np.argsort(positions, kind="stable").tolist()
-    first_end = next(k for k, vertex in enumerate(sequence) if vertex >= 4)
+    first_end = 0
+    while sequence[first_end] < 4:
+        first_end += 1
     sequence = sequence[first_end:] + sequence[:first_end]
     # For each end (by vertex id): the sheet corners after it along the border, and the next end.
     corners_after: list[list[int]] = [[] for _ in range(4 + 2 * n)]
@@ -455,24 +460,35 @@ def _trace_layout(border: _Border, chords: _Chords) -> _Layout:
     ids: list[int] = []
     counts: list[int] = []
     crossings: list[tuple[int, int, int, int]] = []
+    first_crossing: list[int] = []
+    sides: list[list[tuple[int, int, int]]] = [[] for _ in range(n)]
     for first in sequence:
         if first < 4 or visited[first]:
             continue
         region, size = len(counts), len(ids)
+        first_crossing.append(len(crossings))
         current = first
         while True:
             visited[current] = True
             following = next_end[current]
             partner = following ^ 1  # the other end of the same ruling (ids 4 + 2c, 5 + 2c)
             ids += [current, *corners_after[current], following]
-            crossings.append((region, (following - 4) >> 1, following, partner))
+            chord = (following - 4) >> 1
+            crossings.append((region, chord, following, partner))
+            sides[chord].append((region, following, partner))
             current = partner
             if current == first:
                 break
         counts.append(len(ids) - size)
     counts_arr = np.array(counts)
     return _Layout(
-        points, np.array(ids), counts_arr, np.cumsum(counts_arr) - counts_arr, np.array(crossings, np.int64)
+        points,
+        np.array(ids),
+        counts_arr,
+        np.cumsum(counts_arr) - counts_arr,
+        np.array(crossings, np.int64),
+        np.array(first_crossing),
+        sides,
     )
 
 
@@ -511,18 +527,25 @@ class _RegionEdges:
 
 
 def _local_transforms(a: np.ndarray, b: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """(n, 4, 4) homogeneous rotations by ``angles`` about the lines through a[i] and b[i]
-    (Rodrigues; positive = counter-clockwise looking from b towards a)."""
-    axes = b - a
-    axes /= np.sqrt((axes * axes).sum(axis=1))[:, None]
-    sin, cos = np.sin(angles)[:, None, None], np.cos(angles)[:, None, None]
-    cross = np.zeros((len(a), 9))  # the matrix of axis x (.), row by row
-    cross[:, [1, 2, 3, 5, 6, 7]] = axes[:, [2, 1, 2, 0, 1, 0]] * (-1.0, 1.0, 1.0, -1.0, -1.0, 1.0)
-    rotation = cos * np.eye(3) + sin * cross.reshape(-1, 3, 3) + (1.0 - cos) * (axes[:, :, None] * axes[:, None, :])
+    """(n, 4, 4) homogeneous rotations by ``angles`` about the lines through a[i] and b[i],
+    points of the z = 0 plane (Rodrigues with a horizontal axis, entry by entry; positive =
+    counter-clockwise looking from b towards a)."""
+    ux, uy = (b[:, 0] - a[:, 0]), (b[:, 1] - a[:, 1])
+    length = np.hypot(ux, uy)
+    ux, uy = ux / length, uy / length
+    sin, cos = np.sin(angles), np.cos(angles)
+    versine = 1.0 - cos
     transforms = np.zeros((len(a), 4, 4))
-    transforms[:, :3, :3] = rotation
-    transforms[:, :3, 3] = a - (rotation @ a[:, :, None])[:, :, 0]  # the line stays put
+    transforms[:, 0, 0] = cos + ux * ux * versine
+    transforms[:, 0, 1] = transforms[:, 1, 0] = ux * uy * versine
+    transforms[:, 0, 2], transforms[:, 2, 0] = uy * sin, -uy * sin
+    transforms[:, 1, 1] = cos + uy * uy * versine
+    transforms[:, 1, 2], transforms[:, 2, 1] = -ux * sin, ux * sin
+    transforms[:, 2, 2] = cos
     transforms[:, 3, 3] = 1.0
+    # The line stays put: translation a - R a (a has z = 0).
+    ax, ay = a[:, 0], a[:, 1]
+    transforms[:, :3, 3] = a - transforms[:, :3, 0] * ax[:, None] - transforms[:, :3, 1] * ay[:, None]
     return transforms
 
 
@@ -615,13 +638,14 @@ def _subdivide(a: np.ndarray, b: np.ndarray, step: float) -> np.ndarray:
 
 
 def _refined_mesh(
-    layout: _Layout, edges: _RegionEdges, width: float, height: float, max_edge: float
+    layout: _Layout, width: float, height: float, max_edge: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every region triangulated from its subdivided boundary plus the grid points well inside
     it (Delaunay). Points on a ruling are made once and shared by both regions. Returns the
     flat vertices (layout points first), faces (ccw) and the region of each face."""
     from scipy.spatial import Delaunay  # noqa: PLC0415 - scipy comes with scikit-image (render extra)
 
+    edges = _RegionEdges.of(layout)
     points = layout.points
     blocks = [points]
     n_points = len(points)
@@ -694,10 +718,11 @@ def _refined_mesh(
 # -- self-intersection ----------------------------------------------------------------------
 
 
-def _clip_to_slab(polygon: np.ndarray, heights: np.ndarray, clearance: float) -> np.ndarray:
-    """The part of a convex polygon (n, 3) with |height| <= clearance (Sutherland-Hodgman
-    against the two faces of the slab); with clearance 0, where it meets the plane."""
-    points, values = list(polygon), heights.tolist()
+def _clip_to_slab(polygon: list[list[float]], heights: list[float], clearance: float) -> np.ndarray:
+    """The part of a convex polygon (corners as [x, y, z] lists, their heights above a plane)
+    with |height| <= clearance (Sutherland-Hodgman against the two faces of the slab); with
+    clearance 0, where it meets the plane. In plain floats: a handful of corners."""
+    points, values = polygon, heights
     for sign in (1.0, -1.0):  # keep sign * height <= clearance
         kept_points, kept_values = [], []
         n = len(points)
@@ -709,7 +734,7 @@ def _clip_to_slab(polygon: np.ndarray, heights: np.ndarray, clearance: float) ->
                 kept_values.append(values[k])
             if (hp < 0 < hq) or (hq < 0 < hp):
                 t = hp / (hp - hq)
-                kept_points.append(p + t * (q - p))
+                kept_points.append([a + t * (b - a) for a, b in zip(p, q)])
                 kept_values.append(sign * clearance)  # exactly on the slab face, no round-off
         points, values = kept_points, kept_values
         if not points:
@@ -727,38 +752,44 @@ def _convex_sets_overlap(first: np.ndarray, second: np.ndarray) -> bool:
     return not np.any((a.max(axis=0) < b.min(axis=0)) | (b.max(axis=0) < a.min(axis=0)))
 
 
+@lru_cache(maxsize=64)
+def _pairs_once(n: int) -> np.ndarray:
+    """(n, n) bool, True above the diagonal: each unordered pair once, (a, b) with a < b."""
+    mask = np.triu(np.ones((n, n), bool), k=1)
+    mask.setflags(write=False)
+    return mask
+
+
 def _find_self_intersection(
-    corners: np.ndarray, edges: _RegionEdges, rotations: np.ndarray, adjacent: np.ndarray, clearance: float
+    corners: np.ndarray, start: np.ndarray, rotations: np.ndarray, adjacent: np.ndarray, clearance: float
 ) -> tuple[int, int] | None:
     """The first pair of non-adjacent regions that pass through each other or come within
     ``clearance`` (measured across the plane of one of them), or None.
 
-    Regions are planar convex polygons (``corners``: bent corner positions, stacked as in
-    ``edges``). Regions sharing a ruling meet along it and bend by less than pi there, so only
+    Regions are planar convex polygons (``corners``: bent corner positions, stacked, region
+    r's from ``start[r]``). Regions sharing a ruling meet along it and bend by less than pi there, so only
     non-adjacent pairs can cross. Two cheap exact tests, for all pairs at once, set most pairs
     apart: their bounding boxes grown by ``clearance`` miss each other, or one polygon lies
     wholly beyond ``clearance`` on one side of the other's plane. For the rest, the slice of
     one near the other's plane is compared with the other polygon inside that plane. Exact
     for crossings, coplanar overlaps included.
     """
-    start = edges.start
     low = np.minimum.reduceat(corners, start, axis=0) - clearance
     high = np.maximum.reduceat(corners, start, axis=0) + clearance
-    boxes_meet = np.all((low[:, None] <= high[None]) & (low[None] <= high[:, None]), axis=2)
-    candidates = boxes_meet & ~adjacent
-    candidates[np.tril_indices(len(start))] = False  # each pair once, a < b
+    boxes_meet = ((low[:, None] <= high[None]) & (low[None] <= high[:, None])).all(axis=2)
+    candidates = boxes_meet & ~adjacent & _pairs_once(len(start))
     if not candidates.any():
         return None
     normals = rotations[:, :, 2]
     origins = corners[start]
     # heights[r, k]: height of corner k above the plane of region r.
-    heights = normals @ corners.T - np.einsum("rj,rj->r", normals, origins)[:, None]
+    heights = normals @ corners.T - (normals * origins).sum(axis=1)[:, None]
     above = np.maximum.reduceat(heights, start, axis=1)  # [a, b]: highest corner of b above a
     below = np.minimum.reduceat(heights, start, axis=1)
     beyond = (below > clearance) | (above < -clearance)  # [a, b]: b wholly off a's plane
     stop = np.concatenate([start[1:], [len(corners)]])
     for a, b in zip(*np.nonzero(candidates & ~beyond & ~beyond.T)):
-        piece = _clip_to_slab(corners[start[b] : stop[b]], heights[a, start[b] : stop[b]], clearance)
+        piece = _clip_to_slab(corners[start[b] : stop[b]].tolist(), heights[a, start[b] : stop[b]].tolist(), clearance)
         if not len(piece):
             continue
         basis = rotations[a][:, :2]
@@ -775,21 +806,23 @@ def _assemble(
 ) -> SheetMesh:
     """Regions, their rigid transforms, the self-intersection checks, then the mesh."""
     layout = _trace_layout(border, chords)
-    edges = _RegionEdges.of(layout)
     n_regions, n_chords = len(layout.counts), len(chords)
 
     # Region graph (a tree): each ruling borders exactly two regions.
-    sides = layout.crossings[np.argsort(layout.crossings[:, 1], kind="stable")]
-    by_chord = sides.tolist()
     neighbours: list[list[tuple[int, int, int, int]]] = [[] for _ in range(n_regions)]
-    for (r0, chord_index, s0, e0), (r1, _, s1, e1) in zip(by_chord[::2], by_chord[1::2]):
+    for chord_index, ((r0, s0, e0), (r1, s1, e1)) in enumerate(layout.sides):
         neighbours[r0].append((r1, chord_index, s1, e1))
         neighbours[r1].append((r0, chord_index, s0, e0))
-    adjacent = np.zeros((n_regions, n_regions), bool)
-    adjacent[sides[0::2, 0], sides[1::2, 0]] = adjacent[sides[1::2, 0], sides[0::2, 0]] = True
 
-    # Reference region: the one holding the sheet centre (the deepest inside, if on a ruling).
-    reference = int(np.argmin(edges.depth(np.array([[width / 2.0, height / 2.0]]))[0]))
+    # Reference region: the one holding the sheet centre (the first, if it is on a ruling).
+    # A region lies left of the rulings it traverses: how far the centre is outside it is the
+    # largest distance of the centre to the right of them.
+    reference = 0
+    if n_chords:
+        start, end = layout.points[layout.crossings[:, 2]], layout.points[layout.crossings[:, 3]]
+        along, to_centre = end - start, (width / 2.0, height / 2.0) - start
+        right = (along[:, 1] * to_centre[:, 0] - along[:, 0] * to_centre[:, 1]) / np.hypot(along[:, 0], along[:, 1])
+        reference = int(np.argmin(np.maximum.reduceat(right, layout.first_crossing)))
 
     # Breadth first from the reference region: each region's parent and the ruling crossed to
     # reach it (traversed start -> end with the child on the left).
@@ -808,36 +841,45 @@ def _assemble(
     # The child traverses its ruling start -> end with itself on the left, so a rotation by
     # +angle about that direction lifts it towards +z (valley fold).
     origin = np.array([width / 2.0, height / 2.0, 0.0])
-    flat3 = np.column_stack([layout.points, np.zeros(len(layout.points))]) - origin
+    flat3 = np.zeros((len(layout.points), 3))
+    flat3[:, :2] = layout.points - origin[:2]
     transforms = np.zeros((n_regions, 4, 4))
-    transforms[:, [0, 1, 2, 3], [0, 1, 2, 3]] = 1.0
+    transforms.reshape(n_regions, 16)[:, ::5] = 1.0  # identities
     on_path = np.zeros((n_regions, n_chords))
+    # Each vertex moves with a region holding it: a sheet corner with its region, a ruling end
+    # with the neighbour nearest the reference (both agree there, up to round-off).
+    owner = np.zeros(len(layout.points), np.int64)
+    owner[layout.ids] = np.repeat(np.arange(n_regions), layout.counts)
     if n_chords:
         children = np.array(order[1:])
         chord_index, start, end = np.array([via[c] for c in order[1:]]).T
         transforms[children] = _local_transforms(flat3[start], flat3[end], chords.angle[chord_index])
         on_path[children, chord_index] = 1.0
+        owner[start] = owner[end] = np.array(parent)[children]
         jump = np.array(parent)
         for _ in range(max(depth).bit_length()):
             transforms = transforms[jump] @ transforms
             on_path += on_path[jump]
             jump = jump[jump]
     rotations, translations = transforms[:, :3, :3], transforms[:, :3, 3]
+    vertices = (rotations[owner] @ flat3[:, :, None])[:, :, 0] + translations[owner]
 
     if options.check_self_intersection and n_chords:
         # Bends adding up along a path: a sheet curled past max_total_bend is rejected. The
         # path between a and b holds the rulings on exactly one of their paths from the reference.
         to_reference = on_path @ chords.angle
-        shared = (on_path * chords.angle) @ on_path.T
-        worst = float(np.max(np.abs(to_reference[:, None] + to_reference[None] - 2.0 * shared)))
+        bends = to_reference[:, None] + to_reference[None] - 2.0 * ((on_path * chords.angle) @ on_path.T)
+        worst = max(float(bends.max()), -float(bends.min()))
         if worst > options.max_total_bend + 1e-12:
             raise SelfIntersection(
                 f"bends add up to {math.degrees(worst):.0f} degrees between two regions "
                 f"(limit {math.degrees(options.max_total_bend):.0f}): the sheet would curl into itself"
             )
         # Regions are rigid planar polygons: check them before spending time on the mesh.
-        corners = np.einsum("nij,nj->ni", rotations[edges.region], flat3[layout.ids]) + translations[edges.region]
-        found = _find_self_intersection(corners, edges, rotations, adjacent, options.clearance)
+        adjacent = np.zeros((n_regions, n_regions), bool)
+        first_side, second_side = np.array([(r0, r1) for (r0, *_), (r1, *_) in layout.sides]).T
+        adjacent[first_side, second_side] = adjacent[second_side, first_side] = True
+        found = _find_self_intersection(vertices[layout.ids], layout.start, rotations, adjacent, options.clearance)
         if found is not None:
             raise SelfIntersection(
                 f"regions {found[0]} and {found[1]} of the bent sheet pass through each other "
@@ -848,17 +890,19 @@ def _assemble(
         flat = layout.points
         faces, face_regions = _minimal_mesh(layout)
     else:
-        flat, faces, face_regions = _refined_mesh(layout, edges, width, height, options.max_edge)
-        flat3 = np.column_stack([flat, np.zeros(len(flat))]) - origin
-
-    # Each vertex moves with a region holding it; a vertex on a ruling with the neighbour
-    # nearest the reference (both agree there, up to round-off).
-    rank = np.empty(n_regions, np.int64)
-    rank[order] = np.arange(n_regions)
-    owner_rank = np.full(len(flat), n_regions)
-    np.minimum.at(owner_rank, faces.ravel(), np.repeat(rank[face_regions], 3))
-    owner = np.asarray(order)[owner_rank]
-    vertices = np.einsum("vij,vj->vi", rotations[owner], flat3) + translations[owner]
+        flat, faces, face_regions = _refined_mesh(layout, width, height, options.max_edge)
+        # The new points move with a region holding them, on a ruling with the one nearest
+        # the reference, as above.
+        rank = np.empty(n_regions, np.int64)
+        rank[order] = np.arange(n_regions)
+        owner_rank = np.full(len(flat), n_regions)
+        np.minimum.at(owner_rank, faces.ravel(), np.repeat(rank[face_regions], 3))
+        new = np.arange(len(layout.points), len(flat))
+        new_owner = np.asarray(order)[owner_rank[new]]
+        new_flat3 = np.zeros((len(new), 3))
+        new_flat3[:, :2] = flat[new] - origin[:2]
+        new_vertices = (rotations[new_owner] @ new_flat3[:, :, None])[:, :, 0] + translations[new_owner]
+        vertices = np.concatenate([vertices, new_vertices])
 
     return SheetMesh(
         flat=flat,
