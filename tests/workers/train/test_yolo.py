@@ -239,7 +239,10 @@ def test_extreme_boxes_give_finite_losses_and_gradients():
     model = build_yolo(_config(64), 2, np.array([[0, 0, 64, 64], [10, 10, 11, 60]], dtype=np.float32))
     images = [torch.rand(3, 64, 64) for _ in range(4)]
     targets = [
-        _target((10.0, 5.0, 11.0, 60.0), 1),  # 1 px wide
+        {  # 1 px wide, and dtypes other than float32 / int64
+            "boxes": torch.tensor([[10.0, 5.0, 11.0, 60.0]], dtype=torch.float64),
+            "labels": torch.tensor([1], dtype=torch.int32),
+        },
         _target((0.0, 0.0, 64.0, 64.0), 2),  # the full image
         _target((63.0, 63.0, 64.0, 64.0), 1),  # one pixel in the corner
         {
@@ -253,6 +256,29 @@ def test_extreme_boxes_give_finite_losses_and_gradients():
     total.backward()
     for name, parameter in model.named_parameters():
         assert torch.isfinite(parameter.grad).all(), name
+
+
+def test_no_object_loss_ignores_good_boxes_that_are_not_responsible(monkeypatch):
+    model = build_yolo(_config(64), 2, None, cell_margin=0.0, anchor_match_iou=1.0)
+    anchors_px = model.anchors * model.input_size
+    box = torch.tensor([[8.0, 8.0, 40.0, 40.0]])  # centre (24, 24): cell (1, 1)
+    _, rows, cols, anchor_index = assign_targets(box, anchors_px, 16, (4, 4))
+    assert (rows.item(), cols.item()) == (1, 1)
+    planted = torch.zeros(1, 4, 4, model.num_anchors, 5 + 2)
+    planted[..., 4] = 3.0  # every slot claims an object
+    # Another anchor of the same cell predicts the ground truth box, without being responsible.
+    other = (anchor_index + 1) % model.num_anchors
+    planted[0, 1, 1, other.item(), :4] = encode_targets(box, rows, cols, other, anchors_px, 16)[0]
+    planted.requires_grad_(True)
+    monkeypatch.setattr(model, "_raw_predictions", lambda batch: planted)
+
+    losses = model([torch.rand(3, 64, 64)], [_target(box[0].tolist(), 1)])
+    losses["loss_objectness"].backward()
+    objectness_grad = planted.grad[0, ..., 4]
+
+    assert objectness_grad[1, 1, other.item()] == 0, "IoU > 0.6 with a ground truth: ignored"
+    assert objectness_grad[3, 3, 0] > 0, "an empty cell is pushed down"
+    assert objectness_grad[1, 1, anchor_index.item()] < 0, "the responsible slot is pushed up"
 
 
 def test_bad_inputs_are_named():

@@ -682,7 +682,7 @@ class YOLOv2Detector(nn.Module):
             if boxes.numel() == 0:
                 continue
             boxes = boxes * boxes.new_tensor([sx, sy, sx, sy])
-            labels = target["labels"].to(raw.device) - 1
+            labels = target["labels"].to(raw.device, torch.int64) - 1
             with torch.no_grad():
                 # Not responsible but already a good box: neither pushed up nor down.
                 overlap = box_iou(pred_boxes[index].detach().reshape(-1, 4), boxes).amax(dim=1)
