@@ -268,37 +268,58 @@ def _check_sheet_size(width: Any, height: Any) -> tuple[float, float]:
 
 @dataclass(frozen=True)
 class _Chords:
-    """Every fold line, as arrays: perimeter positions of both ends, flat end points, angle."""
+    """Every fold line, as arrays: perimeter positions of both ends (all p0 ends, then all p1
+    ends), their flat points, and the angles."""
 
-    s0: np.ndarray  # (n,)
-    s1: np.ndarray  # (n,)
-    p0: np.ndarray  # (n, 2)
-    p1: np.ndarray  # (n, 2)
+    ends: np.ndarray  # (2n,) perimeter positions
+    end_points: np.ndarray  # (2n, 2)
     angle: np.ndarray  # (n,) radians
 
     def __len__(self) -> int:
         return len(self.angle)
 
+    @property
+    def s0(self) -> np.ndarray:
+        return self.ends[: len(self.angle)]
+
+    @property
+    def s1(self) -> np.ndarray:
+        return self.ends[len(self.angle) :]
+
+    @property
+    def p0(self) -> np.ndarray:
+        return self.end_points[: len(self.angle)]
+
+    @property
+    def p1(self) -> np.ndarray:
+        return self.end_points[len(self.angle) :]
+
     def as_rulings(self) -> list[Ruling]:
-        return _rulings(self.p0, self.p1, self.angle)
+        return _rulings(self.end_points, self.angle)
 
 
-def _rulings(p0: np.ndarray, p1: np.ndarray, angle: np.ndarray) -> list[Ruling]:
-    return [((x0, y0), (x1, y1), a) for (x0, y0), (x1, y1), a in zip(p0.tolist(), p1.tolist(), angle.tolist())]
+def _rulings(end_points: np.ndarray, angle: np.ndarray) -> list[Ruling]:
+    """Rulings ((x0, y0), (x1, y1), angle) in plain floats; ``end_points``: all p0 then all p1."""
+    n = len(angle)
+    ends = [tuple(point) for point in end_points.tolist()]
+    return list(zip(ends[:n], ends[n:], angle.tolist()))
 
 
-def _expand(border: _Border, guides: np.ndarray, options: _Options) -> tuple[_Chords, list[Ruling]]:
+def _expand(border: _Border, guides: np.ndarray, options: _Options) -> _Chords:
     """Interpolated rulings: each guiding ruling (s0, s1, angle) becomes a nested family
-    (s0 + o, s1 - o) of ``smooth_steps`` rulings sharing its angle equally. Also returns the
-    guiding rulings with their flat end points."""
+    (s0 + o, s1 - o) of ``smooth_steps`` rulings sharing its angle equally."""
     m = options.smooth_steps
     offsets = (np.arange(m) - (m - 1) / 2.0) * options.bend_spacing
-    s0 = ((guides[:, :1] + offsets) % border.length).ravel()
-    s1 = ((guides[:, 1:2] - offsets) % border.length).ravel()
-    n, g = len(s0), len(guides)
-    ends = border.points(np.concatenate([s0, s1, guides[:, 0], guides[:, 1]]))  # one call for all
-    chords = _Chords(s0, s1, ends[:n], ends[n : 2 * n], np.repeat(guides[:, 2] / m, m))
-    return chords, _rulings(ends[2 * n : 2 * n + g], ends[2 * n + g :], guides[:, 2])
+    n = len(guides) * m
+    ends = np.empty(2 * n)
+    ends[:n] = (guides[:, :1] + offsets).ravel()
+    ends[n:] = (guides[:, 1:2] - offsets).ravel()
+    ends %= border.length
+    return _Chords(ends, border.points(ends), np.repeat(guides[:, 2] / m, m))
+
+
+def _guide_rulings(border: _Border, guides: np.ndarray) -> list[Ruling]:
+    return _rulings(border.points(np.concatenate([guides[:, 0], guides[:, 1]])), guides[:, 2])
 
 
 def _validate_layout(border: _Border, chords: _Chords, options: _Options) -> None:
@@ -307,7 +328,7 @@ def _validate_layout(border: _Border, chords: _Chords, options: _Options) -> Non
     n = len(chords)
     if n == 0:
         return
-    ends = np.concatenate([chords.s0, chords.s1])  # end k belongs to chord k % n
+    ends = chords.ends  # end k belongs to chord k % n
     side = np.searchsorted(border.breaks, ends, side="right") - 1
     to_corner = np.minimum(ends - border.breaks[side], border.breaks[side + 1] - ends)
     if to_corner.min() < options.corner_gap:
@@ -343,9 +364,11 @@ def _validate_layout(border: _Border, chords: _Chords, options: _Options) -> Non
         raise RulingLayoutError("two rulings cross inside the sheet")
     # Segments that do not cross are closest at an end of one of them: (2n, n) squared
     # distances from every end to every ruling.
-    (x0, y0), (dx, dy) = chords.p0.T, (chords.p1 - chords.p0).T
-    ex = np.concatenate([x0, chords.p1[:, 0]])[:, None] - x0  # from each ruling's p0 to every end
-    ey = np.concatenate([y0, chords.p1[:, 1]])[:, None] - y0
+    points = chords.end_points
+    x0, y0 = points[:n, 0], points[:n, 1]
+    dx, dy = points[n:, 0] - x0, points[n:, 1] - y0
+    ex = points[:, :1] - x0  # from each ruling's p0 to every end
+    ey = points[:, 1:] - y0
     t = np.minimum(np.maximum((ex * dx + ey * dy) / (dx * dx + dy * dy), 0.0), 1.0)
     ex -= t * dx
     ey -= t * dy
@@ -418,6 +441,7 @@ class _Layout:
 
     points: np.ndarray  # (4 + 2n, 2) flat vertex positions
     ids: np.ndarray  # stacked region corners
+    corner_lists: list[list[int]]  # the same, region by region
     counts: np.ndarray  # corners per region
     start: np.ndarray  # where each region's corners begin in ids
     crossings: np.ndarray  # (2n, 4) rows (region, chord, start id, end id): a ruling as its region traverses it
@@ -426,7 +450,7 @@ class _Layout:
 
     @property
     def polygons(self) -> list[np.ndarray]:
-        return np.split(self.ids, self.start[1:])
+        return [np.array(corners) for corners in self.corner_lists]
 
 
 def _trace_layout(border: _Border, chords: _Chords) -> _Layout:
@@ -437,7 +461,7 @@ def _trace_layout(border: _Border, chords: _Chords) -> _Layout:
     points[:4], points[4::2], points[5::2] = border.corner_points, chords.p0, chords.p1
     if n == 0:
         no_crossings = np.zeros((0, 4), np.int64)
-        return _Layout(points, np.arange(4), np.array([4]), np.array([0]), no_crossings, np.array([0]), [])
+        return _Layout(points, np.arange(4), [[0, 1, 2, 3]], np.array([4]), np.array([0]), no_crossings, np.array([0]), [])
     positions = np.empty(4 + 2 * n)
     positions[:4], positions[4::2], positions[5::2] = border.corners, chords.s0, chords.s1
     sequence = np.argsort(positions, kind="stable").tolist()
@@ -457,35 +481,38 @@ def _trace_layout(border: _Border, chords: _Chords) -> _Layout:
     next_end[current] = sequence[0]
 
     visited = [False] * (4 + 2 * n)
-    ids: list[int] = []
-    counts: list[int] = []
+    corner_lists: list[list[int]] = []
     crossings: list[tuple[int, int, int, int]] = []
     first_crossing: list[int] = []
     sides: list[list[tuple[int, int, int]]] = [[] for _ in range(n)]
     for first in sequence:
         if first < 4 or visited[first]:
             continue
-        region, size = len(counts), len(ids)
+        region, corners = len(corner_lists), []
         first_crossing.append(len(crossings))
         current = first
         while True:
             visited[current] = True
             following = next_end[current]
             partner = following ^ 1  # the other end of the same ruling (ids 4 + 2c, 5 + 2c)
-            ids += [current, *corners_after[current], following]
+            corners += [current, *corners_after[current], following]
             chord = (following - 4) >> 1
             crossings.append((region, chord, following, partner))
             sides[chord].append((region, following, partner))
             current = partner
             if current == first:
                 break
-        counts.append(len(ids) - size)
-    counts_arr = np.array(counts)
+        corner_lists.append(corners)
+    counts = [len(corners) for corners in corner_lists]
+    start = [0] * len(counts)
+    for r in range(1, len(counts)):
+        start[r] = start[r - 1] + counts[r - 1]
     return _Layout(
         points,
-        np.array(ids),
-        counts_arr,
-        np.cumsum(counts_arr) - counts_arr,
+        np.array([vertex for corners in corner_lists for vertex in corners]),
+        corner_lists,
+        np.array(counts),
+        np.array(start),
         np.array(crossings, np.int64),
         np.array(first_crossing),
         sides,
@@ -552,13 +579,16 @@ def _local_transforms(a: np.ndarray, b: np.ndarray, angles: np.ndarray) -> np.nd
 # -- meshes ----------------------------------------------------------------------------------
 
 
-def _sin2_smallest_angle(triangles: np.ndarray) -> np.ndarray:
-    """sin² of each triangle's smallest angle (``triangles``: (..., 3, 2); 0 when degenerate
-    or clockwise). The smallest angle faces the shortest edge: sin = 2 area a_min / (a b c)."""
-    edges = triangles[..., [1, 2, 0], :] - triangles  # p1 - p0, p2 - p1, p0 - p2
-    squared = edges[..., 0] ** 2 + edges[..., 1] ** 2
-    twice_area = edges[..., 0, 0] * edges[..., 1, 1] - edges[..., 0, 1] * edges[..., 1, 0]
-    sin2 = twice_area**2 * squared.min(axis=-1) / np.maximum(squared.prod(axis=-1), 1e-300)
+def _sin2_smallest_angle(x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """sin² of the smallest angle of triangles with corner coordinates ``x``, ``y`` (..., 3)
+    (0 when degenerate or clockwise). The smallest angle faces the shortest edge:
+    sin = 2 area a_min / (a b c)."""
+    x0, x1, x2 = x[..., 0], x[..., 1], x[..., 2]
+    y0, y1, y2 = y[..., 0], y[..., 1], y[..., 2]
+    ax, ay, bx, by, cx, cy = x1 - x0, y1 - y0, x2 - x1, y2 - y1, x0 - x2, y0 - y2
+    a2, b2, c2 = ax * ax + ay * ay, bx * bx + by * by, cx * cx + cy * cy
+    twice_area = ax * by - ay * bx
+    sin2 = twice_area * twice_area * np.minimum(np.minimum(a2, b2), c2) / np.maximum(a2 * b2 * c2, 1e-300)
     return np.where(twice_area > 0.0, sin2, 0.0)
 
 
@@ -605,12 +635,12 @@ def _minimal_mesh(layout: _Layout) -> tuple[np.ndarray, np.ndarray]:
     counts = layout.counts
     n_regions, most = len(counts), int(counts.max())
     rows = np.arange(n_regions)
-    padded = np.zeros((n_regions, most), np.int64)
-    padded[np.repeat(rows, counts), np.arange(len(layout.ids)) - np.repeat(layout.start, counts)] = layout.ids
+    padded = np.array([corners + corners[:1] * (most - len(corners)) for corners in layout.corner_lists])
     k = counts[:, None, None, None]
     triangles = padded[rows[:, None, None, None], _fan_corners(most) % k]  # (region, apex, j, 3)
     real = np.arange(most - 2) < counts[:, None] - 2  # (region, j): a k-gon's fan has k - 2 triangles
-    quality = np.where(real[:, None], _sin2_smallest_angle(layout.points[triangles]), np.inf).min(axis=2)
+    sin2 = _sin2_smallest_angle(layout.points[:, 0][triangles], layout.points[:, 1][triangles])
+    quality = np.where(real[:, None], sin2, np.inf).min(axis=2)
     quality[np.arange(most) >= counts[:, None]] = -np.inf  # apexes past the region's corners
     best = quality.argmax(axis=1)
     if not np.all(quality[rows, best] > 0.0):
@@ -862,7 +892,8 @@ def _assemble(
             on_path += on_path[jump]
             jump = jump[jump]
     rotations, translations = transforms[:, :3, :3], transforms[:, :3, 3]
-    vertices = (rotations[owner] @ flat3[:, :, None])[:, :, 0] + translations[owner]
+    moves = transforms[owner]  # flat3 has z = 0: x, y times the first two columns, plus the translation
+    vertices = moves[:, :3, 0] * flat3[:, :1] + moves[:, :3, 1] * flat3[:, 1:2] + moves[:, :3, 3]
 
     if options.check_self_intersection and n_chords:
         # Bends adding up along a path: a sheet curled past max_total_bend is rejected. The
@@ -958,9 +989,10 @@ def build_sheet(
                 f"ruling {index}: bending angle {angle!r} must be finite and below pi in magnitude"
             )
         guides.append((border.position(p0, tol), border.position(p1, tol), angle))
-    chords, guide_rulings = _expand(border, np.array(guides, np.float64).reshape(-1, 3), options)
+    guides_arr = np.array(guides, np.float64).reshape(-1, 3)
+    chords = _expand(border, guides_arr, options)
     _validate_layout(border, chords, options)
-    return _assemble(width, height, border, chords, guide_rulings, options)
+    return _assemble(width, height, border, chords, _guide_rulings(border, guides_arr), options)
 
 
 def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height: float, **opts) -> SheetMesh:
@@ -985,7 +1017,7 @@ def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height:
     options = _options(width, height, opts)
     border = _Border(width, height)
     if n_rulings == 0:
-        chords, _ = _expand(border, np.zeros((0, 3)), options)
+        chords = _expand(border, np.zeros((0, 3)), options)
         return _assemble(width, height, border, chords, [], options)
     last_problem = None
     for _ in range(options.max_tries):
@@ -997,13 +1029,13 @@ def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height:
                 f"{options.mesh_step:g} (each needs about {border_per_ruling:.3g} of border on both ends): "
                 "use fewer rulings, fewer smooth_steps or a smaller mesh_step"
             )
-        chords, guide_rulings = _expand(border, guides, options)
+        chords = _expand(border, guides, options)
         try:
             _validate_layout(border, chords, options)
         except RulingLayoutError as problem:
             last_problem = problem
             continue
-        return _assemble(width, height, border, chords, guide_rulings, options)
+        return _assemble(width, height, border, chords, _guide_rulings(border, guides), options)
     raise ValueError(
         f"no valid layout of {n_rulings} rulings in {options.max_tries} tries; last problem: {last_problem}"
     )
