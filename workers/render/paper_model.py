@@ -48,7 +48,6 @@ cheap, done before meshing), counting layers closer than ``clearance`` as touchi
 from __future__ import annotations
 
 import math
-from collections import deque
 from dataclasses import dataclass, field
 from functools import lru_cache
 from os import PathLike
@@ -444,8 +443,8 @@ class _Layout:
     corner_lists: list[list[int]]  # the same, region by region
     counts: np.ndarray  # corners per region
     start: np.ndarray  # where each region's corners begin in ids
-    crossings: np.ndarray  # (2n, 4) rows (region, chord, start id, end id): a ruling as its region traverses it
-    first_crossing: np.ndarray  # where each region's rows begin in crossings (they are stacked region by region)
+    crossings: np.ndarray  # (2n, 2) (start id, end id): each region's rulings as it traverses them
+    first_crossing: np.ndarray  # where each region's rows begin in crossings (stacked region by region)
     sides: list[list[tuple[int, int, int]]]  # per chord: its two (region, start id, end id)
 
     @property
@@ -460,8 +459,9 @@ def _trace_layout(border: _Border, chords: _Chords) -> _Layout:
     points = np.empty((4 + 2 * n, 2))
     points[:4], points[4::2], points[5::2] = border.corner_points, chords.p0, chords.p1
     if n == 0:
-        no_crossings = np.zeros((0, 4), np.int64)
-        return _Layout(points, np.arange(4), [[0, 1, 2, 3]], np.array([4]), np.array([0]), no_crossings, np.array([0]), [])
+        whole = [0, 1, 2, 3]
+        return _Layout(points, np.array(whole), [whole], np.array([4]), np.array([0]), np.zeros((0, 2), np.int64),
+                       np.array([0]), [])
     positions = np.empty(4 + 2 * n)
     positions[:4], positions[4::2], positions[5::2] = border.corners, chords.s0, chords.s1
     sequence = np.argsort(positions, kind="stable").tolist()
@@ -482,7 +482,7 @@ def _trace_layout(border: _Border, chords: _Chords) -> _Layout:
 
     visited = [False] * (4 + 2 * n)
     corner_lists: list[list[int]] = []
-    crossings: list[tuple[int, int, int, int]] = []
+    crossings: list[tuple[int, int]] = []
     first_crossing: list[int] = []
     sides: list[list[tuple[int, int, int]]] = [[] for _ in range(n)]
     for first in sequence:
@@ -497,7 +497,7 @@ def _trace_layout(border: _Border, chords: _Chords) -> _Layout:
             partner = following ^ 1  # the other end of the same ruling (ids 4 + 2c, 5 + 2c)
             corners += [current, *corners_after[current], following]
             chord = (following - 4) >> 1
-            crossings.append((region, chord, following, partner))
+            crossings.append((following, partner))
             sides[chord].append((region, following, partner))
             current = partner
             if current == first:
@@ -604,7 +604,7 @@ def _fan_corners(most: int) -> np.ndarray:
     return table
 
 
-def _delaunay_polygon(corners: list[tuple[float, float]]) -> list[tuple[int, int, int]]:
+def _delaunay_polygon(corners: list[list[float]]) -> list[tuple[int, int, int]]:
     """The Delaunay triangulation of a strictly convex polygon (counter-clockwise corners),
     which has the largest smallest angle of all its triangulations: on each edge (i, j) it
     puts the corner that sees the edge under the widest angle (its circle holds no other
@@ -649,11 +649,14 @@ def _minimal_mesh(layout: _Layout) -> tuple[np.ndarray, np.ndarray]:
     if most <= 5:
         return faces, face_regions
     large = np.flatnonzero(counts > 5)
-    kept = ~np.isin(face_regions, large)
+    kept = counts[face_regions] <= 5
     extra = []
     for r in large.tolist():
-        ids = padded[r, : counts[r]]
-        extra.append(ids[np.array(_delaunay_polygon(layout.points[ids].tolist()))])
+        corners = layout.corner_lists[r]
+        triangles = np.array(corners)[np.array(_delaunay_polygon(layout.points[corners].tolist()))]
+        if not np.all(_sin2_smallest_angle(layout.points[triangles, 0], layout.points[triangles, 1]) > 0.0):
+            raise RuntimeError("paper model: degenerate triangle in a region (please report)")
+        extra.append(triangles)
     faces = np.concatenate([faces[kept], *extra])
     face_regions = np.concatenate([face_regions[kept], np.repeat(large, counts[large] - 2)])
     order = np.argsort(face_regions, kind="stable")
@@ -849,7 +852,7 @@ def _assemble(
     # largest distance of the centre to the right of them.
     reference = 0
     if n_chords:
-        start, end = layout.points[layout.crossings[:, 2]], layout.points[layout.crossings[:, 3]]
+        start, end = layout.points[layout.crossings[:, 0]], layout.points[layout.crossings[:, 1]]
         along, to_centre = end - start, (width / 2.0, height / 2.0) - start
         right = (along[:, 1] * to_centre[:, 0] - along[:, 0] * to_centre[:, 1]) / np.hypot(along[:, 0], along[:, 1])
         reference = int(np.argmin(np.maximum.reduceat(right, layout.first_crossing)))

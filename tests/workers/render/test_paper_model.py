@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import math
 from collections import Counter
-from functools import lru_cache
+from functools import cache
 
 import numpy as np
 import pytest
@@ -100,7 +100,7 @@ def best_smallest_angle(corners: np.ndarray) -> float:
     """Brute force over every triangulation of a convex polygon (dynamic programming over its
     corner intervals): the largest smallest angle any of them reaches."""
 
-    @lru_cache(maxsize=None)
+    @cache
     def best(i: int, j: int) -> float:
         if j - i < 2:
             return math.inf
@@ -165,6 +165,13 @@ def assert_valid_sheet(mesh: SheetMesh) -> None:
             mine = mesh.face_regions == region
             polygon = region_polygon(faces[mine])
             assert len(polygon) == mine.sum() + 2, "a region's triangles use its corners only"
+            # Every corner turns (no three collinear, so no flat triangle is even possible).
+            sides = np.roll(flat[polygon], -1, axis=0) - flat[polygon]
+            following = np.roll(sides, -1, axis=0)
+            turns = (sides[:, 0] * following[:, 1] - sides[:, 1] * following[:, 0]) / (
+                np.linalg.norm(sides, axis=1) * np.linalg.norm(following, axis=1)
+            )
+            assert turns.min() > 1e-6, "a region corner is not a real corner"
             best = best_smallest_angle(flat[polygon])
             assert angles[mine].min() >= best * (1 - 1e-9), "a region has a needlessly thin triangle"
     else:
