@@ -138,17 +138,18 @@ class _Border:
         self.corners = np.array([0.0, width, width + height, 2.0 * width + height])
         self.breaks = np.append(self.corners, self.length)  # side k is [breaks[k], breaks[k + 1]]
         self.corner_points = np.array([[0.0, 0.0], [width, 0.0], [width, height], [0.0, height]])
+        self._corner_x = np.array([0.0, width, width, 0.0, 0.0])  # at each break, back to (0, 0)
+        self._corner_y = np.array([0.0, 0.0, height, height, 0.0])
 
     def points(self, s: np.ndarray) -> np.ndarray:
         """(n, 2) flat points at perimeter positions ``s`` (any real numbers, taken modulo)."""
-        w, h = self.width, self.height
         s = np.asarray(s, np.float64).ravel() % self.length
-        # Piecewise linear along the four sides (s >= 0 after the modulo). The final clamp
-        # keeps round-off from pushing a border point off the sheet (uv stays in [0, 1]).
         out = np.empty((len(s), 2))
-        out[:, 0] = np.minimum(s, w) - np.minimum(np.maximum(s - (w + h), 0.0), w)
-        out[:, 1] = np.minimum(np.maximum(s - w, 0.0), h) - np.maximum(s - (2.0 * w + h), 0.0)
-        return np.minimum(np.maximum(out, 0.0, out=out), (w, h), out=out)
+        # x and y are piecewise linear in s between the corners; the clamp keeps round-off
+        # from pushing a border point off the sheet (uv stays in [0, 1]).
+        out[:, 0] = np.interp(s, self.breaks, self._corner_x)
+        out[:, 1] = np.interp(s, self.breaks, self._corner_y)
+        return np.minimum(np.maximum(out, 0.0, out=out), (self.width, self.height), out=out)
 
     def point(self, s: float) -> Point:
         x, y = self.points(np.array([s]))[0].tolist()
@@ -424,9 +425,12 @@ def _sample_guides(n: int, rng: np.random.Generator, border: _Border, options: _
         return positions
 
     along_a, along_b = increasing(*arc_a), increasing(*arc_b)
-    magnitudes = rng.uniform(options.min_angle, options.max_angle, n)
-    signs = np.array([-1.0, 1.0])[rng.integers(0, 2, n)]  # the draw rng.choice([-1, 1], n) makes
-    return np.stack([(start + along_a) % border.length, (start - along_b) % border.length, signs * magnitudes], axis=1)
+    guides = np.empty((n, 3))
+    guides[:, 0] = (start + along_a) % border.length
+    guides[:, 1] = (start - along_b) % border.length
+    guides[:, 2] = rng.uniform(options.min_angle, options.max_angle, n)
+    guides[:, 2] *= rng.integers(0, 2, n) * 2.0 - 1.0  # the sign rng.choice([-1, 1], n) would draw
+    return guides
 
 
 # -- regions ----------------------------------------------------------------------------------
