@@ -847,9 +847,12 @@ def _assemble(
 
     # Region graph (a tree): each ruling borders exactly two regions.
     neighbours: list[list[tuple[int, int, int, int]]] = [[] for _ in range(n_regions)]
+    first_side, second_side = [], []
     for chord_index, ((r0, s0, e0), (r1, s1, e1)) in enumerate(layout.sides):
         neighbours[r0].append((r1, chord_index, s1, e1))
         neighbours[r1].append((r0, chord_index, s0, e0))
+        first_side.append(r0)
+        second_side.append(r1)
 
     # Reference region: the one holding the sheet centre (the first, if it is on a ruling).
     # A region lies left of the rulings it traverses: how far the centre is outside it is the
@@ -915,7 +918,6 @@ def _assemble(
             )
         # Regions are rigid planar polygons: check them before spending time on the mesh.
         adjacent = np.zeros((n_regions, n_regions), bool)
-        first_side, second_side = np.array([(r0, r1) for (r0, *_), (r1, *_) in layout.sides]).T
         adjacent[first_side, second_side] = adjacent[second_side, first_side] = True
         found = _find_self_intersection(vertices[layout.ids], layout.start, rotations, adjacent, options.clearance)
         if found is not None:
