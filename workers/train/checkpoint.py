@@ -16,9 +16,11 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -97,7 +99,7 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
         payload = torch.load(path, map_location="cpu", weights_only=True)
-    except Exception as error:  # torch raises many types for a corrupt or foreign file
+    except Exception as error:  # noqa: BLE001 (torch raises many types for a corrupt or foreign file)
         raise CheckpointError(f"checkpoint {path} cannot be read: {type(error).__name__}: {error}") from None
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise CheckpointError(f"{path} is not a foldwise detector checkpoint")
@@ -119,6 +121,22 @@ def check_compatible(meta: dict[str, Any], config: DetectorConfig, classes: Sequ
         problems.append(f"classes: checkpoint has {list(meta.get('classes', []))}, training set has {list(classes)}")
     if problems:
         raise CheckpointError(f"cannot warm-start from {path}: " + "; ".join(problems))
+
+
+@contextmanager
+def torch_threads(count: int) -> Iterator[None]:
+    """Run with ``count`` torch intra-op threads (0: leave torch's choice), then restore.
+
+    On a shared, oversubscribed CPU, more threads than free cores makes torch several times
+    slower (its OpenMP workers spin), so the config's thread count matters in inference too.
+    """
+    previous = torch.get_num_threads()
+    if count > 0:
+        torch.set_num_threads(count)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 def resolve_device(device: str | torch.device | None) -> torch.device:
@@ -174,14 +192,15 @@ def detect_object(
     (n,) float32, ``labels`` (n,) int64 0-based class indices, best score first.
 
     Images are RGB uint8 arrays or paths (read with OpenCV); any size (the model resizes to
-    its input size and maps boxes back).
+    its input size and maps boxes back). Runs with the detector config's ``num_threads``.
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be at least 1, got {batch_size}")
     model = detector.model
     model.eval()
     results: list[dict[str, np.ndarray]] = []
-    with torch.no_grad():
+    threads = int(detector.meta.get("config", {}).get("num_threads", 0))
+    with torch.no_grad(), torch_threads(threads):
         for start in range(0, len(images), batch_size):
             arrays = [_image_array(image, start + i) for i, image in enumerate(images[start : start + batch_size])]
             cache = getattr(model, "proposal_cache", None)

@@ -36,9 +36,7 @@ class Sample:
         self.boxes = np.asarray(self.boxes, dtype=np.float32).reshape(-1, 4)
         self.labels = np.asarray(self.labels, dtype=np.int64).reshape(-1)
         if len(self.boxes) != len(self.labels):
-            raise DatasetError(
-                f"{self.image_path}: {len(self.boxes)} boxes but {len(self.labels)} labels"
-            )
+            raise DatasetError(f"{self.image_path}: {len(self.boxes)} boxes but {len(self.labels)} labels")
 
 
 def validate_box(box_xyxy, width: float, height: float, where: str) -> None:
@@ -50,9 +48,7 @@ def validate_box(box_xyxy, width: float, height: float, where: str) -> None:
         raise DatasetError(f"{where}: degenerate box {[x0, y0, x1, y1]} (zero or negative width or height)")
     tol = _BORDER_TOLERANCE
     if x0 < -tol or y0 < -tol or x1 > width + tol or y1 > height + tol:
-        raise DatasetError(
-            f"{where}: box {[x0, y0, x1, y1]} lies outside the {width:g}x{height:g} image"
-        )
+        raise DatasetError(f"{where}: box {[x0, y0, x1, y1]} lies outside the {width:g}x{height:g} image")
 
 
 def load_coco_dataset(directory: str | Path) -> tuple[list[Sample], list[str]]:

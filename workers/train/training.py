@@ -14,9 +14,10 @@ from __future__ import annotations
 
 import math
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any
 
 import numpy as np
 import torch
@@ -25,10 +26,11 @@ from torch import Tensor, nn
 from foldwise.config import DetectorConfig
 from workers.train.checkpoint import (
     check_compatible,
-    read_checkpoint,
     load_state,
+    read_checkpoint,
     resolve_device,
     save_checkpoint,
+    torch_threads,
 )
 from workers.train.data import Sample, read_image_rgb
 
@@ -174,13 +176,8 @@ def train_detector(
     ``init`` may equal ``out`` (ω_in is read before ω is written).
     """
     _validate(samples, iterations, classes, config)
-    previous_threads = torch.get_num_threads()
-    if config.num_threads > 0:
-        torch.set_num_threads(config.num_threads)
-    try:
+    with torch_threads(config.num_threads):
         return _train(samples, init, iterations, config, list(classes), Path(out), seed)
-    finally:
-        torch.set_num_threads(previous_threads)
 
 
 def _train(
@@ -247,7 +244,12 @@ def _train(
                 for buffer, saved in zip(model.buffers(), buffers_before):
                     buffer.copy_(saved)
             nonfinite.append(
-                {"step": step, "reason": reason, "loss_terms": {k: float(v) for k, v in loss_terms.items()}, "lr": lr}
+                {
+                    "step": step,
+                    "reason": reason,
+                    "loss_terms": {k: float(v.detach()) for k, v in loss_terms.items()},
+                    "lr": lr,
+                }
             )
             losses.append(float("nan"))
             lr_scale *= 0.5

@@ -26,10 +26,20 @@ CLASSES = ["astronaut", "coffee"]
 
 
 def config(**changes) -> DetectorConfig:
-    small = dict(
-        input_size=64, batch_size=2, num_threads=1, device="cpu", rpn_proposals_train=40, rpn_proposals_test=20,
-        roi_samples_per_image=32, edge_boxes=30, box_score_threshold=0.0, detections_per_image=10,
-    )
+    small = {
+        "input_size": 64,
+        "batch_size": 2,
+        "num_threads": 1,
+        "device": "cpu",
+        "rpn_proposals_train": 40,
+        "fpn_channels": 32,
+        "representation_size": 64,
+        "rpn_proposals_test": 20,
+        "roi_samples_per_image": 32,
+        "edge_boxes": 30,
+        "box_score_threshold": 0.0,
+        "detections_per_image": 10,
+    }
     return DetectorConfig(**{**small, **changes})
 
 
@@ -152,3 +162,23 @@ def test_failed_write_keeps_the_previous_checkpoint_and_leaves_no_temp_file(trai
         save_checkpoint(detector.model, {**detector.meta, "iterations": 99}, target)
     assert target.read_bytes() == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["omega.pt"]
+
+
+def test_detection_runs_with_the_configured_thread_count(trained, monkeypatch):
+    _, path, _, arrays = trained
+    detector = load_detector(path)
+    assert detector.meta["config"]["num_threads"] == 1
+    seen = []
+    forward = detector.model.forward
+
+    def spy(*args, **kwargs):
+        seen.append(torch.get_num_threads())
+        return forward(*args, **kwargs)
+
+    monkeypatch.setattr(detector.model, "forward", spy)
+    torch.set_num_threads(2)
+    try:
+        detect_object(detector, arrays[:1])
+        assert seen == [1] and torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(1)

@@ -17,7 +17,9 @@ def write_dataset(root, images, annotations, categories, size=(48, 64)):
     entries = []
     for image_id, name, extra in images:
         cv2.imwrite(str(root / "images" / f"{name}.png"), np.zeros((*size, 3), np.uint8))
-        entries.append({"id": image_id, "file_name": f"images/{name}.png", "width": size[1], "height": size[0], **extra})
+        entries.append(
+            {"id": image_id, "file_name": f"images/{name}.png", "width": size[1], "height": size[0], **extra}
+        )
     document = {"images": entries, "annotations": annotations, "categories": categories}
     (root / "annotations.json").write_text(json.dumps(document))
     return root
@@ -66,7 +68,9 @@ def test_loads_boxes_as_xyxy_with_zero_based_labels_in_category_id_order(tmp_pat
     ],
 )
 def test_bad_box_is_an_error_naming_the_image(tmp_path, bbox, problem):
-    root = write_dataset(tmp_path, [(1, "ok", {}), (2, "culprit", {})], [annotation(1, 2, 1, bbox)], [{"id": 1, "name": "x"}])
+    root = write_dataset(
+        tmp_path, [(1, "ok", {}), (2, "culprit", {})], [annotation(1, 2, 1, bbox)], [{"id": 1, "name": "x"}]
+    )
     with pytest.raises(DatasetError, match=problem) as error:
         load_coco_dataset(root)
     assert "images/culprit.png" in str(error.value)
@@ -80,7 +84,9 @@ def test_missing_pieces_are_clear_errors(tmp_path):
     with pytest.raises(DatasetError, match="unknown category_id 7"):
         load_coco_dataset(root)
 
-    root = write_dataset(tmp_path / "d2", [(1, "a", {})], [annotation(1, 99, 1, [1, 1, 2, 2])], [{"id": 1, "name": "x"}])
+    root = write_dataset(
+        tmp_path / "d2", [(1, "a", {})], [annotation(1, 99, 1, [1, 1, 2, 2])], [{"id": 1, "name": "x"}]
+    )
     with pytest.raises(DatasetError, match="unknown image id 99"):
         load_coco_dataset(root)
 

@@ -18,7 +18,15 @@ from workers.train.detectors.fast_rcnn import tensor_to_uint8
 
 torch.set_num_threads(1)
 
-SMALL = dict(input_size=64, rpn_proposals_train=40, rpn_proposals_test=20, roi_samples_per_image=32, edge_boxes=30)
+SMALL = {
+    "input_size": 64,
+    "fpn_channels": 32,
+    "representation_size": 64,
+    "rpn_proposals_train": 40,
+    "rpn_proposals_test": 20,
+    "roi_samples_per_image": 32,
+    "edge_boxes": 30,
+}
 
 
 def batch(size=64, seed=0, empty_second=False):
@@ -81,8 +89,10 @@ def test_eval_forward_gives_boxes_in_each_input_images_pixels(family):
     model = build_detector(config, num_classes=3).eval()
     rng = np.random.default_rng(1)
     # Not the input size, not square: the model resizes and maps boxes back.
-    images = [torch.from_numpy(rng.integers(0, 256, (h, w, 3)).astype(np.uint8)).permute(2, 0, 1).float() / 255
-              for h, w in [(80, 120), (50, 40)]]
+    images = [
+        torch.from_numpy(rng.integers(0, 256, (h, w, 3)).astype(np.uint8)).permute(2, 0, 1).float() / 255
+        for h, w in [(80, 120), (50, 40)]
+    ]
     with torch.no_grad():
         outputs = model(images)
     assert len(outputs) == 2
@@ -152,7 +162,9 @@ def test_bad_configuration_is_a_clear_error():
 
 def test_yolo_family_is_dispatched_to_its_module():
     yolo = pytest.importorskip("workers.train.detectors.yolo")
-    model = build_detector(DetectorConfig(family="yolo", **SMALL), num_classes=2, train_boxes=np.array([[0, 0, 20, 30.0]]))
+    model = build_detector(
+        DetectorConfig(family="yolo", **SMALL), num_classes=2, train_boxes=np.array([[0, 0, 20, 30.0]])
+    )
     assert isinstance(model, torch.nn.Module) and type(model).__module__ == yolo.__name__
 
 

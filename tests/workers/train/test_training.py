@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 
@@ -32,10 +33,19 @@ COLOURS = [(220, 40, 40), (40, 220, 40), (40, 40, 220)]
 
 
 def config(**changes) -> DetectorConfig:
-    small = dict(
-        input_size=64, batch_size=2, num_threads=1, device="cpu", warmup_iterations=2,
-        rpn_proposals_train=40, rpn_proposals_test=20, roi_samples_per_image=32, edge_boxes=30,
-    )
+    small = {
+        "input_size": 64,
+        "batch_size": 2,
+        "num_threads": 1,
+        "device": "cpu",
+        "warmup_iterations": 2,
+        "rpn_proposals_train": 40,
+        "fpn_channels": 32,
+        "representation_size": 64,
+        "rpn_proposals_test": 20,
+        "roi_samples_per_image": 32,
+        "edge_boxes": 30,
+    }
     return DetectorConfig(**{**small, **changes})
 
 
@@ -100,8 +110,10 @@ def test_warm_start_continues_from_the_checkpoint_weights(tmp_path):
     seed = 5
     first_batch = sample_batches(len(samples), 3, config().batch_size, seed)[0]
     torch.manual_seed(seed)
-    images = [image_tensor(cv2.cvtColor(cv2.imread(str(samples[i].image_path)), cv2.COLOR_BGR2RGB), torch.device("cpu"))
-              for i in first_batch]
+    images = [
+        image_tensor(cv2.cvtColor(cv2.imread(str(samples[i].image_path)), cv2.COLOR_BGR2RGB), torch.device("cpu"))
+        for i in first_batch
+    ]
     targets = [sample_target(samples[i], torch.device("cpu")) for i in first_batch]
     expected = float(sum(compute_losses(model, images, targets).values()).detach())
 
@@ -181,7 +193,9 @@ def test_skipped_step_leaves_weights_and_batchnorm_statistics_untouched(tmp_path
         return compute_losses(model, [image * float("nan") for image in images], targets)
 
     monkeypatch.setattr(training, "compute_losses", poisoned)
-    stats = train_detector(samples, tmp_path / "start.pt", 2, config(max_nonfinite_steps=2), CLASSES, tmp_path / "out.pt")
+    stats = train_detector(
+        samples, tmp_path / "start.pt", 2, config(max_nonfinite_steps=2), CLASSES, tmp_path / "out.pt"
+    )
     assert len(stats.nonfinite_steps) == 2
     assert_same_state(state(tmp_path / "start.pt"), state(tmp_path / "out.pt"))
 
@@ -214,9 +228,13 @@ def test_bad_training_input_is_rejected_before_work(tmp_path):
     with pytest.raises(ValueError, match="S_tr is empty"):
         train_detector([], None, 1, config(), CLASSES, tmp_path / "o.pt")
     with pytest.raises(ValueError, match="outside 0..1"):
-        train_detector([Sample(samples[0].image_path, [[1, 1, 5, 5]], [2])], None, 1, config(), ["red", "green"], tmp_path / "o.pt")
+        train_detector(
+            [Sample(samples[0].image_path, [[1, 1, 5, 5]], [2])], None, 1, config(), ["red", "green"], tmp_path / "o.pt"
+        )
     with pytest.raises(ValueError, match="degenerate"):
-        train_detector([Sample(samples[0].image_path, [[5, 5, 5, 9]], [0])], None, 1, config(), CLASSES, tmp_path / "o.pt")
+        train_detector(
+            [Sample(samples[0].image_path, [[5, 5, 5, 9]], [0])], None, 1, config(), CLASSES, tmp_path / "o.pt"
+        )
     with pytest.raises(ValueError, match="duplicates"):
         train_detector(samples, None, 1, config(), ["a", "a", "b"], tmp_path / "o.pt")
     with pytest.raises(ValueError, match="iterations"):
@@ -248,8 +266,8 @@ def test_learning_rate_warms_up_then_decays():
     assert rates[0] == pytest.approx(1e-4)
     assert rates[10] == pytest.approx(0.1)
     assert rates[-1] == pytest.approx(0.005)
-    assert all(a <= b for a, b in zip(rates[:10], rates[1:11]))
-    assert all(a >= b for a, b in zip(rates[10:], rates[11:]))
+    assert all(a <= b for a, b in itertools.pairwise(rates[:11]))
+    assert all(a >= b for a, b in itertools.pairwise(rates[10:]))
     constant = config(learning_rate=0.1, warmup_iterations=0, lr_schedule="constant")
     assert {learning_rate_at(step, 50, constant) for step in range(50)} == {0.1}
     assert learning_rate_at(0, 1, cfg) == pytest.approx(0.1)  # one step: no room for warm-up
@@ -264,7 +282,9 @@ def test_batches_are_seeded_draws_with_replacement():
 
 
 def test_train_stats_to_dict_is_json():
-    stats = TrainStats(2, 1.5, 8, float("nan"), [{"step": 0, "loss_terms": {"a": float("inf")}, "lr": 0.1}], "cpu", [float("nan"), 1.0])
+    stats = TrainStats(
+        2, 1.5, 8, float("nan"), [{"step": 0, "loss_terms": {"a": float("inf")}, "lr": 0.1}], "cpu", [float("nan"), 1.0]
+    )
     data = json.loads(json.dumps(stats.to_dict(), allow_nan=False))
     assert data["final_loss"] is None and data["losses"] == [None, 1.0]
     assert data["nonfinite_steps"][0]["loss_terms"]["a"] is None

@@ -67,7 +67,7 @@ def load_imagenet_state(classifier: str, backbone_name: str) -> dict:
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
-def build_backbone(config: "DetectorConfig") -> "nn.Module":
+def build_backbone(config: DetectorConfig) -> nn.Module:
     """A feature pyramid (``config.fpn_channels`` channels) on a torchvision classifier.
 
     Random initialisation trains every layer with ordinary BatchNorm; ImageNet weights freeze
@@ -110,7 +110,9 @@ def build_backbone(config: "DetectorConfig") -> "nn.Module":
         body = torchvision.models.resnet50(weights=None)
         if state is not None:
             body.load_state_dict(state)
-        trainable = ["layer4", "layer3", "layer2"] if pretrained else ["layer4", "layer3", "layer2", "layer1", "conv1", "bn1"]
+        trainable = (
+            ["layer4", "layer3", "layer2"] if pretrained else ["layer4", "layer3", "layer2", "layer1", "conv1", "bn1"]
+        )
         for name, parameter in body.named_parameters():
             if not name.startswith(tuple(trainable)):
                 parameter.requires_grad_(False)
@@ -131,7 +133,7 @@ def build_backbone(config: "DetectorConfig") -> "nn.Module":
     )
 
 
-def feature_map_names(backbone: "nn.Module") -> list[str]:
+def feature_map_names(backbone: nn.Module) -> list[str]:
     """The FPN levels RoI pooling reads (every level but the extra max-pooled one)."""
     import torch
 
@@ -143,7 +145,7 @@ def feature_map_names(backbone: "nn.Module") -> list[str]:
     return names
 
 
-def anchor_sizes(config: "DetectorConfig", levels: int, per_level: int = 2) -> tuple[tuple[float, ...], ...]:
+def anchor_sizes(config: DetectorConfig, levels: int, per_level: int = 2) -> tuple[tuple[float, ...], ...]:
     """Anchor sizes in input pixels, log-spaced over ``config.anchor_size_range`` × input size.
 
     Fine levels get the small sizes: e.g. 128 px input, 4 levels: (10, 15), (21, 30), (43, 62), (89, 128).
@@ -154,12 +156,12 @@ def anchor_sizes(config: "DetectorConfig", levels: int, per_level: int = 2) -> t
 
 
 def build_detector(
-    config: "DetectorConfig",
+    config: DetectorConfig,
     num_classes: int,
     train_boxes: np.ndarray | None = None,
     *,
     train_image_sizes: np.ndarray | None = None,
-) -> "nn.Module":
+) -> nn.Module:
     """A fresh detector for ``num_classes`` object classes (background excluded).
 
     ``train_boxes`` (n, 4) xyxy pixels of the training set only matter to the yolo family (its

@@ -70,7 +70,7 @@ class FastRCNN(nn.Module):
         return self.transform.postprocess(detections, image_list.image_sizes, original_sizes)
 
 
-def build_fast_rcnn(config: "DetectorConfig", num_classes: int) -> FastRCNN:
+def build_fast_rcnn(config: DetectorConfig, num_classes: int) -> FastRCNN:
     """A Fast R-CNN for ``num_classes`` object classes (+ background) on ``config.backbone``."""
     from torchvision.models.detection.faster_rcnn import FastRCNNConvFCHead, FastRCNNPredictor, TwoMLPHead
     from torchvision.models.detection.roi_heads import RoIHeads

@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 ASPECT_RATIOS = (0.5, 1.0, 2.0)
 
 
-def build_faster_rcnn(config: "DetectorConfig", num_classes: int) -> "FasterRCNN":
+def build_faster_rcnn(config: DetectorConfig, num_classes: int) -> FasterRCNN:
     """A Faster R-CNN for ``num_classes`` object classes (+ background) on ``config.backbone``."""
     from torchvision.models.detection import FasterRCNN
     from torchvision.models.detection.anchor_utils import AnchorGenerator
