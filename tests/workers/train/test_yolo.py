@@ -117,6 +117,13 @@ def test_build_yolo_clusters_train_boxes_relative_to_their_images():
     assert torch.isclose(model.anchors, torch.tensor([0.25, 0.5])).all(dim=1).any()
     with pytest.raises(ValueError, match="train_image_sizes"):
         build_yolo(_config(64), 3, boxes, train_image_sizes=sizes[:2])
+    with pytest.raises(ValueError, match="train_image_sizes"):
+        build_yolo(_config(64), 3, boxes, train_image_sizes=np.zeros_like(sizes))
+    with pytest.raises(ValueError, match=r"train_boxes must be \(n, 4\)"):
+        build_yolo(_config(64), 3, np.zeros((4, 3)))
+    # No training boxes at all: the default anchors.
+    empty = build_yolo(_config(64), 3, np.zeros((0, 4)))
+    torch.testing.assert_close(empty.anchors, torch.tensor(default_anchors(), dtype=torch.float32))
 
 
 # ---- geometry --------------------------------------------------------------------------------

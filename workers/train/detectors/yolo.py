@@ -796,12 +796,18 @@ def build_yolo(
     if train_boxes is None:
         anchors = default_anchors(k)
     else:
-        boxes = np.asarray(train_boxes, dtype=np.float64).reshape(-1, 4)
+        boxes = np.asarray(train_boxes, dtype=np.float64)
+        if boxes.size == 0:
+            boxes = boxes.reshape(0, 4)
+        if boxes.ndim != 2 or boxes.shape[1] != 4:
+            raise ValueError(f"train_boxes must be (n, 4) xyxy pixels, got shape {boxes.shape}")
         wh = boxes[:, 2:4] - boxes[:, 0:2]
         if train_image_sizes is not None:
             sizes = np.asarray(train_image_sizes, dtype=np.float64).reshape(-1, 2)
             if len(sizes) != len(boxes):
                 raise ValueError(f"train_image_sizes has {len(sizes)} rows for {len(boxes)} train_boxes")
+            if not (sizes > 0).all():
+                raise ValueError("train_image_sizes must be positive (height, width) pairs")
             longer_side = sizes.max(axis=1, keepdims=True)
         else:
             longer_side = float(input_size)
