@@ -415,13 +415,17 @@ def test_backbone_names_map_to_a_stride_16_grid(backbone):
     assert raw.shape == (1, 4, 4, DEFAULT_NUM_ANCHORS, 5 + 2)
 
 
-def test_grid_stride_32_gives_the_classic_grid():
-    model = build_yolo(_config(64), 2, None, grid_stride=32)
+@pytest.mark.parametrize("grid_stride, cells", [(32, 2), (8, 8)])
+def test_grid_stride_sets_the_grid(grid_stride, cells):
+    model = build_yolo(_config(64), 2, None, grid_stride=grid_stride)
     with torch.no_grad():
         raw = model.eval()._raw_predictions(torch.zeros(1, 3, 64, 64))
-    assert raw.shape == (1, 2, 2, DEFAULT_NUM_ANCHORS, 5 + 2)
+    assert raw.shape == (1, cells, cells, DEFAULT_NUM_ANCHORS, 5 + 2)
+
+
+def test_unsupported_grid_stride_is_named():
     with pytest.raises(ValueError, match="grid_stride"):
-        build_yolo(_config(64), 2, None, grid_stride=8)
+        build_yolo(_config(64), 2, None, grid_stride=4)
 
 
 def test_unknown_backbone_is_named():
@@ -449,9 +453,9 @@ def test_imagenet_weights_in_the_cache_are_loaded(tmp_path, monkeypatch):
     (tmp_path / "checkpoints").mkdir()
     torch.save(reference.state_dict(), tmp_path / "checkpoints" / "mobilenet_v3_small-047dcff4.pth")
     model = build_yolo(_config(64, pretrained="imagenet"), 2, None)
-    torch.testing.assert_close(model.backbone.to_stride16[0][0].weight, reference.features[0][0].weight)
+    torch.testing.assert_close(model.backbone.to_stride8[0][0].weight, reference.features[0][0].weight)
     torch.testing.assert_close(
-        model.backbone.to_stride16[0][1].running_mean, reference.features[0][1].running_mean
+        model.backbone.to_stride8[0][1].running_mean, reference.features[0][1].running_mean
     )
 
 

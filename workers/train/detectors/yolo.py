@@ -428,7 +428,7 @@ def _load_imagenet_weights(model: nn.Module, weights_name: str, backbone: str) -
 
 
 class _Backbone(nn.Module):
-    """A torchvision classifier cut into a stride-16 part and a stride-16→32 part."""
+    """A torchvision classifier cut into stages ending at strides 8, 16 and 32."""
 
     def __init__(self, name: str, pretrained: bool) -> None:
         super().__init__()
@@ -438,13 +438,13 @@ class _Backbone(nn.Module):
             _load_imagenet_weights(model, weights_name, name)
         if builder.startswith("mobilenet"):
             blocks = list(model.features)
-            split = self._last_stride16_block(blocks)
-            self.to_stride16 = nn.Sequential(*blocks[: split + 1])
-            self.to_stride32 = nn.Sequential(*blocks[split + 1 :])
+            end8, end16 = self._last_block_of_stride(blocks, 8), self._last_block_of_stride(blocks, 16)
+            self.to_stride8 = nn.Sequential(*blocks[: end8 + 1])
+            self.to_stride16 = nn.Sequential(*blocks[end8 + 1 : end16 + 1])
+            self.to_stride32 = nn.Sequential(*blocks[end16 + 1 :])
         else:
-            self.to_stride16 = nn.Sequential(
-                model.conv1, model.bn1, model.relu, model.maxpool, model.layer1, model.layer2, model.layer3
-            )
+            self.to_stride8 = nn.Sequential(model.conv1, model.bn1, model.relu, model.maxpool, model.layer1, model.layer2)
+            self.to_stride16 = model.layer3
             self.to_stride32 = model.layer4
         for module in self.modules():
             if isinstance(module, nn.BatchNorm2d):
@@ -454,17 +454,14 @@ class _Backbone(nn.Module):
         # Probe in eval mode: a train-mode pass would fold the probe into BatchNorm statistics.
         self.eval()
         with torch.no_grad():
-            probe = torch.zeros(1, 3, 64, 64)
-            c16 = self.to_stride16(probe)
-            c32 = self.to_stride32(c16)
+            features = self(torch.zeros(1, 3, 64, 64))
         self.train()
-        if c16.shape[-1] != 4 or c32.shape[-1] != 2:
-            raise RuntimeError(f"backbone {name!r}: unexpected strides {64 // c16.shape[-1]}, {64 // c32.shape[-1]}")
-        self.channels16 = c16.shape[1]
-        self.channels32 = c32.shape[1]
+        if [f.shape[-1] for f in features] != [8, 4, 2]:
+            raise RuntimeError(f"backbone {name!r}: unexpected strides {[64 // f.shape[-1] for f in features]}")
+        self.channels = [f.shape[1] for f in features]
 
     @staticmethod
-    def _last_stride16_block(blocks: list[nn.Module]) -> int:
+    def _last_block_of_stride(blocks: list[nn.Module], stride: int) -> int:
         x = torch.zeros(1, 3, 64, 64)
         last = -1
         with torch.no_grad():
@@ -472,15 +469,16 @@ class _Backbone(nn.Module):
                 block.eval()
                 x = block(x)
                 block.train()
-                if x.shape[-1] == 4:
+                if x.shape[-1] == 64 // stride:
                     last = index
         if last < 0:
-            raise RuntimeError("backbone has no stride-16 stage")
+            raise RuntimeError(f"backbone has no stride-{stride} stage")
         return last
 
-    def forward(self, x: Tensor) -> tuple[Tensor, Tensor]:
-        c16 = self.to_stride16(x)
-        return c16, self.to_stride32(c16)
+    def forward(self, x: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+        c8 = self.to_stride8(x)
+        c16 = self.to_stride16(c8)
+        return c8, c16, self.to_stride32(c16)
 
 
 def _conv_bn(in_channels: int, out_channels: int, kernel: int) -> nn.Sequential:
@@ -524,8 +522,8 @@ class YOLOv2Detector(nn.Module):
         super().__init__()
         if num_classes < 1:
             raise ValueError(f"num_classes must be at least 1, got {num_classes}")
-        if grid_stride not in (16, 32):
-            raise ValueError(f"grid_stride must be 16 or 32, got {grid_stride}")
+        if grid_stride not in (8, 16, 32):
+            raise ValueError(f"grid_stride must be 8, 16 or 32, got {grid_stride}")
         anchors = np.asarray(anchors, dtype=np.float64)
         if anchors.ndim != 2 or anchors.shape[1] != 2 or len(anchors) < 1 or not (anchors > 0).all():
             raise ValueError(f"anchors must be a (k, 2) array of positive (w, h), got shape {anchors.shape}")
@@ -553,15 +551,14 @@ class YOLOv2Detector(nn.Module):
         self.register_buffer("pixel_std", torch.tensor(_IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
         self.backbone = _Backbone(backbone, pretrained)
-        c16, c32 = self.backbone.channels16, self.backbone.channels32
+        c8, c16, c32 = self.backbone.channels
         self.reduce32 = _conv_bn(c32, head_width, 1)
-        if grid_stride == 16:
-            # YOLOv2's passthrough: fine stride-16 features joined with upsampled stride-32 context.
-            self.reduce16 = _conv_bn(c16, head_width // 2, 1)
-            head_in = head_width + head_width // 2
-        else:
-            self.reduce16 = None
-            head_in = head_width
+        # YOLOv2's passthrough, top-down: finer features joined with upsampled coarser context
+        # down to the grid's stride.
+        self.reduce16 = _conv_bn(c16, head_width // 2, 1) if grid_stride <= 16 else None
+        self.merge16 = _conv_bn(head_width + head_width // 2, head_width, 3) if grid_stride == 8 else None
+        self.reduce8 = _conv_bn(c8, head_width // 2, 1) if grid_stride == 8 else None
+        head_in = head_width if grid_stride == 32 else head_width + head_width // 2
         self.head = nn.Sequential(_conv_bn(head_in, head_width, 3), _conv_bn(head_width, head_width, 3))
         self.predict = nn.Conv2d(head_width, self.num_anchors * (5 + num_classes), 1)
         self._init_prediction_layer()
@@ -629,11 +626,14 @@ class YOLOv2Detector(nn.Module):
 
     def _raw_predictions(self, batch: Tensor) -> Tensor:
         """(B, gh, gw, A, 5 + C) raw head outputs."""
-        c16, c32 = self.backbone(batch)
+        c8, c16, c32 = self.backbone(batch)
         features = self.reduce32(c32)
         if self.reduce16 is not None:
             features = F.interpolate(features, size=c16.shape[-2:], mode="nearest")
             features = torch.cat([self.reduce16(c16), features], dim=1)
+        if self.reduce8 is not None:
+            features = F.interpolate(self.merge16(features), size=c8.shape[-2:], mode="nearest")
+            features = torch.cat([self.reduce8(c8), features], dim=1)
         out = self.predict(self.head(features))
         b, _, gh, gw = out.shape
         return out.reshape(b, self.num_anchors, 5 + self.num_classes, gh, gw).permute(0, 3, 4, 1, 2)
