@@ -288,3 +288,13 @@ def test_train_stats_to_dict_is_json():
     data = json.loads(json.dumps(stats.to_dict(), allow_nan=False))
     assert data["final_loss"] is None and data["losses"] == [None, 1.0]
     assert data["nonfinite_steps"][0]["loss_terms"]["a"] is None
+
+
+@pytest.mark.parametrize("family", ["faster_rcnn", "fast_rcnn"])
+def test_loss_falls_from_random_initialisation(tmp_path, family):
+    samples = synthetic_samples(tmp_path / "images", n=6)
+    stats = train_detector(
+        samples, None, 40, config(family=family, learning_rate=0.02), CLASSES, tmp_path / "out.pt", seed=0
+    )
+    assert stats.nonfinite_steps == []
+    assert np.mean(stats.losses[-10:]) < 0.75 * np.mean(stats.losses[:5])
