@@ -99,7 +99,9 @@ def build_backbone(config: DetectorConfig) -> nn.Module:
         # Stage starts: the stem, each strided block, the last 1x1 conv (as torchvision's extractor).
         stages = [0] + [i for i, block in enumerate(body) if getattr(block, "_is_cn", False)] + [len(body) - 1]
         trainable_stages = 3 if pretrained else len(stages)
-        frozen_before = stages[len(stages) - trainable_stages]
+        for block in body[: stages[len(stages) - trainable_stages]]:
+            for parameter in block.parameters():
+                parameter.requires_grad_(False)
         # Strides 8, 16 and 32: torchvision's own variant reads stride 32 only, too coarse for
         # 10-pixel objects in 128-pixel images.
         returned = [stages[2], stages[3], stages[-1]]
@@ -116,13 +118,9 @@ def build_backbone(config: DetectorConfig) -> nn.Module:
         for name, parameter in body.named_parameters():
             if not name.startswith(tuple(trainable)):
                 parameter.requires_grad_(False)
-        frozen_before = 0
         return_layers = {f"layer{k}": str(k - 1) for k in (1, 2, 3, 4)}
         in_channels = [256, 512, 1024, 2048]
 
-    for block in list(body)[:frozen_before] if frozen_before else []:
-        for parameter in block.parameters():
-            parameter.requires_grad_(False)
     return BackboneWithFPN(
         body,
         return_layers,

@@ -14,6 +14,7 @@ the image) so training and inference compute them once per image.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import tempfile
@@ -194,16 +195,17 @@ class ProposalCache:
     def _write_file(self, image_path: str | Path, key: str, boxes: np.ndarray) -> None:
         path = self.cache_path(image_path)
         try:
-            descriptor, temporary = tempfile.mkstemp(prefix=path.name, suffix=".tmp", dir=path.parent)
+            descriptor, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        except OSError:
+            return  # the cache beside the image is an optimisation: an unwritable folder is no error
+        try:
             with os.fdopen(descriptor, "wb") as handle:
                 np.savez(handle, key=np.array(key), boxes=boxes)
-            os.replace(temporary, path)
+            os.chmod(temporary, 0o644)
+            os.replace(temporary, path)  # atomic: concurrent workers never read half a file
         except OSError:
-            # The cache beside the image is an optimisation; an unwritable folder is not an error.
-            try:
+            with contextlib.suppress(OSError):
                 os.unlink(temporary)
-            except (OSError, UnboundLocalError):
-                pass
 
 
 _shared_caches: dict[int, ProposalCache] = {}
