@@ -32,6 +32,7 @@ CHECKPOINT_FORMAT = "foldwise-detector"
 CHECKPOINT_VERSION = 1
 # DetectorConfig fields that change the network's shape or meaning: a warm start must agree.
 ARCHITECTURE_FIELDS = ("family", "backbone")
+RCNN_FAMILIES = ("faster_rcnn", "fast_rcnn")
 
 
 class CheckpointError(ValueError):
@@ -117,6 +118,10 @@ def check_compatible(meta: dict[str, Any], config: DetectorConfig, classes: Sequ
     for key in ARCHITECTURE_FIELDS:
         if meta.get(key) != getattr(config, key):
             problems.append(f"{key}: checkpoint has {meta.get(key)!r}, config asks for {getattr(config, key)!r}")
+    built_with = meta.get("config", {}).get("pretrained")
+    if config.family in RCNN_FAMILIES and built_with != config.pretrained:
+        # ImageNet-initialised R-CNN backbones freeze BatchNorm; random ones train it: other layers.
+        problems.append(f"pretrained: checkpoint was built with {built_with!r}, config asks for {config.pretrained!r}")
     if list(meta.get("classes", [])) != list(classes):
         problems.append(f"classes: checkpoint has {list(meta.get('classes', []))}, training set has {list(classes)}")
     if problems:
@@ -154,9 +159,8 @@ def model_from_meta(meta: dict[str, Any], config: DetectorConfig | None = None) 
     from workers.train.detectors import build_detector
 
     config = config or DetectorConfig.model_validate(meta["config"])
-    # Build with random init: the state dict brings the weights (and needs no ImageNet file).
-    config = config.model_copy(update={"pretrained": "none"})
-    return build_detector(config, len(meta["classes"]))
+    # The state dict brings the weights: no ImageNet file needed.
+    return build_detector(config, len(meta["classes"]), load_pretrained=False)
 
 
 def load_state(model: nn.Module, state_dict: dict[str, torch.Tensor], path: str | Path) -> None:

@@ -153,10 +153,8 @@ def _initial_model(
     payload = read_checkpoint(init)
     meta = payload["meta"]
     check_compatible(meta, config, classes, init)
-    # Random init under the new config; ω_in's state replaces it (ImageNet file not needed).
-    model = build_detector(
-        config.model_copy(update={"pretrained": "none"}), len(classes), train_boxes, train_image_sizes=train_sizes
-    )
+    # ω_in's state replaces the initial weights (no ImageNet file needed).
+    model = build_detector(config, len(classes), train_boxes, train_image_sizes=train_sizes, load_pretrained=False)
     load_state(model, payload["state_dict"], init)
     return model, int(meta.get("iterations", 0)), str(init)
 

@@ -182,3 +182,27 @@ def test_detection_runs_with_the_configured_thread_count(trained, monkeypatch):
         assert seen == [1] and torch.get_num_threads() == 2
     finally:
         torch.set_num_threads(1)
+
+
+def test_imagenet_initialised_detector_reloads_and_warm_starts_without_the_weights_file(tmp_path, monkeypatch):
+    import torchvision
+
+    from workers.train.detectors import imagenet_weights_path
+
+    monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))
+    weights, _ = imagenet_weights_path("mobilenet_v3_large")
+    weights.parent.mkdir(parents=True)
+    torch.save(torchvision.models.mobilenet_v3_large(weights=None).state_dict(), weights)
+    paths, arrays = write_images(tmp_path / "images", n=2)
+    samples = [Sample(path, [[12, 10, 50, 40]], [index]) for index, path in enumerate(paths)]
+    omega = tmp_path / "omega.pt"
+    train_detector(samples, None, 1, config(pretrained="imagenet"), CLASSES, omega)
+    before = detect_object(load_detector(omega), arrays)
+
+    weights.unlink()  # an inference-only machine, or the next increment, has no ImageNet file
+    after = detect_object(load_detector(omega), arrays)
+    for a, b in zip(before, after):
+        np.testing.assert_array_equal(a["scores"], b["scores"])
+    train_detector(samples, omega, 1, config(pretrained="imagenet"), CLASSES, tmp_path / "next.pt")
+    with pytest.raises(CheckpointError, match="pretrained: checkpoint was built with 'imagenet'"):
+        train_detector(samples, omega, 1, config(pretrained="none"), CLASSES, tmp_path / "other.pt")

@@ -67,12 +67,13 @@ def load_imagenet_state(classifier: str, backbone_name: str) -> dict:
     return torch.load(path, map_location="cpu", weights_only=True)
 
 
-def build_backbone(config: DetectorConfig) -> nn.Module:
+def build_backbone(config: DetectorConfig, load_pretrained: bool = True) -> nn.Module:
     """A feature pyramid (``config.fpn_channels`` channels) on a torchvision classifier.
 
     Random initialisation trains every layer with ordinary BatchNorm; ImageNet weights freeze
     the first stages (and, for mobilenet, BatchNorm statistics: small batches) as torchvision's
-    detection models do.
+    detection models do. ``load_pretrained=False`` keeps that architecture (frozen BatchNorm)
+    without reading the ImageNet file: for a model whose weights come from a checkpoint.
     """
     import torchvision
     from torch import nn
@@ -87,7 +88,7 @@ def build_backbone(config: DetectorConfig) -> nn.Module:
             f"known: {', '.join(RCNN_BACKBONES)}"
         )
     pretrained = config.pretrained == "imagenet"
-    state = load_imagenet_state(classifier_name, config.backbone) if pretrained else None
+    state = load_imagenet_state(classifier_name, config.backbone) if pretrained and load_pretrained else None
 
     if classifier_name == "mobilenet_v3_large":
         classifier = torchvision.models.mobilenet_v3_large(
@@ -159,24 +160,29 @@ def build_detector(
     train_boxes: np.ndarray | None = None,
     *,
     train_image_sizes: np.ndarray | None = None,
+    load_pretrained: bool = True,
 ) -> nn.Module:
     """A fresh detector for ``num_classes`` object classes (background excluded).
 
     ``train_boxes`` (n, 4) xyxy pixels of the training set only matter to the yolo family (its
     k-means anchors; ``train_image_sizes`` (n, 2) height, width of each box's image).
+    ``load_pretrained=False`` builds the architecture ``config.pretrained`` implies without
+    reading ImageNet weights (the caller loads a checkpoint's state next).
     """
     if num_classes < 1:
         raise DetectorBuildError(f"a detector needs at least one class, got num_classes={num_classes}")
     if config.family == "faster_rcnn":
         from workers.train.detectors.faster_rcnn import build_faster_rcnn
 
-        return build_faster_rcnn(config, num_classes)
+        return build_faster_rcnn(config, num_classes, load_pretrained=load_pretrained)
     if config.family == "fast_rcnn":
         from workers.train.detectors.fast_rcnn import build_fast_rcnn
 
-        return build_fast_rcnn(config, num_classes)
+        return build_fast_rcnn(config, num_classes, load_pretrained=load_pretrained)
     if config.family == "yolo":
         from workers.train.detectors.yolo import build_yolo
 
+        if not load_pretrained:  # the yolo architecture does not depend on its initial weights
+            config = config.model_copy(update={"pretrained": "none"})
         return build_yolo(config, num_classes, train_boxes, train_image_sizes=train_image_sizes)
     raise DetectorBuildError(f"detector.family {config.family!r} is unknown; known: {', '.join(FAMILIES)}")

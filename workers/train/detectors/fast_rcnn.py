@@ -70,7 +70,7 @@ class FastRCNN(nn.Module):
         return self.transform.postprocess(detections, image_list.image_sizes, original_sizes)
 
 
-def build_fast_rcnn(config: DetectorConfig, num_classes: int) -> FastRCNN:
+def build_fast_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: bool = True) -> FastRCNN:
     """A Fast R-CNN for ``num_classes`` object classes (+ background) on ``config.backbone``."""
     from torchvision.models.detection.faster_rcnn import FastRCNNConvFCHead, FastRCNNPredictor, TwoMLPHead
     from torchvision.models.detection.roi_heads import RoIHeads
@@ -79,7 +79,7 @@ def build_fast_rcnn(config: DetectorConfig, num_classes: int) -> FastRCNN:
 
     from workers.train.detectors import build_backbone, feature_map_names
 
-    backbone = build_backbone(config)
+    backbone = build_backbone(config, load_pretrained)
     roi_pool = MultiScaleRoIAlign(featmap_names=feature_map_names(backbone), output_size=7, sampling_ratio=1)
     if config.backbone == "resnet50_fpn_v2":
         box_head = FastRCNNConvFCHead(

@@ -18,7 +18,7 @@ if TYPE_CHECKING:
 ASPECT_RATIOS = (0.5, 1.0, 2.0)
 
 
-def build_faster_rcnn(config: DetectorConfig, num_classes: int) -> FasterRCNN:
+def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: bool = True) -> FasterRCNN:
     """A Faster R-CNN for ``num_classes`` object classes (+ background) on ``config.backbone``."""
     from torchvision.models.detection import FasterRCNN
     from torchvision.models.detection.anchor_utils import AnchorGenerator
@@ -27,7 +27,7 @@ def build_faster_rcnn(config: DetectorConfig, num_classes: int) -> FasterRCNN:
 
     from workers.train.detectors import anchor_sizes, build_backbone, feature_map_names
 
-    backbone = build_backbone(config)
+    backbone = build_backbone(config, load_pretrained)
     roi_levels = feature_map_names(backbone)
     levels = len(roi_levels) + 1  # + the max-pooled level the RPN also reads
     sizes = anchor_sizes(config, levels)
