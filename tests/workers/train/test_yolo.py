@@ -454,9 +454,7 @@ def test_imagenet_weights_in_the_cache_are_loaded(tmp_path, monkeypatch):
     torch.save(reference.state_dict(), tmp_path / "checkpoints" / "mobilenet_v3_small-047dcff4.pth")
     model = build_yolo(_config(64, pretrained="imagenet"), 2, None)
     torch.testing.assert_close(model.backbone.to_stride8[0][0].weight, reference.features[0][0].weight)
-    torch.testing.assert_close(
-        model.backbone.to_stride8[0][1].running_mean, reference.features[0][1].running_mean
-    )
+    torch.testing.assert_close(model.backbone.to_stride8[0][1].running_mean, reference.features[0][1].running_mean)
 
 
 def test_invalid_model_arguments_are_rejected():

@@ -59,13 +59,13 @@ from torchvision.ops import batched_nms, box_iou
 __all__ = [
     "DEFAULT_NUM_ANCHORS",
     "YOLOv2Detector",
-    "build_yolo",
-    "default_anchors",
-    "kmeans_anchors",
-    "centred_iou",
     "assign_targets",
-    "encode_targets",
+    "build_yolo",
+    "centred_iou",
     "decode_boxes",
+    "default_anchors",
+    "encode_targets",
+    "kmeans_anchors",
     "letterbox",
 ]
 
@@ -73,9 +73,9 @@ DEFAULT_NUM_ANCHORS = 5
 
 # YOLOv2's VOC anchors (in 13-cell grid units), divided by 13: the fallback when there are no
 # training boxes to cluster (and the placeholder a checkpoint's anchors overwrite).
-_YOLOV2_VOC_ANCHORS = np.array(
-    [[1.3221, 1.73145], [3.19275, 4.00944], [5.05587, 8.09892], [9.47112, 4.84053], [11.2364, 10.0071]]
-) / 13.0
+_YOLOV2_VOC_ANCHORS = (
+    np.array([[1.3221, 1.73145], [3.19275, 4.00944], [5.05587, 8.09892], [9.47112, 4.84053], [11.2364, 10.0071]]) / 13.0
+)
 
 # Smallest anchor or box side kept by k-means, as a fraction of the input size: a 1-px box at
 # 2048 px is still above it, and it keeps log(w / anchor) finite for degenerate boxes.
@@ -353,7 +353,9 @@ def assign_targets(
         cols.append(c[pair_box])
         anchor_index.append(pair_anchor)
         priority.append(2.0 * is_centre[pair_box] + iou[source, pair_anchor])
-    box_index, rows, cols, anchor_index, priority = (torch.cat(x) for x in (box_index, rows, cols, anchor_index, priority))
+    box_index, rows, cols, anchor_index, priority = (
+        torch.cat(x) for x in (box_index, rows, cols, anchor_index, priority)
+    )
     # Resolve competing claims: order by (priority, box order), keep the last per slot.
     order = torch.argsort(box_index, stable=True)
     order = order[torch.argsort(priority[order], stable=True)]
@@ -446,7 +448,9 @@ class _Backbone(nn.Module):
             self.to_stride16 = nn.Sequential(*blocks[end8 + 1 : end16 + 1])
             self.to_stride32 = nn.Sequential(*blocks[end16 + 1 :])
         else:
-            self.to_stride8 = nn.Sequential(model.conv1, model.bn1, model.relu, model.maxpool, model.layer1, model.layer2)
+            self.to_stride8 = nn.Sequential(
+                model.conv1, model.bn1, model.relu, model.maxpool, model.layer1, model.layer2
+            )
             self.to_stride16 = model.layer3
             self.to_stride32 = model.layer4
         for module in self.modules():
@@ -599,9 +603,7 @@ class YOLOv2Detector(nn.Module):
             if boxes.ndim != 2 or boxes.shape[1] != 4:
                 raise ValueError(f"targets[{index}]['boxes'] must be (n, 4) xyxy, got {tuple(boxes.shape)}")
             if labels.shape != (boxes.shape[0],):
-                raise ValueError(
-                    f"targets[{index}]: {boxes.shape[0]} boxes but labels of shape {tuple(labels.shape)}"
-                )
+                raise ValueError(f"targets[{index}]: {boxes.shape[0]} boxes but labels of shape {tuple(labels.shape)}")
             if not torch.isfinite(boxes).all():
                 raise ValueError(f"targets[{index}]['boxes'] has non-finite values")
             degenerate = (boxes[:, 2] <= boxes[:, 0]) | (boxes[:, 3] <= boxes[:, 1])
@@ -709,7 +711,12 @@ class YOLOv2Detector(nn.Module):
             # Each box weighs 1 however many predictions answer for it.
             weight = 1.0 / torch.bincount(box_index, minlength=len(boxes)).float()[box_index]
             matched_boxes = boxes[box_index]
-            box_terms.append(weight * self._box_loss(raw[index, rows, cols, anchor_index, :4], matched_boxes, rows, cols, anchor_index, anchors_px))
+            box_terms.append(
+                weight
+                * self._box_loss(
+                    raw[index, rows, cols, anchor_index, :4], matched_boxes, rows, cols, anchor_index, anchors_px
+                )
+            )
             class_logits = raw[index, rows, cols, anchor_index, 5:]
             class_terms.append(weight * F.cross_entropy(class_logits, labels[box_index], reduction="none"))
             positive_logits.append(objectness[index, rows, cols, anchor_index])
@@ -745,7 +752,9 @@ class YOLOv2Detector(nn.Module):
         sizes: list[tuple[int, int]],
     ) -> list[dict[str, Tensor]]:
         raw = raw.float()
-        boxes_all = decode_boxes(raw[..., :4], anchors_px, self.grid_stride, self.cell_margin).flatten(1, 3)  # (B, N, 4)
+        boxes_all = decode_boxes(raw[..., :4], anchors_px, self.grid_stride, self.cell_margin).flatten(
+            1, 3
+        )  # (B, N, 4)
         scores_all = torch.sigmoid(raw[..., 4:5]) * torch.softmax(raw[..., 5:], dim=-1)
         scores_all = scores_all.flatten(1, 3)  # (B, N, C)
         results = []
