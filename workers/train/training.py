@@ -32,7 +32,7 @@ from workers.train.checkpoint import (
     save_checkpoint,
     torch_threads,
 )
-from workers.train.data import Sample, read_image_rgb
+from workers.train.data import Sample, read_image_rgb, validate_box
 
 # Warm-up starts at this fraction of the learning rate (torchvision's references use 0.001).
 WARMUP_START_FACTOR = 0.001
@@ -190,6 +190,9 @@ def _train(
     started = time.perf_counter()
     device = resolve_device(config.device)
     images = [read_image_rgb(sample.image_path) for sample in samples]  # once per call
+    for sample, image in zip(samples, images):
+        for box in sample.boxes:
+            validate_box(box, image.shape[1], image.shape[0], str(sample.image_path))
     model, prior_iterations, parent = _initial_model(samples, images, init, config, classes, seed)
     model.to(device).train()
 

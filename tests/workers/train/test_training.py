@@ -235,6 +235,10 @@ def test_bad_training_input_is_rejected_before_work(tmp_path):
         train_detector(
             [Sample(samples[0].image_path, [[5, 5, 5, 9]], [0])], None, 1, config(), CLASSES, tmp_path / "o.pt"
         )
+    with pytest.raises(ValueError, match="0.png.*outside the 64x64 image"):
+        train_detector(
+            [Sample(samples[0].image_path, [[40, 5, 70, 9]], [0])], None, 1, config(), CLASSES, tmp_path / "o.pt"
+        )
     with pytest.raises(ValueError, match="duplicates"):
         train_detector(samples, None, 1, config(), ["a", "a", "b"], tmp_path / "o.pt")
     with pytest.raises(ValueError, match="iterations"):
