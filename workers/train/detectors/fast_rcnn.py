@@ -80,6 +80,7 @@ def build_fast_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: b
     from workers.train.detectors import build_backbone, feature_map_names
 
     backbone = build_backbone(config, load_pretrained)
+    # One bilinear sample per bin (torchvision: 2x2): RoIAlign's CPU backward dominated a step.
     roi_pool = MultiScaleRoIAlign(featmap_names=feature_map_names(backbone), output_size=7, sampling_ratio=1)
     if config.backbone == "resnet50_fpn_v2":
         box_head = FastRCNNConvFCHead(
