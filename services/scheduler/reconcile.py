@@ -18,7 +18,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from datetime import datetime, timedelta, timezone
 
-import numpy as np
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
@@ -39,6 +38,7 @@ from db.models import (
 from db.session import session_scope
 from foldwise.conditions import load_condition_table
 from foldwise.config import ExperimentConfig
+from foldwise.seeds import derive_seed
 from foldwise.settings import get_settings
 from services.scheduler.stopping import best_index, stopping_rule
 
@@ -314,11 +314,6 @@ def load_snapshot(session: Session, experiment: Experiment, now: datetime | None
         now=now,
         requeue_after=requeue_after,
     )
-
-
-def derive_seed(*parts: int) -> int:
-    """A 31-bit seed from integers: the same parts always give the same seed."""
-    return int(np.random.SeedSequence(list(parts)).generate_state(1)[0] & 0x7FFFFFFF)
 
 
 @dataclass(frozen=True)

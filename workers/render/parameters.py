@@ -33,6 +33,7 @@ from typing import Any
 import numpy as np
 
 from foldwise.conditions import ConditionTable, load_condition_table
+from foldwise.seeds import derive_seed
 
 THETA_VERSION = 1
 CANONICAL = "canonical"
@@ -71,11 +72,6 @@ def resolve_condition(name: str, table: ConditionTable | None = None) -> str:
 def canonical_values(table: ConditionTable | None = None) -> dict[str, float | int]:
     table = table or load_condition_table()
     return {k: (int(v) if k == "rulings" else float(v)) for k, v in table.canonical.items()}
-
-
-def derive_seed(*parts: int) -> int:
-    """A 31-bit seed derived from integers (θ's seed and a purpose or attempt number)."""
-    return int(np.random.SeedSequence([int(p) for p in parts]).generate_state(1)[0] & 0x7FFFFFFF)
 
 
 def _draw_value(spec, rng: np.random.Generator) -> float:

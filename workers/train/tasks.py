@@ -31,6 +31,7 @@ from db.models import (
 from db.session import session_scope
 from foldwise import store
 from foldwise.config import ExperimentConfig
+from foldwise.seeds import derive_seed
 from foldwise.settings import get_settings
 from workers.app import TRAIN_TASK, app
 
@@ -125,7 +126,7 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
             )
             .order_by(ParameterSet.id)
         ).all()
-        seed = int(np.random.SeedSequence([experiment.seed, 7, stage.order, model.increment]).generate_state(1)[0])
+        seed = derive_seed(experiment.seed, 7, stage.order, model.increment)
         relative = store.checkpoint_path(experiment.id, model.id)
 
     try:
