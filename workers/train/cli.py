@@ -147,9 +147,12 @@ def _result_tables(result) -> list:
     from rich.table import Table
 
     threshold = f"score ≥ {result.score_threshold:g}"
-    per_class = Table(title=f"Per class (VOC AP, IoU ≥ {result.iou_threshold:g})")
-    for column in ("class", "GT", "detections", f"kept ({threshold})", "TP", "AP (paper)", "AP (all)", "COCO AP50"):
-        per_class.add_column(column, justify="left" if column == "class" else "right")
+    per_class = Table(
+        title=f"Per class: VOC AP at IoU ≥ {result.iou_threshold:g}; paper protocol keeps detections with {threshold}",
+        title_justify="left",
+    )
+    for column in ("class", "GT", "dets", "kept", "TP", "AP paper", "AP all", "COCO AP50"):
+        per_class.add_column(column, justify="left" if column == "class" else "right", no_wrap=True)
     coco_per_class = result.coco.get("per_class", {}) if result.coco else {}
     for name, item in result.per_class.items():
         per_class.add_row(
@@ -172,9 +175,9 @@ def _result_tables(result) -> list:
     for field, groups in result.breakdown.items():
         if not groups:
             continue
-        table = Table(title=titles.get(field, f"Per {field}"))
-        for column in (field, "images", "GT", f"mAP ({threshold})", "mAP (all)"):
-            table.add_column(column, justify="left" if column == field else "right")
+        table = Table(title=titles.get(field, f"Per {field}"), title_justify="left")
+        for column in (field, "images", "GT", "mAP paper", "mAP all"):
+            table.add_column(column, justify="left" if column == field else "right", no_wrap=True)
         for value, group in groups.items():
             table.add_row(value, str(group.num_images), str(group.num_ground_truth), _fmt(group.map), _fmt(group.map_unthresholded))
         tables.append(table)
