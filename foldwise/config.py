@@ -139,6 +139,9 @@ class EvaluationConfig(_Section):
     score_threshold: float = Field(default=0.8, ge=0.0, le=1.0, description="the paper's confidence cut")
     iou_threshold: float = Field(default=0.5, gt=0.0, le=1.0)
     batch_size: int = Field(default=16, ge=1)
+    # pycocotools' metrics beside the paper's mAP. The stopping rule never reads them, and on a
+    # 3,150-image test set they cost ~20 s per increment, against ~1 s for the VOC mAP.
+    coco: bool = True
 
 
 class ExperimentConfig(_Section):

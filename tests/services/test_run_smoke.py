@@ -57,6 +57,9 @@ def test_smoke_run_records_everything(database, tmp_path):
         second_stage_first = next(m for m in models if m.stage_id == stages[1].id and m.increment == 1)
         assert second_stage_first.parent_id == stages[0].best_model_id
         assert all(e.map is None or 0.0 <= e.map <= 1.0 for e in evaluations)
+        # the paper's breakdown per (c, δ) and pycocotools' metrics travel with every P entry
+        assert all({"fb/easy", "fb/hard"} <= set(e.details["breakdown"]["condition/difficulty"]) for e in evaluations)
+        assert all(e.details["coco"] and "AP50" in e.details["coco"] for e in evaluations)
 
     png = tmp_path / f"experiment-{experiment.id}.png"
     with open(tmp_path / f"experiment-{experiment.id}.csv") as handle:

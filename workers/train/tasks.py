@@ -157,6 +157,7 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
             score_threshold=config.evaluation.score_threshold,
             iou_threshold=config.evaluation.iou_threshold,
             groups=[{"condition": s.condition, "difficulty": s.difficulty} for s in test_samples],
+            coco=config.evaluation.coco,
         )
         eval_seconds = time.perf_counter() - started
     except Exception as error:  # recorded, then the scheduler fails the experiment with it
