@@ -188,7 +188,7 @@ def plan(s: Snapshot) -> list[Decision]:
     test = s.test_counts()
     test_open = sum(test[status] for status in _OPEN)
     if test_open == 0 and test[RenderStatus.rendered] == 0:
-        return decisions + [Fail("no image of the standard test set could be rendered")]
+        return decisions + [Fail("no image of the standard test set could be rendered (see parameter_sets.error)")]
 
     stage = next((st for st in s.stages if st.status != StageStatus.done), None)
     if stage is None:
@@ -226,7 +226,9 @@ def plan(s: Snapshot) -> list[Decision]:
             ensure_sampled(stage, k)
         elif sum(counts[status] for status in _OPEN) == 0 and test_open == 0:
             if counts[RenderStatus.rendered] == 0:
-                return decisions + [Fail(f"every training image of {where}, increment {k}, was rejected")]
+                return decisions + [
+                    Fail(f"every training image of {where}, increment {k}, was rejected (see parameter_sets.error)")
+                ]
             parent = latest.id if latest else stage.init_model_id
             decisions.append(CreateModel(stage.id, k, parent))
         # θ does not depend on the model: render increment k+1 while k trains.

@@ -91,10 +91,23 @@ def render_parameter_set(parameter_set_id: int) -> str:
     return "rendered"
 
 
+def _record_failure(parameter_set_id: int, error: Exception) -> None:
+    with session_scope() as session:
+        row = session.get(ParameterSet, parameter_set_id)
+        if row is not None and row.status != RenderStatus.rendered:
+            row.status = RenderStatus.failed
+            row.error = f"{type(error).__name__}: {error}"
+
+
 @app.task(name=RENDER_TASK)
 def render_batch(parameter_set_ids: list[int]) -> dict[str, int]:
     outcome: dict[str, int] = {}
     for parameter_set_id in parameter_set_ids:
-        what = render_parameter_set(parameter_set_id)
+        try:
+            what = render_parameter_set(parameter_set_id)
+        except Exception as error:  # a broken θ or asset must not take the rest of the batch down
+            log.exception("θ %s could not be rendered", parameter_set_id)
+            _record_failure(parameter_set_id, error)
+            what = "failed"
         outcome[what] = outcome.get(what, 0) + 1
     return outcome

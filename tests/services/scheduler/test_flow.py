@@ -12,6 +12,7 @@ import math
 import pytest
 from sqlalchemy import func, select
 
+import workers.train.tasks
 from db.models import (
     Evaluation,
     Experiment,
@@ -255,3 +256,44 @@ def test_renders_run_ahead_of_training(fakes, monkeypatch):
         k2 = set(session.scalars(select(ParameterSet.id).where(ParameterSet.increment == 2)))
     first_train = next(i for i, (kind, _) in enumerate(order) if kind == "train")
     assert k2 <= {i for kind, i in order[:first_train] if kind == "render"}
+
+
+def test_a_render_that_raises_is_recorded_and_the_rest_of_the_batch_renders(database, eager, monkeypatch):
+    """An unexpected error in one θ marks that θ failed with the error; the batch goes on."""
+    import workers.render.tasks
+
+    fake = Fakes()
+    monkeypatch.setattr(workers.train.tasks, "run_increment", fake.train)
+    real_render = fake.render
+
+    def flaky(parameter_set_id):
+        with session_scope() as session:
+            key = session.get(ParameterSet, parameter_set_id).key
+        if key == "train/0/1/0":
+            raise OSError("disk full")
+        return real_render(parameter_set_id)
+
+    monkeypatch.setattr(workers.render.tasks, "render_parameter_set", flaky)
+    experiment_id = start_experiment(config(curriculum={"conditions": ["fb"], "difficulties": ["easy"]}))
+    assert run_to_completion(experiment_id) == "finished"
+    with session_scope() as session:
+        broken = session.scalar(select(ParameterSet).where(ParameterSet.key == "train/0/1/0"))
+        others = session.scalars(select(ParameterSet).where(ParameterSet.key != "train/0/1/0")).all()
+    assert broken.status == RenderStatus.failed and broken.error == "OSError: disk full"
+    assert all(row.status == RenderStatus.rendered for row in others)
+
+
+def test_every_render_failing_fails_the_experiment_with_the_reason(database, eager, monkeypatch):
+    import workers.render.tasks
+
+    def broken(parameter_set_id):
+        raise FileNotFoundError("texture astronaut.png")
+
+    monkeypatch.setattr(workers.render.tasks, "render_parameter_set", broken)
+    experiment_id = start_experiment(config())
+    assert run_to_completion(experiment_id) == "failed"
+    with session_scope() as session:
+        error = queries.summary(session, experiment_id)["error"]
+        sample = session.scalars(select(ParameterSet)).first()
+    assert "standard test set" in error and "parameter_sets.error" in error
+    assert sample.error == "FileNotFoundError: texture astronaut.png"
