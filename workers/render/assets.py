@@ -244,11 +244,15 @@ def random_crop(image: np.ndarray, size: int, rng: np.random.Generator) -> np.nd
     side = max(2, int(round(min(h, w) * rng.uniform(0.4, 1.0))))
     y0 = int(rng.integers(0, h - side + 1))
     x0 = int(rng.integers(0, w - side + 1))
+    mirror = rng.random() < 0.5
     crop = image[y0:y0 + side, x0:x0 + side, :3]
-    if rng.random() < 0.5:
-        crop = crop[:, ::-1]
+    if crop.strides[1] != 3 * crop.itemsize:  # OpenCV wants each row's pixels packed
+        crop = np.ascontiguousarray(crop)
     interpolation = cv2.INTER_AREA if side > size else cv2.INTER_LINEAR
-    return cv2.resize(np.ascontiguousarray(crop), (size, size), interpolation=interpolation)
+    out = cv2.resize(crop, (size, size), interpolation=interpolation)
+    # Mirroring the small result gives the same bytes as resizing the mirrored crop (both
+    # resamplers are symmetric), without copying the large crop backwards first.
+    return cv2.flip(out, 1) if mirror else out
 
 
 def procedural_background(kind: str, size: int, rng: np.random.Generator) -> np.ndarray:
