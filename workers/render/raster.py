@@ -295,6 +295,8 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
 # and its 4 neighbours' centres.
 _AA_OFFSETS = np.array([[-0.125, -0.375], [0.375, -0.125], [0.125, 0.375], [-0.375, 0.125]])
 _NEIGHBOURS = np.array([(0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)])
+_SAMPLE_BITS = np.arange(4, dtype=np.uint8)[None, :]
+_POPCOUNT4 = np.array([bin(value).count("1") for value in range(16)], dtype=np.uint8)
 
 
 def _edge_alpha(ids: np.ndarray, coverage: np.ndarray, mask: np.ndarray, rgb: np.ndarray) -> np.ndarray:
@@ -315,23 +317,30 @@ def _edge_alpha(ids: np.ndarray, coverage: np.ndarray, mask: np.ndarray, rgb: np
     rows, cols = np.nonzero(band)
     rows += r0
     cols += c0
-    padded = np.pad(ids[r0:r1, c0:c1], 1, constant_values=-1)
+    padded = np.full((r1 - r0 + 2, c1 - c0 + 2), -1, dtype=ids.dtype)
+    padded[1:-1, 1:-1] = ids[r0:r1, c0:c1]
     neighbour_rows = rows[:, None] + _NEIGHBOURS[None, :, 0]
     neighbour_cols = cols[:, None] + _NEIGHBOURS[None, :, 1]
     candidates = padded[neighbour_rows - r0 + 1, neighbour_cols - c0 + 1]  # (n, 5) face ids, -1 for none
-    sx = (cols[:, None] + 0.5 + _AA_OFFSETS[None, :, 0]).astype(np.float32)  # (n, 4) sample positions
-    sy = (rows[:, None] + 0.5 + _AA_OFFSETS[None, :, 1]).astype(np.float32)
-    planes = coverage[:, :6].astype(np.float32)
-    covered = np.zeros(sx.shape, dtype=bool)
-    for k in range(candidates.shape[1]):
-        face = candidates[:, k]
-        valid = face >= 0
-        p = planes[np.where(valid, face, 0)]
-        w0 = p[:, 0:1] * sx + p[:, 1:2] * sy + p[:, 2:3]
-        w1 = p[:, 3:4] * sx + p[:, 4:5] * sy + p[:, 5:6]
-        covered |= (w0 >= -_EDGE_EPS) & (w1 >= -_EDGE_EPS) & (w0 + w1 <= 1.0 + _EDGE_EPS) & valid[:, None]
+    # Test each distinct (pixel, face) pair once: neighbours mostly share the pixel's own face.
+    fresh = candidates >= 0
+    fresh[:, 1:] &= candidates[:, 1:] != candidates[:, :1]
+    pair_pixel, pair_slot = np.nonzero(fresh)  # row-major: pairs grouped by pixel, in order
+    pair_face = candidates[pair_pixel, pair_slot]
+    p = coverage[pair_face, :6].astype(np.float32)
+    sx = (cols[pair_pixel, None] + 0.5 + _AA_OFFSETS[None, :, 0]).astype(np.float32)  # (pairs, 4) samples
+    sy = (rows[pair_pixel, None] + 0.5 + _AA_OFFSETS[None, :, 1]).astype(np.float32)
+    w0 = p[:, 0:1] * sx + p[:, 1:2] * sy + p[:, 2:3]
+    w1 = p[:, 3:4] * sx + p[:, 4:5] * sy + p[:, 5:6]
+    inside = (w0 >= -_EDGE_EPS) & (w1 >= -_EDGE_EPS) & (w0 + w1 <= 1.0 + _EDGE_EPS)
+    # One bit per sample, OR-ed over each pixel's pairs, then counted.
+    bits = (inside.view(np.uint8) << _SAMPLE_BITS).sum(axis=1, dtype=np.uint8)
+    sample_bits = np.zeros(rows.size, np.uint8)
+    if pair_pixel.size:
+        starts = np.flatnonzero(np.r_[True, pair_pixel[1:] != pair_pixel[:-1]])
+        sample_bits[pair_pixel[starts]] = np.bitwise_or.reduceat(bits, starts)
     centre = mask[rows, cols]
-    counts = covered.view(np.uint8).sum(axis=1, dtype=np.uint8) + centre
+    counts = _POPCOUNT4[sample_bits] + centre
     fraction = counts.astype(np.float32) / 5.0
     alpha[rows, cols] = fraction
     fringe = np.flatnonzero(~centre & (counts > 0))
@@ -342,7 +351,9 @@ def _edge_alpha(ids: np.ndarray, coverage: np.ndarray, mask: np.ndarray, rgb: np
         r, c = np.clip(r, 0, height - 1), np.clip(c, 0, width - 1)
         weights = (mask[r, c] & on_image).astype(np.float32)
         total = np.maximum(weights.sum(axis=1, keepdims=True), 1.0)
-        rgb[rows[fringe], cols[fringe]] = (rgb[r, c] * weights[:, :, None]).sum(axis=1) / total
+        flat_rgb = rgb.reshape(-1, 3)
+        neighbour_rgb = np.take(flat_rgb, r * width + c, axis=0)  # (m, 5, 3)
+        flat_rgb[rows[fringe] * width + cols[fringe]] = (neighbour_rgb * weights[:, :, None]).sum(axis=1) / total
     return alpha
 
 
