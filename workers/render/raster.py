@@ -226,25 +226,8 @@ def rasterize_face_ids(
     return ids, texturing, coverage
 
 
-_SHADE_CHUNK = 1 << 18
-_REMAP_COLUMNS = 4096  # cv2.remap wants maps under 32767 rows and columns
-
-
-def _sample(texture: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """(n, 3) bilinear samples of ``texture`` at pixel coordinates (x, y) (texel centres at
-    integers), the n points laid out as a few full rows for ``cv2.remap``."""
-    n = x.size
-    columns = min(n, _REMAP_COLUMNS)
-    rows = -(-n // columns)
-    map_x = np.zeros(rows * columns, np.float32)
-    map_y = np.zeros(rows * columns, np.float32)
-    map_x[:n] = x
-    map_y[:n] = y
-    samples = cv2.remap(
-        texture, map_x.reshape(rows, columns), map_y.reshape(rows, columns), cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
-    return samples.reshape(-1, 3)[:n]
+_SHADE_CHUNK = 1 << 18  # pixels shaded at once: a sheet filling a large image needs no gigabytes
+_REMAP_MAX = 32767  # cv2.remap wants maps under 32767 rows and columns
 
 
 def _footprint_px(pix: np.ndarray, depth: np.ndarray) -> float:
@@ -265,27 +248,39 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
         raise ValueError(f"render_scene: {faces.shape[0]} faces, at most {2**_FACE_BITS - 1} supported")
     pix, depth = camera.project(np.asarray(scene.vertices, np.float64))
     ids, texturing, coverage = rasterize_face_ids(pix, depth, faces, width, height, uv=np.asarray(scene.uv, np.float64))
-    rgb = np.zeros((height * width, 3), np.float32)
-    covered_all = np.flatnonzero(ids >= 0)
-    if covered_all.size:
+    mask = (ids >= 0).reshape(height, width)
+    rgb = np.zeros((height, width, 3), np.float32)
+    mask_rows = np.flatnonzero(mask.any(axis=1))
+    if mask_rows.size:
+        # Shade the mask's bounding box densely: image-shaped maps go straight into cv2.remap
+        # and the result into the image, with no per-pixel gather or scatter of coordinates.
+        # Pixels of the box off the sheet get radiance 0 (face -1 picks the appended 0).
+        mask_cols = np.flatnonzero(mask.any(axis=0))
+        r0, r1 = int(mask_rows[0]), int(mask_rows[-1]) + 1
+        c0, c1 = int(mask_cols[0]), int(mask_cols[-1]) + 1
         texture = _PYRAMIDS.level(scene.texture, _footprint_px(pix, depth))
         th, tw = texture.shape[:2]
-        radiance = _face_radiance(scene)
-        # In chunks, so that a sheet filling a large image does not need gigabytes at once.
-        for start in range(0, covered_all.size, _SHADE_CHUNK):
-            covered = covered_all[start:start + _SHADE_CHUNK]
-            face = ids[covered]
-            rows, cols = np.divmod(covered, width)
-            px = cols + 0.5
-            py = rows + 0.5
-            p = np.take(texturing, face, axis=0)
-            inverse_depth = p[:, 0] * px + p[:, 1] * py + p[:, 2]
-            u = (p[:, 3] * px + p[:, 4] * py + p[:, 5]) / inverse_depth
-            v = (p[:, 6] * px + p[:, 7] * py + p[:, 8]) / inverse_depth
-            albedo = _sample(texture, u * tw - 0.5, (1.0 - v) * th - 0.5)
-            rgb[covered] = albedo * np.take(radiance, face)[:, None]
-    mask = (ids >= 0).reshape(height, width)
-    rgb = rgb.reshape(height, width, 3)
+        radiance = np.append(_face_radiance(scene), np.float32(0.0))
+        face_image = ids.reshape(height, width)
+        columns = min(c1 - c0, _REMAP_MAX - 1)
+        rows_per_chunk = max(1, min(_SHADE_CHUNK // columns, _REMAP_MAX - 1))
+        for left in range(c0, c1, columns):
+            right = min(left + columns, c1)
+            px = np.arange(left, right, dtype=np.float64) + 0.5
+            for top in range(r0, r1, rows_per_chunk):
+                bottom = min(top + rows_per_chunk, r1)
+                face = face_image[top:bottom, left:right]
+                on_sheet = face >= 0
+                py = (np.arange(top, bottom, dtype=np.float64) + 0.5)[:, None]
+                p = np.take(texturing, face, axis=0)
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    inverse_depth = p[..., 0] * px + p[..., 1] * py + p[..., 2]
+                    u = (p[..., 3] * px + p[..., 4] * py + p[..., 5]) / inverse_depth
+                    v = (p[..., 6] * px + p[..., 7] * py + p[..., 8]) / inverse_depth
+                    map_x = np.where(on_sheet, u * tw - 0.5, 0.0).astype(np.float32)
+                    map_y = np.where(on_sheet, (1.0 - v) * th - 0.5, 0.0).astype(np.float32)
+                albedo = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+                rgb[top:bottom, left:right] = albedo * np.take(radiance, face)[..., None]
     alpha = _edge_alpha(ids.reshape(height, width), coverage, mask, rgb) if antialias else mask.astype(np.float32)
     return BackendOutput(rgb=rgb, mask=mask, alpha=alpha)
 
