@@ -159,6 +159,7 @@ class AssetCatalog:
         # Photographs shrunk once per output size: cropping a 1411-pixel retina for a
         # 128-pixel background every time would cost more than rendering the sheet.
         self._shrunk: OrderedDict[tuple[str, int], np.ndarray] = OrderedDict()
+        self._occluders: dict[str, tuple[np.ndarray, np.ndarray | None]] = {}
         self._lock = threading.Lock()
         self._by_name = {
             "objects": {a.name: a for a in self.objects},
@@ -194,14 +195,25 @@ class AssetCatalog:
         return self._get("objects", object_name).load()
 
     def occluder(self, name: str) -> tuple[np.ndarray, np.ndarray | None]:
-        """(rgb (h, w, 3) uint8, alpha (h, w) uint8 or None when the image has no alpha)."""
-        image = self._get("occluders", name).load()
+        """(rgb (h, w, 3) uint8, alpha (h, w) uint8 or None when the image has no alpha), both
+        read-only and cached: the same arrays every call, so per-array caches downstream hit."""
+        asset = self._get("occluders", name)
+        with self._lock:
+            split = self._occluders.get(name)
+        if split is not None:
+            return split
+        image = asset.load()
+        rgb, alpha = image, None
         if image.shape[2] == 4:
-            alpha = image[:, :, 3]
-            if alpha.min() < 255:
-                return image[:, :, :3], alpha
-            return image[:, :, :3], None
-        return image, None
+            rgb = np.ascontiguousarray(image[:, :, :3])
+            if image[:, :, 3].min() < 255:
+                alpha = np.ascontiguousarray(image[:, :, 3])
+        for array in (rgb, alpha):
+            if array is not None and array.flags.writeable and array.flags.owndata:
+                array.setflags(write=False)
+        split = (rgb, alpha)
+        with self._lock:
+            return self._occluders.setdefault(name, split)
 
     def background(self, name: str, size: int, rng: np.random.Generator) -> np.ndarray:
         """A (size, size, 3) uint8 RGB background: a random square crop of a photograph, or a

@@ -17,6 +17,8 @@ geometric box of the sharp render (a detector must find the object, not its blur
 from __future__ import annotations
 
 import math
+import threading
+from collections import OrderedDict
 from dataclasses import dataclass
 
 import cv2
@@ -162,6 +164,46 @@ def _place(pivot: tuple[float, float], centre, angle: float, scale: float) -> np
     return matrix
 
 
+_PREPARED_CAPACITY = 32
+_PREPARED: OrderedDict[tuple[int, int, int], tuple] = OrderedDict()
+_PREPARED_LOCK = threading.Lock()
+
+
+def _prepared_occluder(rgb: np.ndarray, alpha: np.ndarray | None, limit: int):
+    """The occluder as place_occluder uses it: float32 colour in [0, 1] no larger than ``limit``
+    pixels a side, and (its own alpha as float32, that alpha's moments) or None. Cached per
+    source array when the arrays are read-only (the asset catalog's are): converting a
+    512-pixel occluder per image costs more than placing it."""
+    cacheable = not rgb.flags.writeable and (alpha is None or not alpha.flags.writeable)
+    key = (id(rgb), id(alpha), limit)
+    if cacheable:
+        with _PREPARED_LOCK:
+            item = _PREPARED.get(key)
+            if item is not None and item[0] is rgb and item[1] is alpha:
+                _PREPARED.move_to_end(key)
+                return item[2]
+    source = (rgb, alpha)
+    oh, ow = rgb.shape[:2]
+    if max(oh, ow) > limit:
+        factor = limit / max(oh, ow)
+        new_size = (max(2, int(ow * factor)), max(2, int(oh * factor)))
+        rgb = cv2.resize(rgb, new_size, interpolation=cv2.INTER_AREA)
+        if alpha is not None:
+            alpha = cv2.resize(alpha, new_size, interpolation=cv2.INTER_AREA)
+    rgb_f = rgb.astype(np.float32) / 255.0
+    shape = None
+    if alpha is not None:
+        shape_f = alpha.astype(np.float32) / 255.0
+        shape = (shape_f, cv2.moments(shape_f))
+    prepared = (rgb_f, shape)
+    if cacheable:
+        with _PREPARED_LOCK:
+            _PREPARED[key] = (*source, prepared)  # the sources are kept so their ids stay unique
+            if len(_PREPARED) > _PREPARED_CAPACITY:
+                _PREPARED.popitem(last=False)
+    return prepared
+
+
 def place_occluder(
     target_mask: np.ndarray,
     amodal_area: float,
@@ -185,26 +227,24 @@ def place_occluder(
     need = in_image - visible_fraction * amodal_area  # target pixels the occluder must hide
     if need <= 0.5 or in_image == 0:
         return None
-    # Work on a copy of the occluder no larger than needed: it never has to exceed ~2 image sizes.
-    oh, ow = occluder_rgb.shape[:2]
-    limit = 2 * max(height, width)
-    if max(oh, ow) > limit:
-        factor = limit / max(oh, ow)
-        new_size = (max(2, int(ow * factor)), max(2, int(oh * factor)))
-        occluder_rgb = cv2.resize(occluder_rgb, new_size, interpolation=cv2.INTER_AREA)
-        if occluder_alpha is not None:
-            occluder_alpha = cv2.resize(occluder_alpha, new_size, interpolation=cv2.INTER_AREA)
-        oh, ow = occluder_rgb.shape[:2]
-    shape = occluder_alpha if occluder_alpha is not None else random_shape(rng, oh, ow)
-    shape_f = shape.astype(np.float32) / 255.0
+    occluder_f, shape_u8 = _prepared_occluder(occluder_rgb, occluder_alpha, 2 * max(height, width))
+    oh, ow = occluder_f.shape[:2]
+    if shape_u8 is None:
+        shape_f = random_shape(rng, oh, ow).astype(np.float32) / 255.0
+        moments = cv2.moments(shape_f)
+    else:
+        shape_f, moments = shape_u8
     # Scale about the shape's centroid: for an occluder with its own alpha the image centre
     # may be transparent.
-    moments = cv2.moments(shape_f)
     if moments["m00"] > 0:
         pivot = (moments["m10"] / moments["m00"], moments["m01"] / moments["m00"])
     else:
         pivot = ((ow - 1) / 2.0, (oh - 1) / 2.0)
     rows, cols = np.nonzero(target_mask)
+    # Only target pixels count as hidden: the bisection warps the shape into the target's box.
+    r0, c0 = int(rows.min()), int(cols.min())
+    box_size = (int(cols.max()) + 1 - c0, int(rows.max()) + 1 - r0)
+    box_mask = target_mask[r0:r0 + box_size[1], c0:c0 + box_size[0]]
     best = None
     max_scale = 4.0 * math.hypot(height, width) / max(1.0, min(oh, ow))
     for _ in range(attempts):
@@ -213,8 +253,9 @@ def place_occluder(
         angle = float(rng.uniform(-math.pi, math.pi))
 
         def hidden_at(scale: float) -> int:
-            warped = cv2.warpAffine(shape_f, _place(pivot, centre, angle, scale), (width, height), flags=cv2.INTER_LINEAR)
-            return int(np.count_nonzero((warped >= 0.5) & target_mask))
+            matrix = _place(pivot, (centre[0] - c0, centre[1] - r0), angle, scale)
+            warped = cv2.warpAffine(shape_f, matrix, box_size, flags=cv2.INTER_LINEAR)
+            return int(np.count_nonzero((warped >= 0.5) & box_mask))
 
         lo, hi = 0.0, max_scale
         for _ in range(steps):
@@ -233,10 +274,19 @@ def place_occluder(
     _, centre, angle, scale, achieved = best
     matrix = _place(pivot, centre, angle, scale)
     alpha = cv2.warpAffine(shape_f, matrix, (width, height), flags=cv2.INTER_LINEAR)
-    rgb = cv2.warpAffine(
-        occluder_rgb.astype(np.float32) / 255.0, matrix, (width, height), flags=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REPLICATE,
-    )
+    # The occluder's colour matters only where it covers something: warp just that box.
+    rgb = np.zeros((height, width, 3), np.float32)
+    alpha_rows = np.flatnonzero(alpha.any(axis=1))
+    if alpha_rows.size:
+        alpha_cols = np.flatnonzero(alpha.any(axis=0))
+        a_r0, a_c0 = int(alpha_rows[0]), int(alpha_cols[0])
+        a_r1, a_c1 = int(alpha_rows[-1]) + 1, int(alpha_cols[-1]) + 1
+        shifted = matrix.copy()
+        shifted[0, 2] -= a_c0
+        shifted[1, 2] -= a_r0
+        rgb[a_r0:a_r1, a_c0:a_c1] = cv2.warpAffine(
+            occluder_f, shifted, (a_c1 - a_c0, a_r1 - a_r0), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
     mask = alpha >= 0.5
     return Occlusion(
         rgb=rgb,
