@@ -294,9 +294,13 @@ def procedural_background(kind: str, size: int, rng: np.random.Generator) -> np.
         else:
             across = np.float32(-np.sin(angle)) * xs + np.float32(np.cos(angle)) * ys
             period = rng.uniform(0.08, 0.3)
-            weight = ((np.floor(along / period) + np.floor(across / period)) % 2).astype(np.float32)
+            cell_sum = (np.floor(along / period) + np.floor(across / period)).astype(np.int32)
+            weight = (cell_sum & 1).astype(np.float32)  # parity; & 1 is % 2 for negatives too
         colours = colours.astype(np.float32)
-        image = colours[0] + (colours[1] - colours[0]) * weight[..., None]
+        # Channel by channel: the same float32 arithmetic as broadcasting over a last axis
+        # of 3, several times faster (NumPy's inner loop would run over 3 elements).
+        step = colours[1] - colours[0]
+        return cv2.merge([np.clip(colours[0, k] + step[k] * weight + 0.5, 0, 255).astype(np.uint8) for k in range(3)])
     else:
         raise AssetError(f"unknown procedural background {kind!r}; known: {', '.join(PROCEDURAL_BACKGROUNDS)}")
     return np.clip(image + 0.5, 0, 255).astype(np.uint8)
