@@ -266,19 +266,24 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
         rows_per_chunk = max(1, min(_SHADE_CHUNK // columns, _REMAP_MAX - 1))
         for left in range(c0, c1, columns):
             right = min(left + columns, c1)
-            px = np.arange(left, right, dtype=np.float64) + 0.5
+            px = np.arange(right - left, dtype=np.float32)
             for top in range(r0, r1, rows_per_chunk):
                 bottom = min(top + rows_per_chunk, r1)
                 face = face_image[top:bottom, left:right]
                 on_sheet = face >= 0
-                py = (np.arange(top, bottom, dtype=np.float64) + 0.5)[:, None]
-                p = np.take(texturing, face, axis=0)
+                py = np.arange(bottom - top, dtype=np.float32)[:, None]
+                # The planes moved (in float64) to this chunk's first pixel centre, so float32
+                # suffices: the remap maps are float32 anyway, and the small local coordinates
+                # keep the terms from cancelling.
+                planes = texturing.reshape(-1, 3, 3).copy()
+                planes[:, :, 2] += planes[:, :, 0] * (left + 0.5) + planes[:, :, 1] * (top + 0.5)
+                p = np.take(planes.reshape(-1, 9).astype(np.float32), face, axis=0)
                 with np.errstate(divide="ignore", invalid="ignore"):
                     inverse_depth = p[..., 0] * px + p[..., 1] * py + p[..., 2]
                     u = (p[..., 3] * px + p[..., 4] * py + p[..., 5]) / inverse_depth
                     v = (p[..., 6] * px + p[..., 7] * py + p[..., 8]) / inverse_depth
-                    map_x = np.where(on_sheet, u * tw - 0.5, 0.0).astype(np.float32)
-                    map_y = np.where(on_sheet, (1.0 - v) * th - 0.5, 0.0).astype(np.float32)
+                    map_x = np.where(on_sheet, u * np.float32(tw) - np.float32(0.5), np.float32(0.0))
+                    map_y = np.where(on_sheet, (np.float32(1.0) - v) * np.float32(th) - np.float32(0.5), np.float32(0.0))
                 albedo = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                 rgb[top:bottom, left:right] = albedo * np.take(radiance, face)[..., None]
     alpha = _edge_alpha(ids.reshape(height, width), coverage, mask, rgb) if antialias else mask.astype(np.float32)
