@@ -39,7 +39,7 @@ _SRGB_ENCODE = _srgb_encode_table()
 def linear_to_srgb(linear: np.ndarray) -> np.ndarray:
     """Linear light (any float, clipped to [0, 1]) to sRGB float32 in [0, 1], via a 16-bit table."""
     index = (np.clip(linear, 0.0, 1.0) * _LINEAR_TO_SRGB_STEPS + 0.5).astype(np.uint16)
-    return _SRGB_ENCODE[index]
+    return np.take(_SRGB_ENCODE, index)  # faster than fancy indexing for one flat table
 
 
 def to_uint8(image: np.ndarray) -> np.ndarray:

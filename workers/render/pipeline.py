@@ -167,7 +167,7 @@ def render_theta(
 
     background = assets.background(theta["background"], size, _rng(theta, _BACKGROUND))
     image = compositing.composite_object(
-        background.astype(np.float32) * np.float32(1.0 / 255.0), output.rgb, output.alpha
+        np.multiply(background, np.float32(1.0 / 255.0), dtype=np.float32), output.rgb, output.alpha
     )
     if occlusion is not None:
         image = compositing.composite(image, occlusion.rgb, occlusion.alpha)
