@@ -1,0 +1,121 @@
+"""The render pipeline's speed-ups keep what they replace: per-asset caches return what a fresh
+computation gives, chunked and whole-box shading agree, rewritten patterns match their formulas."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from workers.render import compositing, raster
+from workers.render.assets import load_assets, procedural_background, random_crop
+from workers.render.camera import build_scene
+
+
+def test_occluders_come_back_as_the_same_read_only_arrays():
+    assets = load_assets()
+    for name in [asset.name for asset in assets.occluders]:
+        rgb, alpha = assets.occluder(name)
+        again_rgb, again_alpha = assets.occluder(name)
+        assert again_rgb is rgb and again_alpha is alpha
+        assert not rgb.flags.writeable and rgb.flags.c_contiguous and rgb.shape[2] == 3
+        decoded = next(a for a in assets.occluders if a.name == name).load()
+        assert np.array_equal(rgb, decoded[:, :, :3])
+        if alpha is not None:
+            assert not alpha.flags.writeable and np.array_equal(alpha, decoded[:, :, 3])
+
+
+def test_an_occluder_with_alpha_comes_back_split_and_cached(tmp_path):
+    import cv2
+
+    from foldwise.config import AssetsConfig
+
+    folder = tmp_path / "occluders"
+    folder.mkdir()
+    bgra = np.zeros((20, 30, 4), np.uint8)
+    bgra[..., 0], bgra[..., 2], bgra[5:15, 5:25, 3] = 10, 200, 255  # blue 10, red 200, a window
+    cv2.imwrite(str(folder / "window.png"), bgra)
+    assets = load_assets(AssetsConfig(occluders=folder))
+    rgb, alpha = assets.occluder("window.png")
+    assert assets.occluder("window.png")[1] is alpha
+    assert rgb.shape == (20, 30, 3) and tuple(rgb[0, 0]) == (200, 0, 10)  # RGB order
+    assert alpha is not None and alpha.sum() == 255 * 10 * 20 and not alpha.flags.writeable
+
+
+def test_prepared_occluder_cache_matches_a_fresh_conversion_and_skips_writable_arrays():
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (40, 60, 3), dtype=np.uint8)
+    alpha = rng.integers(0, 256, (40, 60), dtype=np.uint8)
+    frozen_rgb, frozen_alpha = rgb.copy(), alpha.copy()
+    frozen_rgb.setflags(write=False)
+    frozen_alpha.setflags(write=False)
+    first = compositing._prepared_occluder(frozen_rgb, frozen_alpha, limit=30)
+    cached = compositing._prepared_occluder(frozen_rgb, frozen_alpha, limit=30)
+    assert cached[0] is first[0]  # a hit: the same converted array
+    fresh = compositing._prepared_occluder(rgb, alpha, limit=30)  # writable: computed anew
+    assert fresh[0] is not first[0]
+    assert np.array_equal(fresh[0], first[0]) and np.array_equal(fresh[1][0], first[1][0])
+    assert max(first[0].shape[:2]) == 30 and first[0].dtype == np.float32
+    rgb[:] = 0  # a writable array may change between calls: nothing stale comes back
+    assert not compositing._prepared_occluder(rgb, alpha, limit=30)[0].any()
+
+
+@pytest.mark.parametrize("kind", ["gradient", "stripes", "checker"])
+def test_two_colour_patterns_match_their_broadcast_formula(kind):
+    for seed in range(6):
+        image = procedural_background(kind, 48, np.random.default_rng(seed))
+        # The formula as first written: a weight per pixel, colours broadcast over channels.
+        rng = np.random.default_rng(seed)
+        colours = rng.uniform(0, 255, size=(2, 3))
+        angle = rng.uniform(0, np.pi)
+        xs = (np.arange(48, dtype=np.float32) / 48)[None, :]
+        ys = (np.arange(48, dtype=np.float32) / 48)[:, None]
+        along = np.float32(np.cos(angle)) * xs + np.float32(np.sin(angle)) * ys
+        if kind == "gradient":
+            weight = (along - along.min()) / max(float(np.ptp(along)), 1e-6)
+        elif kind == "stripes":
+            weight = (np.sin(2 * np.pi * along / rng.uniform(0.05, 0.3)) > 0).astype(np.float32)
+        else:
+            across = np.float32(-np.sin(angle)) * xs + np.float32(np.cos(angle)) * ys
+            period = rng.uniform(0.08, 0.3)
+            weight = ((np.floor(along / period) + np.floor(across / period)) % 2).astype(np.float32)
+        colours = colours.astype(np.float32)
+        expected = np.clip(colours[0] + (colours[1] - colours[0]) * weight[..., None] + 0.5, 0, 255).astype(np.uint8)
+        assert np.array_equal(image, expected), (kind, seed)
+
+
+def test_random_crop_mirrors_like_the_mirrored_crop():
+    image = np.random.default_rng(0).integers(0, 256, (90, 120, 3), dtype=np.uint8)
+    mirrored = 0
+    for seed in range(12):
+        crop = random_crop(image, 32, np.random.default_rng(seed))
+        rng = np.random.default_rng(seed)  # replay the draws
+        side = max(2, int(round(90 * rng.uniform(0.4, 1.0))))
+        y0, x0 = int(rng.integers(0, 90 - side + 1)), int(rng.integers(0, 120 - side + 1))
+        flip = rng.random() < 0.5
+        mirrored += flip
+        source = image[y0:y0 + side, x0:x0 + side]
+        source = np.ascontiguousarray(source[:, ::-1]) if flip else source
+        import cv2
+
+        expected = cv2.resize(source, (32, 32), interpolation=cv2.INTER_AREA)
+        # Area resampling is symmetric up to OpenCV's fixed-point rounding: at most one level.
+        assert np.abs(crop.astype(int) - expected).max() <= 1
+    assert 0 < mirrored < 12  # both paths ran
+
+
+def test_chunked_shading_matches_one_chunk(monkeypatch):
+    texture = np.random.default_rng(1).integers(0, 256, (64, 96, 3), dtype=np.uint8)
+    vertices = np.array([[-1.5, -1.0, 0.0], [1.5, -1.0, 0.3], [1.5, 1.0, 0.0], [-1.5, 1.0, -0.3]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    uv = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    scene = build_scene(vertices, faces, uv, texture, image_size=96, roll=0.3, pitch=0.2, yaw=0.4)
+    whole = raster.render_scene(scene)
+    monkeypatch.setattr(raster, "_SHADE_CHUNK", 50)  # many row chunks
+    monkeypatch.setattr(raster, "_REMAP_MAX", 18)  # and several column chunks
+    chunked = raster.render_scene(scene)
+    assert whole.mask.sum() > 1000
+    assert np.array_equal(whole.mask, chunked.mask) and np.array_equal(whole.alpha, chunked.alpha)
+    # Each chunk moves the planes to its own origin: float32 rounding differs, nothing more.
+    assert np.abs(whole.rgb - chunked.rgb).max() < 0.05
+    assert np.abs(whole.rgb - chunked.rgb).mean() < 1e-4
+    assert not chunked.rgb[~chunked.mask & (chunked.alpha == 0)].any()  # off the sheet stays black
