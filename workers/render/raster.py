@@ -286,7 +286,9 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
                     map_y = np.where(on_sheet, (np.float32(1.0) - v) * np.float32(th) - np.float32(0.5), np.float32(0.0))
                 albedo = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                 rgb[top:bottom, left:right] = albedo * np.take(radiance, face)[..., None]
-    alpha = _edge_alpha(ids.reshape(height, width), coverage, mask, rgb) if antialias else mask.astype(np.float32)
+    if not antialias or not mask_rows.size:
+        return BackendOutput(rgb=rgb, mask=mask, alpha=mask.astype(np.float32))
+    alpha = _edge_alpha(ids.reshape(height, width), coverage, mask, rgb, box=(r0, r1, c0, c1))
     return BackendOutput(rgb=rgb, mask=mask, alpha=alpha)
 
 
@@ -299,19 +301,24 @@ _SAMPLE_BITS = np.arange(4, dtype=np.uint8)[None, :]
 _POPCOUNT4 = np.array([bin(value).count("1") for value in range(16)], dtype=np.uint8)
 
 
-def _edge_alpha(ids: np.ndarray, coverage: np.ndarray, mask: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+def _edge_alpha(
+    ids: np.ndarray, coverage: np.ndarray, mask: np.ndarray, rgb: np.ndarray, box: tuple[int, int, int, int] | None = None
+) -> np.ndarray:
     """Coverage of the pixels along the silhouette from 5 samples each; ``rgb`` of partly
     covered pixels outside the mask (left black by the rasteriser) becomes the mean of their
-    covered neighbours, so compositing shows no dark fringe. Elsewhere alpha is the mask."""
+    covered neighbours, so compositing shows no dark fringe. Elsewhere alpha is the mask.
+    ``box``: the mask's (row0, row1, col0, col1) bounding box when the caller knows it."""
     alpha = mask.astype(np.float32)
     height, width = mask.shape
-    mask_rows = np.flatnonzero(mask.any(axis=1))
-    if mask_rows.size == 0:
-        return alpha
-    mask_cols = np.flatnonzero(mask.any(axis=0))
+    if box is None:
+        mask_rows = np.flatnonzero(mask.any(axis=1))
+        if mask_rows.size == 0:
+            return alpha
+        mask_cols = np.flatnonzero(mask.any(axis=0))
+        box = (int(mask_rows[0]), int(mask_rows[-1]) + 1, int(mask_cols[0]), int(mask_cols[-1]) + 1)
     # Work in the mask's bounding box grown by one pixel (the band reaches one pixel out).
-    r0, r1 = max(mask_rows[0] - 1, 0), min(mask_rows[-1] + 2, height)
-    c0, c1 = max(mask_cols[0] - 1, 0), min(mask_cols[-1] + 2, width)
+    r0, r1 = max(box[0] - 1, 0), min(box[1] + 1, height)
+    c0, c1 = max(box[2] - 1, 0), min(box[3] + 1, width)
     local_u8 = np.ascontiguousarray(mask[r0:r1, c0:c1]).view(np.uint8)
     band = cv2.dilate(local_u8, None) != cv2.erode(local_u8, None, borderType=cv2.BORDER_REPLICATE)
     rows, cols = np.nonzero(band)
