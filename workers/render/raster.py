@@ -261,6 +261,9 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
         texture = _PYRAMIDS.level(scene.texture, _footprint_px(pix, depth))
         th, tw = texture.shape[:2]
         radiance = np.append(_face_radiance(scene), np.float32(0.0))
+        # Face -1 (off the sheet) picks an appended row: 1/z = 1 and u/z = v/z = 0 there, so
+        # its maps stay finite and inside the texture; its radiance is 0.
+        off_sheet_planes = np.array([[0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
         face_image = ids.reshape(height, width)
         columns = min(c1 - c0, _REMAP_MAX - 1)
         rows_per_chunk = max(1, min(_SHADE_CHUNK // columns, _REMAP_MAX - 1))
@@ -270,20 +273,18 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
             for top in range(r0, r1, rows_per_chunk):
                 bottom = min(top + rows_per_chunk, r1)
                 face = face_image[top:bottom, left:right]
-                on_sheet = face >= 0
                 py = np.arange(bottom - top, dtype=np.float32)[:, None]
                 # The planes moved (in float64) to this chunk's first pixel centre, so float32
                 # suffices: the remap maps are float32 anyway, and the small local coordinates
                 # keep the terms from cancelling.
-                planes = texturing.reshape(-1, 3, 3).copy()
-                planes[:, :, 2] += planes[:, :, 0] * (left + 0.5) + planes[:, :, 1] * (top + 0.5)
+                planes = np.concatenate([texturing, off_sheet_planes]).reshape(-1, 3, 3)
+                planes[:-1, :, 2] += planes[:-1, :, 0] * (left + 0.5) + planes[:-1, :, 1] * (top + 0.5)
                 p = np.take(planes.reshape(-1, 9).astype(np.float32), face, axis=0)
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    inverse_depth = p[..., 0] * px + p[..., 1] * py + p[..., 2]
-                    u = (p[..., 3] * px + p[..., 4] * py + p[..., 5]) / inverse_depth
-                    v = (p[..., 6] * px + p[..., 7] * py + p[..., 8]) / inverse_depth
-                    map_x = np.where(on_sheet, u * np.float32(tw) - np.float32(0.5), np.float32(0.0))
-                    map_y = np.where(on_sheet, (np.float32(1.0) - v) * np.float32(th) - np.float32(0.5), np.float32(0.0))
+                inverse_depth = p[..., 0] * px + p[..., 1] * py + p[..., 2]
+                u = (p[..., 3] * px + p[..., 4] * py + p[..., 5]) / inverse_depth
+                v = (p[..., 6] * px + p[..., 7] * py + p[..., 8]) / inverse_depth
+                map_x = u * np.float32(tw) - np.float32(0.5)
+                map_y = (np.float32(1.0) - v) * np.float32(th) - np.float32(0.5)
                 albedo = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                 rgb[top:bottom, left:right] = albedo * np.take(radiance, face)[..., None]
     if not antialias or not mask_rows.size:
