@@ -115,17 +115,20 @@ def _face_planes(pix: np.ndarray, depth: np.ndarray, faces: np.ndarray, uv: np.n
     a0, b0, c0 = (y1 - y2) * inv_area, (x2 - x1) * inv_area, (x1 * y2 - x2 * y1) * inv_area
     a1, b1, c1 = (y2 - y0) * inv_area, (x0 - x2) * inv_area, (x2 * y0 - x0 * y2) * inv_area
 
-    def plane(values: np.ndarray) -> list[np.ndarray]:
-        # f = w0*f0 + w1*f1 + (1 - w0 - w1)*f2
-        d0, d1 = values[:, 0] - values[:, 2], values[:, 1] - values[:, 2]
-        return [d0 * a0 + d1 * a1, d0 * b0 + d1 * b1, d0 * c0 + d1 * c1 + values[:, 2]]
-
     iz = np.where(usable[:, None], 1.0 / np.where(usable[:, None], z, 1.0), 0.0)
-    coverage = np.stack([a0, b0, c0, a1, b1, c1, *plane(iz)], axis=1)
-    texturing = None
+    # Per corner, the quantities interpolated: 1/z, then (given uv) u/z and v/z; (faces, 3, k).
+    values = iz[:, :, None]
     if uv is not None:
-        uv_f = uv[faces]
-        texturing = np.stack([*plane(iz), *plane(uv_f[:, :, 0] * iz), *plane(uv_f[:, :, 1] * iz)], axis=1)
+        values = np.concatenate([values, uv[faces] * values], axis=2)
+    # f = w0*f0 + w1*f1 + (1 - w0 - w1)*f2, for all k at once: (faces, k, 3) planes (a, b, c).
+    d0, d1 = values[:, 0] - values[:, 2], values[:, 1] - values[:, 2]
+    planes = np.stack(
+        [d0 * a0[:, None] + d1 * a1[:, None], d0 * b0[:, None] + d1 * b1[:, None],
+         d0 * c0[:, None] + d1 * c1[:, None] + values[:, 2]],
+        axis=2,
+    ).reshape(len(faces), -1)
+    coverage = np.concatenate([np.stack([a0, b0, c0, a1, b1, c1], axis=1), planes[:, :3]], axis=1)
+    texturing = planes if uv is not None else None
     return coverage, texturing, usable, x, y
 
 
