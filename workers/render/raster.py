@@ -8,9 +8,11 @@ Two vectorised passes, no Python loop over triangles:
    expanded to (face, pixel) candidates with ``np.repeat``; the z-test keeps, per pixel, the
    candidate of smallest depth with one ``np.minimum.at`` on a key that packs the quantised
    depth above the face index.
-2. Shading. For the covered pixels only: perspective-correct UVs of the winning face
-   (u/z, v/z and 1/z are affine on screen), one ``cv2.remap`` (bilinear) into the
-   linear-light texture, times the face's
+2. Shading. Densely over the mask's bounding box (image-shaped remap maps, no gather or
+   scatter of pixel coordinates; pixels of the box off the sheet come out black):
+   perspective-correct UVs of the winning face (u/z, v/z and 1/z are affine on screen,
+   evaluated in float32 from planes moved to the box's corner), one ``cv2.remap``
+   (bilinear) into the linear-light texture, times the face's
    Lambertian factor ``irradiance * exposure * max(0, n . l)``, with ``n`` the facet's normal
    turned towards the camera: both sides of the sheet show the texture, as Blender's
    single-sided plane does, and a side facing away from the light is black, as in Cycles.
