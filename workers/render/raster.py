@@ -303,7 +303,6 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
 # and its 4 neighbours' centres.
 _AA_OFFSETS = np.array([[-0.125, -0.375], [0.375, -0.125], [0.125, 0.375], [-0.375, 0.125]])
 _NEIGHBOURS = np.array([(0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)])
-_SAMPLE_BITS = np.arange(4, dtype=np.uint8)[None, :]
 _POPCOUNT4 = np.array([bin(value).count("1") for value in range(16)], dtype=np.uint8)
 
 
@@ -347,25 +346,24 @@ def _edge_alpha(
     w1 = p[:, 3:4] * sx + p[:, 4:5] * sy + p[:, 5:6]
     inside = (w0 >= -_EDGE_EPS) & (w1 >= -_EDGE_EPS) & (w0 + w1 <= 1.0 + _EDGE_EPS)
     # One bit per sample, OR-ed over each pixel's pairs, then counted.
-    bits = (inside.view(np.uint8) << _SAMPLE_BITS).sum(axis=1, dtype=np.uint8)
+    bits = np.packbits(inside, axis=1, bitorder="little")[:, 0]  # bit k: sample k inside
     sample_bits = np.zeros(rows.size, np.uint8)
     if pair_pixel.size:
-        starts = np.flatnonzero(np.r_[True, pair_pixel[1:] != pair_pixel[:-1]])
+        starts = np.concatenate([[0], np.flatnonzero(pair_pixel[1:] != pair_pixel[:-1]) + 1])
         sample_bits[pair_pixel[starts]] = np.bitwise_or.reduceat(bits, starts)
-    centre = mask[rows, cols]
+    on_sheet = candidates >= 0  # the pixel itself and its 4 neighbours on the mask (never off-image)
+    centre = on_sheet[:, 0]
     counts = _POPCOUNT4[sample_bits] + centre
     fraction = counts.astype(np.float32) / 5.0
     alpha[rows, cols] = fraction
     fringe = np.flatnonzero(~centre & (counts > 0))
     if fringe.size:
-        r = neighbour_rows[fringe]
-        c = neighbour_cols[fringe]
-        on_image = (r >= 0) & (r < height) & (c >= 0) & (c < width)
-        r, c = np.clip(r, 0, height - 1), np.clip(c, 0, width - 1)
-        weights = (mask[r, c] & on_image).astype(np.float32)
+        weights = on_sheet[fringe].astype(np.float32)
         total = np.maximum(weights.sum(axis=1, keepdims=True), 1.0)
         flat_rgb = rgb.reshape(-1, 3)
-        neighbour_rgb = np.take(flat_rgb, r * width + c, axis=0)  # (m, 5, 3)
+        # Off-image neighbours have weight 0: any in-range index will do for them.
+        neighbours = np.clip(neighbour_rows[fringe] * width + neighbour_cols[fringe], 0, height * width - 1)
+        neighbour_rgb = np.take(flat_rgb, neighbours, axis=0)  # (m, 5, 3)
         flat_rgb[rows[fringe] * width + cols[fringe]] = (neighbour_rgb * weights[:, :, None]).sum(axis=1) / total
     return alpha
 
