@@ -325,15 +325,16 @@ def _edge_alpha(
     r0, r1 = max(box[0] - 1, 0), min(box[1] + 1, height)
     c0, c1 = max(box[2] - 1, 0), min(box[3] + 1, width)
     local_u8 = np.ascontiguousarray(mask[r0:r1, c0:c1]).view(np.uint8)
-    band = cv2.dilate(local_u8, None) != cv2.erode(local_u8, None, borderType=cv2.BORDER_REPLICATE)
-    rows, cols = np.nonzero(band)
-    rows += r0
-    cols += c0
-    padded = np.full((r1 - r0 + 2, c1 - c0 + 2), -1, dtype=ids.dtype)
+    band = cv2.compare(cv2.dilate(local_u8, None), cv2.erode(local_u8, None, borderType=cv2.BORDER_REPLICATE), cv2.CMP_NE)
+    # Band pixels in row-major order, as flat indices into the box padded by one pixel of -1.
+    padded_width = c1 - c0 + 2
+    local_rows, local_cols = np.nonzero(band)
+    in_padded = (local_rows + 1) * padded_width + (local_cols + 1)
+    rows, cols = local_rows + r0, local_cols + c0
+    padded = np.full((r1 - r0 + 2, padded_width), -1, dtype=ids.dtype)
     padded[1:-1, 1:-1] = ids[r0:r1, c0:c1]
-    neighbour_rows = rows[:, None] + _NEIGHBOURS[None, :, 0]
-    neighbour_cols = cols[:, None] + _NEIGHBOURS[None, :, 1]
-    candidates = padded[neighbour_rows - r0 + 1, neighbour_cols - c0 + 1]  # (n, 5) face ids, -1 for none
+    steps = _NEIGHBOURS[:, 0] * padded_width + _NEIGHBOURS[:, 1]
+    candidates = np.take(padded, in_padded[:, None] + steps)  # (n, 5) face ids, -1 for none
     # Test each distinct (pixel, face) pair once: neighbours mostly share the pixel's own face.
     fresh = candidates >= 0
     fresh[:, 1:] &= candidates[:, 1:] != candidates[:, :1]
@@ -362,7 +363,8 @@ def _edge_alpha(
         total = np.maximum(weights.sum(axis=1, keepdims=True), 1.0)
         flat_rgb = rgb.reshape(-1, 3)
         # Off-image neighbours have weight 0: any in-range index will do for them.
-        neighbours = np.clip(neighbour_rows[fringe] * width + neighbour_cols[fringe], 0, height * width - 1)
+        image_steps = _NEIGHBOURS[:, 0] * width + _NEIGHBOURS[:, 1]
+        neighbours = np.clip((rows[fringe] * width + cols[fringe])[:, None] + image_steps, 0, height * width - 1)
         neighbour_rgb = np.take(flat_rgb, neighbours, axis=0)  # (m, 5, 3)
         flat_rgb[rows[fringe] * width + cols[fringe]] = (neighbour_rgb * weights[:, :, None]).sum(axis=1) / total
     return alpha
