@@ -85,17 +85,21 @@ def summarise(values: list[float]) -> dict:
 def _raster_worker(thetas: list[dict], repeats: int, barrier, results) -> None:
     """One all-cores raster process: single-threaded OpenCV (the processes are the parallelism),
     caches warmed on its θ untimed, then its θ ``repeats`` times between two barriers."""
-    import cv2
+    try:
+        import cv2
 
-    cv2.setNumThreads(1)
-    from workers.render.assets import load_assets
-    from workers.render.pipeline import RenderRejected, render_theta
+        cv2.setNumThreads(1)
+        from workers.render.assets import load_assets
+        from workers.render.pipeline import RenderRejected, render_theta
 
-    assets = load_assets()
-    for theta in thetas:
-        with contextlib.suppress(Exception):
-            render_theta(theta, backend="raster", assets=assets)
-    rendered = rejected = 0
+        assets = load_assets()
+        for theta in thetas:
+            with contextlib.suppress(Exception):
+                render_theta(theta, backend="raster", assets=assets)
+    except BaseException:
+        barrier.abort()  # the parent stops waiting at once
+        raise
+    rendered = rejected = errors = 0
     barrier.wait()
     begin = time.perf_counter()
     for _ in range(repeats):
@@ -106,8 +110,9 @@ def _raster_worker(thetas: list[dict], repeats: int, barrier, results) -> None:
             except RenderRejected:
                 rejected += 1
             except Exception:  # a backend bug: the single-process run reports it with its θ
-                pass
-    results.put({"rendered": rendered, "rejected": rejected, "seconds": time.perf_counter() - begin})
+                errors += 1
+    end = time.perf_counter()
+    results.put({"rendered": rendered, "rejected": rejected, "errors": errors, "begin": begin, "end": end})
 
 
 def raster_all_cores(thetas: list[dict], processes: int, repeats: int) -> dict:
@@ -127,9 +132,9 @@ def raster_all_cores(thetas: list[dict], processes: int, repeats: int) -> dict:
         worker.start()
     try:
         barrier.wait(timeout=600)  # every worker warm
-        begin = time.perf_counter()
         reports = [results.get(timeout=600) for _ in workers]
-        wall = time.perf_counter() - begin
+        # perf_counter is the system-wide monotonic clock on Linux: comparable across processes.
+        wall = max(r["end"] for r in reports) - min(r["begin"] for r in reports)
     finally:
         for worker in workers:
             worker.join(timeout=30)
@@ -142,9 +147,10 @@ def raster_all_cores(thetas: list[dict], processes: int, repeats: int) -> dict:
         "repeats_of_theta_set": repeats,
         "images": rendered,
         "rejected": sum(r["rejected"] for r in reports),
+        "errors": sum(r["errors"] for r in reports),
         "wall_seconds": wall,
         "images_per_second": rendered / wall if wall > 0 else math.nan,
-        "worker_seconds": [r["seconds"] for r in reports],
+        "worker_seconds": [r["end"] - r["begin"] for r in reports],
     }
 
 
@@ -156,7 +162,7 @@ def run(
     seed: int,
     progress: bool,
     processes: int = 0,
-    parallel_repeats: int = 3,
+    parallel_repeats: int = 5,
 ) -> dict:
     from workers.render.assets import load_assets
     from workers.render.pipeline import RenderRejected, render_theta
@@ -339,7 +345,7 @@ def main(argv: list[str] | None = None) -> int:
         "--processes", type=int, default=len(os.sched_getaffinity(0)),
         help="raster worker processes for the all-cores figure (default: the CPUs allowed; 0: skip it)",
     )
-    parser.add_argument("--parallel-repeats", type=int, default=3, help="times each all-cores worker renders its θ")
+    parser.add_argument("--parallel-repeats", type=int, default=5, help="times each all-cores worker renders its θ")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
     args = parser.parse_args(argv)
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
