@@ -210,8 +210,10 @@ def rasterize_face_ids(
     local = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(run) - run, run)
     pixel = np.repeat(row * width + col_start, run) + local
     face = np.repeat(span_face, run)
-    if not z_test:
-        ids[pixel] = face
+    ids[pixel] = face
+    # Most views of a sheet cover every pixel centre once: then each pixel's only candidate
+    # is its nearest, and the z-test below would change nothing.
+    if not z_test or np.count_nonzero(ids >= 0) == total:
         return ids, texturing, coverage
     # 1/z along the run: its value at the first pixel centre plus a constant step per pixel.
     start_inverse_depth = c[:, 6] * (col_start + 0.5) + c[:, 7] * py + c[:, 8]
