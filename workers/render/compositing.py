@@ -110,11 +110,10 @@ def composite(background: np.ndarray, foreground: np.ndarray, alpha: np.ndarray)
 def composite_object(background: np.ndarray, linear_rgb: np.ndarray, alpha: np.ndarray) -> np.ndarray:
     """The rendered object (linear light, encoded to sRGB here) over the background (float32
     sRGB, modified in place and returned); work only inside the box where ``alpha > 0``."""
-    rows = np.flatnonzero(alpha.any(axis=1))
-    if rows.size == 0:
+    x, y, w, h = cv2.boundingRect((alpha > 0).view(np.uint8))  # of the non-zero pixels
+    if w == 0 or h == 0:
         return background
-    cols = np.flatnonzero(alpha.any(axis=0))
-    region = (slice(rows[0], rows[-1] + 1), slice(cols[0], cols[-1] + 1))
+    region = (slice(y, y + h), slice(x, x + w))
     a = np.ascontiguousarray(alpha[region])
     background[region] = cv2.blendLinear(linear_to_srgb(linear_rgb[region]), background[region], a, 1.0 - a)
     return background
