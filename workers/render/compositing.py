@@ -163,7 +163,7 @@ def _place(pivot: tuple[float, float], centre, angle: float, scale: float) -> np
     return matrix
 
 
-_PREPARED_CAPACITY = 32
+_PREPARED_CAPACITY = 16  # a 512-pixel occluder as float32 is 3 MB
 _PREPARED: OrderedDict[tuple[int, int, int], tuple] = OrderedDict()
 _PREPARED_LOCK = threading.Lock()
 
