@@ -330,7 +330,9 @@ def _edge_alpha(
     band = cv2.compare(cv2.dilate(local_u8, None), cv2.erode(local_u8, None, borderType=cv2.BORDER_REPLICATE), cv2.CMP_NE)
     # Band pixels in row-major order, as flat indices into the box padded by one pixel of -1.
     padded_width = c1 - c0 + 2
-    local_rows, local_cols = np.nonzero(band)
+    points = cv2.findNonZero(band)  # (n, 1, 2) x, y in row-major order, like np.nonzero; None if empty
+    points = np.zeros((0, 2), np.int64) if points is None else points.reshape(-1, 2).astype(np.int64)
+    local_rows, local_cols = points[:, 1], points[:, 0]
     in_padded = (local_rows + 1) * padded_width + (local_cols + 1)
     rows, cols = local_rows + r0, local_cols + c0
     padded = np.full((r1 - r0 + 2, padded_width), -1, dtype=ids.dtype)
