@@ -239,10 +239,12 @@ def place_occluder(
         pivot = (moments["m10"] / moments["m00"], moments["m01"] / moments["m00"])
     else:
         pivot = ((ow - 1) / 2.0, (oh - 1) / 2.0)
-    rows, cols = np.nonzero(target_mask)
+    # The target's pixels in row-major order (as np.nonzero gives them, several times faster).
+    points = cv2.findNonZero(np.ascontiguousarray(target_mask).view(np.uint8)).reshape(-1, 2)
+    rows, cols = points[:, 1], points[:, 0]
     # Only target pixels count as hidden: the bisection warps the shape into the target's box.
-    r0, c0 = int(rows.min()), int(cols.min())
-    box_size = (int(cols.max()) + 1 - c0, int(rows.max()) + 1 - r0)
+    c0, r0, box_w, box_h = cv2.boundingRect(points)
+    box_size = (box_w, box_h)
     box_mask = target_mask[r0:r0 + box_size[1], c0:c0 + box_size[0]]
     best = None
     max_scale = 4.0 * math.hypot(height, width) / max(1.0, min(oh, ow))

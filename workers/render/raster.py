@@ -257,14 +257,12 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
     ids, texturing, coverage = rasterize_face_ids(pix, depth, faces, width, height, uv=np.asarray(scene.uv, np.float64))
     mask = (ids >= 0).reshape(height, width)
     rgb = np.zeros((height, width, 3), np.float32)
-    mask_rows = np.flatnonzero(mask.any(axis=1))
-    if mask_rows.size:
+    c0, r0, box_w, box_h = cv2.boundingRect(mask.view(np.uint8))  # of the covered pixels
+    r1, c1 = r0 + box_h, c0 + box_w
+    if box_w and box_h:
         # Shade the mask's bounding box densely: image-shaped maps go straight into cv2.remap
         # and the result into the image, with no per-pixel gather or scatter of coordinates.
         # Pixels of the box off the sheet get radiance 0 (face -1 picks the appended 0).
-        mask_cols = np.flatnonzero(mask.any(axis=0))
-        r0, r1 = int(mask_rows[0]), int(mask_rows[-1]) + 1
-        c0, c1 = int(mask_cols[0]), int(mask_cols[-1]) + 1
         texture = _PYRAMIDS.level(scene.texture, _footprint_px(pix, depth))
         th, tw = texture.shape[:2]
         radiance = np.append(_face_radiance(scene), np.float32(0.0))
@@ -294,7 +292,7 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
                 map_y = (np.float32(1.0) - v) * np.float32(th) - np.float32(0.5)
                 albedo = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
                 rgb[top:bottom, left:right] = albedo * np.take(radiance, face)[..., None]
-    if not antialias or not mask_rows.size:
+    if not antialias or not (box_w and box_h):
         return BackendOutput(rgb=rgb, mask=mask, alpha=mask.astype(np.float32))
     alpha = _edge_alpha(ids.reshape(height, width), coverage, mask, rgb, box=(r0, r1, c0, c1))
     return BackendOutput(rgb=rgb, mask=mask, alpha=alpha)
