@@ -119,6 +119,35 @@ def composite_object(background: np.ndarray, linear_rgb: np.ndarray, alpha: np.n
     return background
 
 
+def _drawn_box(alpha: np.ndarray) -> tuple[int, int, int, int] | None:
+    """(row0, row1, col0, col1) of the pixels where ``alpha > 0``; None when there are none."""
+    x, y, w, h = cv2.boundingRect((alpha > 0).view(np.uint8))
+    return (y, y + h, x, x + w) if w and h else None
+
+
+def composite_to_uint8(
+    background: np.ndarray, linear_rgb: np.ndarray, alpha: np.ndarray, occlusion: "Occlusion | None" = None
+) -> np.ndarray:
+    """The object (linear light) and then the occluder over a uint8 background, encoded to
+    uint8: the same bytes as converting the whole background to float, ``composite_object``,
+    ``composite`` and ``to_uint8``, but only the box where something is drawn goes through
+    float (elsewhere a uint8 level survives the round trip unchanged). For images that get
+    no blur; a blurred image needs the whole float image."""
+    boxes = [box for box in (_drawn_box(alpha), None if occlusion is None else _drawn_box(occlusion.alpha)) if box]
+    out = np.array(background, dtype=np.uint8, copy=True)
+    if not boxes:
+        return out
+    region = (
+        slice(min(b[0] for b in boxes), max(b[1] for b in boxes)),
+        slice(min(b[2] for b in boxes), max(b[3] for b in boxes)),
+    )
+    image = composite_object(np.multiply(out[region], np.float32(1.0 / 255.0), dtype=np.float32), linear_rgb[region], alpha[region])
+    if occlusion is not None:
+        image = composite(image, occlusion.rgb[region], np.ascontiguousarray(occlusion.alpha[region]))
+    out[region] = to_uint8(image)
+    return out
+
+
 @dataclass
 class Occlusion:
     rgb: np.ndarray  # (H, W, 3) float32 sRGB of the occluder where it lies

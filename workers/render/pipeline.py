@@ -14,7 +14,9 @@
 7. ``background``: sRGB encoding of the render and alpha compositing over the background;
    the occluder goes on top;
 8. ``focus_blur`` then ``motion_blur`` (only when their kernels are at least 2 pixels);
-9. ``encode``: to uint8. ``total`` covers everything.
+9. ``encode``: to uint8. ``total`` covers everything. An image with no blur composites and
+   encodes only the box where the object or occluder is drawn, inside ``background`` (no
+   ``encode`` entry); the bytes are the same.
 
 A stage whose parameter is canonical does no work and has no timing entry.
 Everything random comes from θ's seed (split by purpose), so a θ renders to the same bytes.
@@ -166,22 +168,28 @@ def render_theta(
     lap("annotation")
 
     background = assets.background(theta["background"], size, _rng(theta, _BACKGROUND))
-    image = compositing.composite_object(
-        np.multiply(background, np.float32(1.0 / 255.0), dtype=np.float32), output.rgb, output.alpha
-    )
-    if occlusion is not None:
-        image = compositing.composite(image, occlusion.rgb, occlusion.alpha)
-    lap("background")
-
-    if compositing.odd_kernel_size(float(theta["focus_blur_pct"]), size) > 0:
-        image = compositing.focus_blur(image, float(theta["focus_blur_pct"]), size)
-        lap("focus_blur")
-    if compositing.motion_kernel_pixels(float(theta["motion_blur_pct"]), size) > 1:
-        image = compositing.motion_blur(image, float(theta["motion_blur_pct"]), float(theta["motion_blur_angle"]), size)
-        lap("motion_blur")
-
-    image_u8 = compositing.to_uint8(image)
-    lap("encode")
+    focus_blur = compositing.odd_kernel_size(float(theta["focus_blur_pct"]), size) > 0
+    motion_blur = compositing.motion_kernel_pixels(float(theta["motion_blur_pct"]), size) > 1
+    if not (focus_blur or motion_blur):
+        # Nothing blurs: only the box where the object or occluder lies needs float and
+        # encoding (same bytes as the whole-image path below).
+        image_u8 = compositing.composite_to_uint8(background, output.rgb, output.alpha, occlusion)
+        lap("background")
+    else:
+        image = compositing.composite_object(
+            np.multiply(background, np.float32(1.0 / 255.0), dtype=np.float32), output.rgb, output.alpha
+        )
+        if occlusion is not None:
+            image = compositing.composite(image, occlusion.rgb, occlusion.alpha)
+        lap("background")
+        if focus_blur:
+            image = compositing.focus_blur(image, float(theta["focus_blur_pct"]), size)
+            lap("focus_blur")
+        if motion_blur:
+            image = compositing.motion_blur(image, float(theta["motion_blur_pct"]), float(theta["motion_blur_angle"]), size)
+            lap("motion_blur")
+        image_u8 = compositing.to_uint8(image)
+        lap("encode")
     timings["total"] = time.perf_counter() - start
     return RenderResult(
         image=image_u8,

@@ -119,3 +119,25 @@ def test_chunked_shading_matches_one_chunk(monkeypatch):
     assert np.abs(whole.rgb - chunked.rgb).max() < 0.05
     assert np.abs(whole.rgb - chunked.rgb).mean() < 1e-4
     assert not chunked.rgb[~chunked.mask & (chunked.alpha == 0)].any()  # off the sheet stays black
+
+
+def test_unblurred_images_composite_only_the_drawn_box_with_the_same_bytes():
+    rng = np.random.default_rng(5)
+    background = rng.integers(0, 256, (40, 50, 3), dtype=np.uint8)
+    linear = rng.random((40, 50, 3), dtype=np.float32) * 1.2  # some values past white
+    alpha = np.zeros((40, 50), np.float32)
+    alpha[10:20, 5:30] = rng.random((10, 25), dtype=np.float32)
+    occluder_alpha = np.zeros((40, 50), np.float32)
+    occluder_alpha[25:35, 30:45] = 0.7
+    occlusion = compositing.Occlusion(
+        rgb=rng.random((40, 50, 3), dtype=np.float32) * (occluder_alpha > 0)[..., None],
+        alpha=occluder_alpha, mask=occluder_alpha >= 0.5, target_fraction=0.5, achieved_fraction=0.5,
+    )
+    for occ in (None, occlusion):
+        as_float = np.multiply(background, np.float32(1.0 / 255.0), dtype=np.float32)  # as the pipeline does
+        whole = compositing.composite_object(as_float, linear, alpha)
+        whole = compositing.to_uint8(whole if occ is None else compositing.composite(whole, occ.rgb, occ.alpha))
+        boxed = compositing.composite_to_uint8(background, linear, alpha, occ)
+        assert np.array_equal(boxed, whole)
+        assert np.array_equal(boxed[:10], background[:10])  # above everything drawn: untouched
+    assert np.array_equal(compositing.composite_to_uint8(background, linear, np.zeros_like(alpha)), background)
