@@ -333,7 +333,12 @@ def procedural_background(kind: str, size: int, rng: np.random.Generator) -> np.
             out += amplitude * cv2.resize(grid, (size, size), interpolation=cv2.INTER_CUBIC)
             total += amplitude
             amplitude *= 0.5
-        image = out / total
+        # In place, and min/max rather than np.clip (several times slower on NumPy 1.26): the
+        # same float32 values and the same bytes as np.clip(out / total + 0.5, 0, 255).astype.
+        np.divide(out, np.float32(total), out=out)
+        np.add(out, np.float32(0.5), out=out)
+        np.maximum(out, 0, out=out)
+        return np.minimum(out, 255, out=out).astype(np.uint8)
     elif kind in ("gradient", "stripes", "checker"):
         angle = rng.uniform(0, np.pi)
         xs = (np.arange(size, dtype=np.float32) / size)[None, :]
@@ -356,7 +361,6 @@ def procedural_background(kind: str, size: int, rng: np.random.Generator) -> np.
         return cv2.merge([np.clip(colours[0, k] + step[k] * weight + 0.5, 0, 255).astype(np.uint8) for k in range(3)])
     else:
         raise AssetError(f"unknown procedural background {kind!r}; known: {', '.join(PROCEDURAL_BACKGROUNDS)}")
-    return np.clip(image + 0.5, 0, 255).astype(np.uint8)
 
 
 def _config_key(config) -> tuple:

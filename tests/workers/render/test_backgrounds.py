@@ -85,3 +85,18 @@ def test_bad_size_is_rejected():
     catalog = _catalog({"big": _smooth_photo(400, 400, 3)})
     with pytest.raises(AssetError, match="size"):
         catalog.background("big", 0, np.random.default_rng(0))
+
+
+def test_noise_background_matches_the_plain_numpy_formula():
+    for seed in range(6):
+        for size in (17, 64):
+            image = procedural_background("noise", size, np.random.default_rng(seed))
+            rng = np.random.default_rng(seed)  # replay the draws
+            rng.uniform(0, 255, size=(2, 3))  # the two colours, unused by noise
+            out, amplitude, total = np.zeros((size, size, 3), np.float32), 1.0, 0.0
+            for cells in (4, 8, 16, 32):
+                grid = rng.uniform(0, 255, size=(cells, cells, 3)).astype(np.float32)
+                out += amplitude * cv2.resize(grid, (size, size), interpolation=cv2.INTER_CUBIC)
+                total += amplitude
+                amplitude *= 0.5
+            assert np.array_equal(image, np.clip(out / total + 0.5, 0, 255).astype(np.uint8)), (seed, size)
