@@ -11,6 +11,7 @@ from workers.render.assets import (
     AssetCatalog,
     AssetError,
     load_assets,
+    procedural_background,
     random_crop,
 )
 
