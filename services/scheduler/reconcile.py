@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import logging
 from collections import Counter
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence
+from dataclasses import dataclass
 from datetime import datetime, timedelta, timezone
 
 from sqlalchemy import func, select, update
@@ -320,15 +320,10 @@ def load_snapshot(session: Session, experiment: Experiment, now: datetime | None
 
 @dataclass(frozen=True)
 class Send:
+    """A task message to send once the transaction that decided it has committed."""
+
     kind: str  # "render" | "train"
     ids: tuple[int, ...]
-    requeue: bool = False
-
-
-@dataclass
-class Applied:
-    decisions: list[Decision] = field(default_factory=list)
-    sends: list[Send] = field(default_factory=list)
 
 
 def _assets(config: ExperimentConfig):
@@ -347,8 +342,11 @@ def _sample(
     )
 
 
-def apply(session: Session, experiment: Experiment, decisions: Sequence[Decision], config: ExperimentConfig) -> Applied:
-    applied = Applied(decisions=list(decisions))
+def apply(
+    session: Session, experiment: Experiment, decisions: Sequence[Decision], config: ExperimentConfig
+) -> list[Send]:
+    """Write the decisions in the caller's transaction; returns the tasks to send after it commits."""
+    sends: list[Send] = []
     table = load_condition_table()
     stages = {st.id: st for st in session.scalars(select(Stage).where(Stage.experiment_id == experiment.id))}
     now = utcnow()
@@ -398,9 +396,11 @@ def apply(session: Session, experiment: Experiment, decisions: Sequence[Decision
                     for i, theta in enumerate(thetas)
                 )
             case EnqueueRender(ids, requeue):
+                if requeue:
+                    log.warning("experiment %s: %d θ queued too long, sending them again", experiment.id, len(ids))
                 batch = config.render.batch_size
                 for start in range(0, len(ids), batch):
-                    applied.sends.append(Send("render", ids[start : start + batch], requeue))
+                    sends.append(Send("render", ids[start : start + batch]))
             case OpenStage(stage_id, init_model_id):
                 stage = stages[stage_id]
                 stage.status = StageStatus.running
@@ -418,9 +418,11 @@ def apply(session: Session, experiment: Experiment, decisions: Sequence[Decision
                 )
                 session.add(model)
                 session.flush()
-                applied.sends.append(Send("train", (model.id,)))
+                sends.append(Send("train", (model.id,)))
             case EnqueueTraining(model_id, requeue):
-                applied.sends.append(Send("train", (model_id,), requeue))
+                if requeue:
+                    log.warning("experiment %s: model %s queued too long, sending it again", experiment.id, model_id)
+                sends.append(Send("train", (model_id,)))
             case CloseStage(stage_id, reason, best_model_id):
                 stage = stages[stage_id]
                 stage.status = StageStatus.done
@@ -436,7 +438,7 @@ def apply(session: Session, experiment: Experiment, decisions: Sequence[Decision
                 experiment.error = reason
                 experiment.finished_at = now
                 log.error("experiment %s failed: %s", experiment.id, reason)
-    return applied
+    return sends
 
 
 def _mark_sent(send: Send) -> None:
@@ -473,7 +475,7 @@ def _send(send: Send) -> None:
         app.send_task(name, args=args)
 
 
-def reconcile_once(experiment_id: int, on_send: Callable[[Send], None] | None = None) -> list[Decision]:
+def reconcile_once(experiment_id: int) -> list[Decision]:
     """Plan and apply one step for one experiment; returns the decisions taken."""
     with session_scope() as session:
         query = select(Experiment).where(Experiment.id == experiment_id)
@@ -486,10 +488,8 @@ def reconcile_once(experiment_id: int, on_send: Callable[[Send], None] | None = 
         decisions = plan(snapshot)
         if not decisions:
             return []
-        applied = apply(session, experiment, decisions, snapshot.config)
-    for send in applied.sends:
-        if on_send:
-            on_send(send)
+        sends = apply(session, experiment, decisions, snapshot.config)
+    for send in sends:
         _send(send)
         _mark_sent(send)
-    return applied.decisions
+    return decisions

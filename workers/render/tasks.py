@@ -9,28 +9,20 @@ from __future__ import annotations
 
 import logging
 import time
-from functools import lru_cache
-
 from db.models import Experiment, ExperimentStatus, ParameterSet, RenderStatus, utcnow
 from db.session import session_scope
 from foldwise import store
-from foldwise.config import AssetsConfig, ExperimentConfig
+from foldwise.config import ExperimentConfig
 from workers.app import RENDER_TASK, app
 
 log = logging.getLogger(__name__)
-
-
-@lru_cache(maxsize=8)
-def _assets(assets_config: AssetsConfig):
-    from workers.render.assets import load_assets
-
-    return load_assets(assets_config)
 
 
 def render_parameter_set(parameter_set_id: int) -> str:
     """Render one θ row; returns what happened ("rendered", "skipped", "failed", "missing")."""
     import cv2
 
+    from workers.render.assets import load_assets  # cached per process and assets config
     from workers.render.pipeline import RenderRejected, render_with_resample
 
     with session_scope() as session:
@@ -53,7 +45,7 @@ def render_parameter_set(parameter_set_id: int) -> str:
             theta,
             backend=config.render.backend,
             max_resamples=config.render.max_resamples,
-            assets=_assets(config.assets),
+            assets=load_assets(config.assets),
             samples=config.render.samples,
             device=config.render.device,
         )
