@@ -47,20 +47,13 @@ def get_experiment(session: Session, experiment_id: int) -> Experiment:
 
 
 def _iso(when: datetime | None) -> str | None:
-    # SQLite hands datetimes back without their zone; every stored time is UTC.
-    if when is None:
-        return None
-    return (when if when.tzinfo else when.replace(tzinfo=timezone.utc)).isoformat()
+    return when.isoformat() if when else None
 
 
 def _seconds_between(start: datetime | None, end: datetime | None) -> float | None:
     if start is None:
         return None
     end = end or datetime.now(timezone.utc)
-    if start.tzinfo is None:
-        start = start.replace(tzinfo=timezone.utc)
-    if end.tzinfo is None:
-        end = end.replace(tzinfo=timezone.utc)
     return (end - start).total_seconds()
 
 

@@ -16,7 +16,7 @@ import logging
 from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime, timedelta, timezone
+from datetime import datetime, timedelta
 
 from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
@@ -101,11 +101,7 @@ class Snapshot:
         return total
 
     def stale(self, when: datetime | None) -> bool:
-        return when is not None and _aware(when) < self.now - self.requeue_after
-
-
-def _aware(when: datetime) -> datetime:
-    return when if when.tzinfo is not None else when.replace(tzinfo=timezone.utc)
+        return when is not None and when < self.now - self.requeue_after
 
 
 # ---------------------------------------------------------------------------------------

@@ -48,14 +48,11 @@ def _claim(model_id: int, task_id: str) -> bool:
         experiment = session.get(Experiment, model.experiment_id)
         if experiment.status in (ExperimentStatus.cancelled, ExperimentStatus.failed):
             return False
-        claimed_at = model.claimed_at
-        if claimed_at is not None and claimed_at.tzinfo is None:  # SQLite drops the zone
-            claimed_at = claimed_at.replace(tzinfo=stale_before.tzinfo)
         if (
             model.status == ModelStatus.training
             and model.task_id != task_id
-            and claimed_at is not None
-            and claimed_at > stale_before
+            and model.claimed_at is not None
+            and model.claimed_at > stale_before
         ):
             return False
         model.status = ModelStatus.training
