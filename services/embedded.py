@@ -6,7 +6,6 @@ differs: each task runs in-process the moment the scheduler sends it.
 
 from __future__ import annotations
 
-import time
 from collections.abc import Callable
 
 from db.migrate import upgrade
@@ -45,9 +44,3 @@ def run_to_completion(
             # Every task ran synchronously, so nothing can be outstanding.
             raise Stalled(f"experiment {experiment_id} is {status.value} but nothing is left to do")
 
-
-def run_config(config: ExperimentConfig, on_step=None) -> tuple[int, str, float]:
-    started = time.perf_counter()
-    experiment_id = start_experiment(config)
-    status = run_to_completion(experiment_id, on_step)
-    return experiment_id, status, time.perf_counter() - started
