@@ -1,21 +1,19 @@
-"""The fast backend: a z-buffered, texture-mapping rasteriser in NumPy/OpenCV, Lambertian shading.
+"""The fast backend: a z-buffered, texture-mapping rasteriser, Lambertian shading.
 
-Two vectorised passes, no Python loop over triangles:
+Three compiled passes (numba), each touching only the pixels it must:
 
 1. Face-id buffer. For every triangle and every pixel row it crosses, the run of pixel
    centres inside it follows from its three edge functions (barycentric coordinates >= 0,
-   pixel centres per scene.py, edges inclusive so shared edges leave no gaps); the runs are
-   expanded to (face, pixel) candidates with ``np.repeat``; the z-test keeps, per pixel, the
-   candidate of smallest depth with one ``np.minimum.at`` on a key that packs the quantised
-   depth above the face index.
-2. Shading. Densely over the mask's bounding box (image-shaped remap maps, no gather or
-   scatter of pixel coordinates; pixels of the box off the sheet come out black):
-   perspective-correct UVs of the winning face (u/z, v/z and 1/z are affine on screen,
-   evaluated in float32 from planes moved to the box's corner), one ``cv2.remap``
-   (bilinear) into the linear-light texture, times the face's
-   Lambertian factor ``irradiance * exposure * max(0, n . l)``, with ``n`` the facet's normal
-   turned towards the camera: both sides of the sheet show the texture, as Blender's
-   single-sided plane does, and a side facing away from the light is black, as in Cycles.
+   pixel centres per scene.py, edges inclusive so shared edges leave no gaps); each pixel of
+   the run keeps the nearest face (largest 1/z, which is affine on screen; the lower face
+   index on an exact tie). The per-face planes come from one vectorised NumPy pass.
+2. Shading, over the covered pixels of the mask's bounding box: perspective-correct UVs of
+   the pixel's face (u/z, v/z and 1/z are affine on screen), a bilinear fetch from the
+   linear-light texture, times the face's Lambertian factor
+   ``irradiance * exposure * max(0, n . l)``, with ``n`` the facet's normal turned towards
+   the camera: both sides of the sheet show the texture, as Blender's single-sided plane
+   does, and a side facing away from the light is black, as in Cycles.
+3. Edge anti-aliasing (below).
 
 The texture is sRGB-encoded; it is decoded to linear albedo first (a lookup table), and
 downsampled in linear light (``INTER_AREA``, powers of two) to the level that matches the
@@ -37,15 +35,13 @@ import threading
 from collections import OrderedDict
 
 import cv2
+import numba
 import numpy as np
 
 from workers.render.scene import BackendOutput, Camera, Scene3D
 
 NEAR = 1e-3
 _EDGE_EPS = 1e-9
-_FACE_BITS = 23  # face index in the low bits of the z-test key: up to 8M faces
-_DEPTH_LEVELS = float(2**38)
-_EMPTY_KEY = np.iinfo(np.int64).max
 
 
 def _srgb_decode_table() -> np.ndarray:
@@ -99,53 +95,258 @@ def _face_planes(pix: np.ndarray, depth: np.ndarray, faces: np.ndarray, uv: np.n
     """Per face, screen-space plane coefficients ``(a, b, c)`` (value = a*px + b*py + c) of the
     barycentrics w0, w1 and of 1/z, and (given ``uv``) of u/z and v/z, which are affine on
     screen too, so perspective-correct u = (u/z) / (1/z). Also the drawable faces (in front of
-    NEAR, not degenerate on screen) and the screen coordinates of their corners."""
-    x = pix[faces, 0]
-    y = pix[faces, 1]
-    z = depth[faces]
-    with np.errstate(invalid="ignore"):
-        usable = np.all(z > NEAR, axis=1) & np.all(np.isfinite(x) & np.isfinite(y), axis=1)
-    x = np.where(usable[:, None], x, 0.0)
-    y = np.where(usable[:, None], y, 0.0)
-    x0, x1, x2 = x[:, 0], x[:, 1], x[:, 2]
-    y0, y1, y2 = y[:, 0], y[:, 1], y[:, 2]
-    area2 = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
-    usable &= np.abs(area2) > 1e-10
-    inv_area = np.zeros_like(area2)
-    inv_area[usable] = 1.0 / area2[usable]
-    # w0(p) = ((x1 - p.x)(y2 - p.y) - (x2 - p.x)(y1 - p.y)) / area2, expanded to a*px + b*py + c
-    a0, b0, c0 = (y1 - y2) * inv_area, (x2 - x1) * inv_area, (x1 * y2 - x2 * y1) * inv_area
-    a1, b1, c1 = (y2 - y0) * inv_area, (x0 - x2) * inv_area, (x2 * y0 - x0 * y2) * inv_area
+    NEAR, not degenerate on screen) and the screen coordinates of their corners.
 
-    iz = np.where(usable[:, None], 1.0 / np.where(usable[:, None], z, 1.0), 0.0)
-    # Per corner, the quantities interpolated: 1/z, then (given uv) u/z and v/z; (faces, 3, k).
-    values = iz[:, :, None]
-    if uv is not None:
-        values = np.concatenate([values, uv[faces] * values], axis=2)
-    # f = w0*f0 + w1*f1 + (1 - w0 - w1)*f2, for all k at once: (faces, k, 3) planes (a, b, c).
-    d0, d1 = values[:, 0] - values[:, 2], values[:, 1] - values[:, 2]
-    planes = np.stack(
-        [d0 * a0[:, None] + d1 * a1[:, None], d0 * b0[:, None] + d1 * b1[:, None],
-         d0 * c0[:, None] + d1 * c1[:, None] + values[:, 2]],
-        axis=2,
-    ).reshape(len(faces), -1)
-    coverage = np.concatenate([np.stack([a0, b0, c0, a1, b1, c1], axis=1), planes[:, :3]], axis=1)
-    texturing = planes if uv is not None else None
+    Returns (coverage (F, 9): w0, w1 and 1/z planes; texturing (F, 9): 1/z, u/z, v/z planes,
+    None without ``uv``; usable (F,); x, y (F, 3), 0 for unusable faces)."""
+    with_uv = uv is not None
+    coverage, texturing, usable, x, y = _face_planes_kernel(
+        np.ascontiguousarray(pix, np.float64),
+        np.ascontiguousarray(depth, np.float64),
+        np.ascontiguousarray(faces, np.int64),
+        np.ascontiguousarray(uv, np.float64) if with_uv else np.zeros((0, 2)),
+    )
+    return coverage, texturing if with_uv else None, usable, x, y
+
+
+@numba.njit(cache=True, nogil=True)
+def _face_planes_kernel(pix, depth, faces, uv):  # pragma: no cover - compiled
+    n = faces.shape[0]
+    coverage = np.zeros((n, 9))
+    texturing = np.zeros((n, 9))
+    usable = np.zeros(n, np.bool_)
+    x = np.zeros((n, 3))
+    y = np.zeros((n, 3))
+    values = np.zeros((3, 3))  # per corner: 1/z, u/z, v/z
+    for f in range(n):
+        ok = True
+        for k in range(3):
+            vertex = faces[f, k]
+            if not (depth[vertex] > NEAR and np.isfinite(pix[vertex, 0]) and np.isfinite(pix[vertex, 1])):
+                ok = False
+        if not ok:
+            continue
+        for k in range(3):
+            x[f, k] = pix[faces[f, k], 0]
+            y[f, k] = pix[faces[f, k], 1]
+        x0, x1, x2 = x[f, 0], x[f, 1], x[f, 2]
+        y0, y1, y2 = y[f, 0], y[f, 1], y[f, 2]
+        area2 = (x1 - x0) * (y2 - y0) - (x2 - x0) * (y1 - y0)
+        if not abs(area2) > 1e-10:
+            x[f] = 0.0
+            y[f] = 0.0
+            continue
+        usable[f] = True
+        inv_area = 1.0 / area2
+        # w0(p) = ((x1 - p.x)(y2 - p.y) - (x2 - p.x)(y1 - p.y)) / area2, expanded to a*px + b*py + c
+        a0, b0, c0 = (y1 - y2) * inv_area, (x2 - x1) * inv_area, (x1 * y2 - x2 * y1) * inv_area
+        a1, b1, c1 = (y2 - y0) * inv_area, (x0 - x2) * inv_area, (x2 * y0 - x0 * y2) * inv_area
+        for k in range(3):
+            vertex = faces[f, k]
+            values[k, 0] = 1.0 / depth[vertex]
+            if uv.shape[0]:
+                values[k, 1] = uv[vertex, 0] * values[k, 0]
+                values[k, 2] = uv[vertex, 1] * values[k, 0]
+        # g = w0*g0 + w1*g1 + (1 - w0 - w1)*g2 for each interpolated quantity g.
+        for q in range(3):
+            d0, d1 = values[0, q] - values[2, q], values[1, q] - values[2, q]
+            texturing[f, 3 * q] = d0 * a0 + d1 * a1
+            texturing[f, 3 * q + 1] = d0 * b0 + d1 * b1
+            texturing[f, 3 * q + 2] = d0 * c0 + d1 * c1 + values[2, q]
+        coverage[f, 0], coverage[f, 1], coverage[f, 2] = a0, b0, c0
+        coverage[f, 3], coverage[f, 4], coverage[f, 5] = a1, b1, c1
+        coverage[f, 6], coverage[f, 7], coverage[f, 8] = texturing[f, 0], texturing[f, 1], texturing[f, 2]
     return coverage, texturing, usable, x, y
 
 
-_SCRATCH = threading.local()
+# -- compiled kernels --------------------------------------------------------------------------
+# Per-pixel loops over a few thousand to a few hundred thousand pixels: compiled, they cost
+# about what NumPy spends on one whole-array pass, and each pixel's work stops where it can.
 
 
-def _z_buffer(size: int) -> np.ndarray:
-    """This thread's empty z-test buffer of at least ``size`` keys. Reused between calls (and
-    emptied by resetting only the pixels touched): filling a fresh image-sized buffer every
-    call costs more than the z-test itself."""
-    buffer = getattr(_SCRATCH, "z_buffer", None)
-    if buffer is None or buffer.size < size:
-        buffer = np.full(size, _EMPTY_KEY, dtype=np.int64)
-        _SCRATCH.z_buffer = buffer
-    return buffer
+@numba.njit(cache=True, nogil=True)
+def _scan_faces(x, y, usable, coverage, width, height, z_test, ids, inverse_depth):  # pragma: no cover - compiled
+    """Write into ``ids`` (H*W, -1 filled) the face covering each pixel centre; with ``z_test``
+    the nearest one (largest 1/z; the lower face index on an exact tie), else the last drawn.
+    Returns the covered pixels' bounding box (row0, row1, col0, col1), empty as (0, 0, 0, 0).
+
+    Per face and pixel row, the three edge inequalities ``w_k(px, row centre) >= -eps`` are
+    solved for px, which gives the run of covered pixel centres directly."""
+    row0, row1, col0, col1 = height, -1, width, -1
+    for face in range(x.shape[0]):
+        if not usable[face]:
+            continue
+        x_min = min(x[face, 0], x[face, 1], x[face, 2])
+        x_max = max(x[face, 0], x[face, 1], x[face, 2])
+        first = math.ceil(min(y[face, 0], y[face, 1], y[face, 2]) - 0.5)
+        last = math.floor(max(y[face, 0], y[face, 1], y[face, 2]) - 0.5)
+        if last < first or last < 0 or first > height - 1 or x_max < 0.5 or x_min > width - 0.5:
+            continue
+        c = coverage[face]
+        # Edge k: w_k = a_k px + b_k py + c_k >= -eps, with w2 = 1 - w0 - w1.
+        a0, a1, a2 = c[0], c[3], -c[0] - c[3]
+        for row in range(max(int(first), 0), min(int(last), height - 1) + 1):
+            py = row + 0.5
+            lo, hi = x_min, x_max
+            empty = False
+            for a_k, rhs_k in (
+                (a0, -(c[1] * py + c[2]) - _EDGE_EPS),
+                (a1, -(c[4] * py + c[5]) - _EDGE_EPS),
+                (a2, -((1.0 - c[2] - c[5]) - (c[1] + c[4]) * py) - _EDGE_EPS),
+            ):
+                if a_k > 0:
+                    lo = max(lo, rhs_k / a_k)
+                elif a_k < 0:
+                    hi = min(hi, rhs_k / a_k)
+                elif rhs_k > 0:
+                    empty = True
+            if empty:
+                continue
+            start = max(math.ceil(lo - 0.5), 0.0)
+            end = min(math.floor(hi - 0.5), width - 1.0)
+            if end < start:
+                continue
+            start_col, end_col = int(start), int(end)
+            base = row * width
+            for col in range(start_col, end_col + 1):
+                pixel = base + col
+                if z_test:
+                    nearness = c[6] * (col + 0.5) + c[7] * py + c[8]  # 1/z: larger is nearer
+                    held = ids[pixel]
+                    if held >= 0 and (
+                        nearness < inverse_depth[pixel] or (nearness == inverse_depth[pixel] and face > held)
+                    ):
+                        continue
+                    inverse_depth[pixel] = nearness
+                ids[pixel] = face
+            row0, row1 = min(row0, row), max(row1, row)
+            col0, col1 = min(col0, start_col), max(col1, end_col)
+    if row1 < 0:
+        return 0, 0, 0, 0
+    return row0, row1 + 1, col0, col1 + 1
+
+
+@numba.njit(cache=True, nogil=True)
+def _shade(face_image, box, texturing, radiance, texture, rgb):  # pragma: no cover - compiled
+    """``rgb`` of every covered pixel in ``box``: the perspective-correct UV of its face
+    (u/z, v/z and 1/z are affine on screen), a bilinear fetch from the linear-light
+    ``texture`` (edge texels repeated outside it), times the face's radiance."""
+    th, tw = texture.shape[0], texture.shape[1]
+    row0, row1, col0, col1 = box
+    for row in range(row0, row1):
+        py = row + 0.5
+        current = -1
+        # The face's planes, loaded once per run of pixels of one face.
+        a_inv = b_inv = a_u = b_u = a_v = b_v = 0.0
+        weight = np.float32(0.0)
+        for col in range(col0, col1):
+            face = face_image[row, col]
+            if face < 0:
+                continue
+            if face != current:
+                current = face
+                a_inv = texturing[face, 0]
+                b_inv = texturing[face, 1] * py + texturing[face, 2]
+                a_u = texturing[face, 3]
+                b_u = texturing[face, 4] * py + texturing[face, 5]
+                a_v = texturing[face, 6]
+                b_v = texturing[face, 7] * py + texturing[face, 8]
+                weight = radiance[face]
+            px = col + 0.5
+            depth = 1.0 / (a_inv * px + b_inv)
+            u = (a_u * px + b_u) * depth
+            v = (a_v * px + b_v) * depth
+            # Texel (r, c) sits at u = (c + 0.5) / w, v = 1 - (r + 0.5) / h (scene.py).
+            tx = min(max(u * tw - 0.5, 0.0), tw - 1.0)
+            ty = min(max((1.0 - v) * th - 0.5, 0.0), th - 1.0)
+            if not (tx == tx and ty == ty):  # NaN from a degenerate plane: the first texel
+                tx = ty = 0.0
+            x0, y0 = int(tx), int(ty)
+            x1, y1 = min(x0 + 1, tw - 1), min(y0 + 1, th - 1)
+            fx, fy = np.float32(tx - x0), np.float32(ty - y0)
+            w00 = (np.float32(1.0) - fx) * (np.float32(1.0) - fy) * weight
+            w01 = fx * (np.float32(1.0) - fy) * weight
+            w10 = (np.float32(1.0) - fx) * fy * weight
+            w11 = fx * fy * weight
+            for channel in range(3):
+                rgb[row, col, channel] = (
+                    texture[y0, x0, channel] * w00
+                    + texture[y0, x1, channel] * w01
+                    + texture[y1, x0, channel] * w10
+                    + texture[y1, x1, channel] * w11
+                )
+
+
+# Edge anti-aliasing: a rotated 4-sample grid (x, y offsets from the pixel centre), plus the
+# centre itself, whose coverage is the mask.
+_AA_OFFSETS = np.array([[-0.125, -0.375], [0.375, -0.125], [0.125, 0.375], [-0.375, 0.125]])
+
+
+@numba.njit(cache=True, nogil=True)
+def _edge_alpha_kernel(face_image, mask, box, coverage, offsets, alpha, rgb):  # pragma: no cover - compiled
+    """For each pixel whose 3x3 neighbourhood (in the image) holds both covered and uncovered
+    centres (``mask``): alpha = covered share of its centre and the 4 ``offsets`` samples, testing the
+    faces seen at its own and its 4 neighbours' centres; an uncovered pixel with some
+    coverage takes the mean ``rgb`` of its covered 4-neighbours. ``box``: the covered
+    pixels' bounding box."""
+    height, width = face_image.shape
+    row0, row1 = max(box[0] - 1, 0), min(box[1] + 1, height)
+    col0, col1 = max(box[2] - 1, 0), min(box[3] + 1, width)
+    # A 3x3 window is mixed iff it holds two 4-adjacent centres that differ (it is 4-connected):
+    # mark, for each such pair, the pixels whose window holds both. Pairs lie along the
+    # silhouette, so this costs one comparison pass plus work proportional to its length.
+    band = np.zeros((row1 - row0, col1 - col0), np.bool_)
+    for row in range(row0, row1):
+        for col in range(col0, col1):
+            covered = mask[row, col]
+            if col + 1 < col1 and mask[row, col + 1] != covered:
+                for r in range(max(row - 1, row0), min(row + 2, row1)):
+                    band[r - row0, col - col0] = True
+                    band[r - row0, col + 1 - col0] = True
+            if row + 1 < row1 and mask[row + 1, col] != covered:
+                for c in range(max(col - 1, col0), min(col + 2, col1)):
+                    band[row - row0, c - col0] = True
+                    band[row + 1 - row0, c - col0] = True
+    candidates = np.empty(5, np.int64)
+    for row in range(row0, row1):
+        for col in range(col0, col1):
+            if not band[row - row0, col - col0]:
+                continue
+            candidates[0] = face_image[row, col]
+            candidates[1] = face_image[row - 1, col] if row > 0 else -1
+            candidates[2] = face_image[row + 1, col] if row + 1 < height else -1
+            candidates[3] = face_image[row, col - 1] if col > 0 else -1
+            candidates[4] = face_image[row, col + 1] if col + 1 < width else -1
+            inside = 0  # one bit per sample
+            for k in range(5):
+                face = candidates[k]
+                if face < 0 or (k > 0 and face == candidates[0]):
+                    continue
+                for s in range(4):
+                    sx = col + 0.5 + offsets[s, 0]
+                    sy = row + 0.5 + offsets[s, 1]
+                    w0 = coverage[face, 0] * sx + coverage[face, 1] * sy + coverage[face, 2]
+                    w1 = coverage[face, 3] * sx + coverage[face, 4] * sy + coverage[face, 5]
+                    if w0 >= -_EDGE_EPS and w1 >= -_EDGE_EPS and w0 + w1 <= 1.0 + _EDGE_EPS:
+                        inside |= 1 << s
+            centre = candidates[0] >= 0
+            count = (inside & 1) + ((inside >> 1) & 1) + ((inside >> 2) & 1) + ((inside >> 3) & 1)
+            count += 1 if centre else 0
+            alpha[row, col] = count / 5.0
+            if not centre and count > 0:  # no dark fringe: the covered neighbours' colour
+                neighbours = 0
+                red = green = blue = np.float32(0.0)
+                for k in range(1, 5):
+                    if candidates[k] >= 0:
+                        r = row + (-1 if k == 1 else 1 if k == 2 else 0)
+                        c = col + (-1 if k == 3 else 1 if k == 4 else 0)
+                        red += rgb[r, c, 0]
+                        green += rgb[r, c, 1]
+                        blue += rgb[r, c, 2]
+                        neighbours += 1
+                rgb[row, col, 0] = red / neighbours
+                rgb[row, col, 1] = green / neighbours
+                rgb[row, col, 2] = blue / neighbours
 
 
 def rasterize_face_ids(
@@ -158,83 +359,14 @@ def rasterize_face_ids(
     z_test: bool = True,
 ):
     """(height*width,) int64 index of the nearest face whose triangle covers each pixel centre
-    (-1: none), the per-face texturing planes (None without ``uv``) and coverage planes.
-    Without ``z_test`` the face of a covered pixel is any face covering it (for silhouettes).
-
-    Scanline spans: for every face and every pixel row its bounding box crosses, the three
-    edge inequalities ``w_k(px, row centre) >= -eps`` are solved for px, which gives the run of
-    covered pixel centres directly, so only covered pixels are ever generated."""
+    (-1: none), the per-face texturing planes (None without ``uv``), coverage planes, and the
+    covered pixels' bounding box (row0, row1, col0, col1; all 0 when nothing is covered).
+    Without ``z_test`` the face of a covered pixel is any face covering it (for silhouettes)."""
     coverage, texturing, usable, x, y = _face_planes(pix, depth, faces, uv)
     ids = np.full(width * height, -1, dtype=np.int64)
-    x_min, x_max = x.min(axis=1), x.max(axis=1)
-    i0 = np.ceil(y.min(axis=1) - 0.5)
-    i1 = np.floor(y.max(axis=1) - 0.5)
-    usable &= (i1 >= i0) & (i1 >= 0) & (i0 <= height - 1) & (x_max >= 0.5) & (x_min <= width - 0.5)
-    selected = np.flatnonzero(usable)
-    if selected.size == 0:
-        return ids, texturing, coverage
-    i0 = np.clip(i0[selected], 0, height - 1).astype(np.int64)
-    i1 = np.clip(i1[selected], 0, height - 1).astype(np.int64)
-    rows_per_face = i1 - i0 + 1
-    n_spans = int(rows_per_face.sum())
-    span_face = np.repeat(selected, rows_per_face)
-    row = np.repeat(i0, rows_per_face) + (
-        np.arange(n_spans, dtype=np.int64) - np.repeat(np.cumsum(rows_per_face) - rows_per_face, rows_per_face)
-    )
-    py = row + 0.5
-    c = coverage[span_face]
-    # Edge k: w_k = a_k px + b_k py + c_k >= -eps, with w2 = 1 - w0 - w1.
-    a = (c[:, 0], c[:, 3], -c[:, 0] - c[:, 3])
-    rhs = (
-        -(c[:, 1] * py + c[:, 2]) - _EDGE_EPS,
-        -(c[:, 4] * py + c[:, 5]) - _EDGE_EPS,
-        -((1.0 - c[:, 2] - c[:, 5]) - (c[:, 1] + c[:, 4]) * py) - _EDGE_EPS,
-    )
-    lo = x_min[span_face].copy()
-    hi = x_max[span_face].copy()
-    empty = np.zeros(n_spans, dtype=bool)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for a_k, rhs_k in zip(a, rhs):
-            bound = rhs_k / a_k
-            lo = np.where(a_k > 0, np.maximum(lo, bound), lo)
-            hi = np.where(a_k < 0, np.minimum(hi, bound), hi)
-            empty |= (a_k == 0) & (rhs_k > 0)
-    col_start = np.maximum(np.ceil(lo - 0.5), 0)
-    col_end = np.minimum(np.floor(hi - 0.5), width - 1)
-    run = np.where(empty, 0, np.maximum(col_end - col_start + 1, 0)).astype(np.int64)
-    keep = np.flatnonzero(run)
-    if keep.size == 0:
-        return ids, texturing, coverage
-    run, col_start, row, span_face, c, py = run[keep], col_start[keep].astype(np.int64), row[keep], span_face[keep], c[keep], py[keep]
-    total = int(run.sum())
-    local = np.arange(total, dtype=np.int64) - np.repeat(np.cumsum(run) - run, run)
-    pixel = np.repeat(row * width + col_start, run) + local
-    face = np.repeat(span_face, run)
-    ids[pixel] = face
-    # Most views of a sheet cover every pixel centre once: then each pixel's only candidate
-    # is its nearest, and the z-test below would change nothing.
-    if not z_test or np.count_nonzero(ids >= 0) == total:
-        return ids, texturing, coverage
-    # 1/z along the run: its value at the first pixel centre plus a constant step per pixel.
-    start_inverse_depth = c[:, 6] * (col_start + 0.5) + c[:, 7] * py + c[:, 8]
-    inverse_depth = np.repeat(start_inverse_depth, run) + np.repeat(c[:, 6], run) * local
-    # z-test: nearest = smallest depth. Quantise depth into the key's high bits, face in the low bits.
-    depth_at = 1.0 / np.maximum(inverse_depth, 1e-300)
-    lo_depth, hi_depth = float(depth_at.min()), float(depth_at.max())
-    span = max(hi_depth - lo_depth, 1e-12)
-    quantised = ((depth_at - lo_depth) * ((_DEPTH_LEVELS - 1) / span)).astype(np.int64)
-    keys = (quantised << _FACE_BITS) | face
-    buffer = _z_buffer(width * height)
-    try:
-        np.minimum.at(buffer, pixel, keys)
-        ids[pixel] = buffer[pixel] & ((1 << _FACE_BITS) - 1)
-    finally:
-        buffer[pixel] = _EMPTY_KEY  # leave the scratch buffer empty for the next call
-    return ids, texturing, coverage
-
-
-_SHADE_CHUNK = 1 << 18  # pixels shaded at once: a sheet filling a large image needs no gigabytes
-_REMAP_MAX = 32767  # cv2.remap wants maps under 32767 rows and columns
+    inverse_depth = np.empty(width * height if z_test else 0, dtype=np.float64)  # read only where ids >= 0
+    box = _scan_faces(x, y, usable, coverage, int(width), int(height), bool(z_test), ids, inverse_depth)
+    return ids, texturing, coverage, box
 
 
 def _footprint_px(pix: np.ndarray, depth: np.ndarray) -> float:
@@ -251,149 +383,50 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
     camera = scene.camera
     width, height = int(camera.width), int(camera.height)
     faces = np.asarray(scene.faces, np.int64)
-    if faces.shape[0] >= 2**_FACE_BITS:
-        raise ValueError(f"render_scene: {faces.shape[0]} faces, at most {2**_FACE_BITS - 1} supported")
     pix, depth = camera.project(np.asarray(scene.vertices, np.float64))
-    ids, texturing, coverage = rasterize_face_ids(pix, depth, faces, width, height, uv=np.asarray(scene.uv, np.float64))
-    mask = (ids >= 0).reshape(height, width)
+    ids, texturing, coverage, box = rasterize_face_ids(
+        pix, depth, faces, width, height, uv=np.asarray(scene.uv, np.float64)
+    )
+    face_image = ids.reshape(height, width)
+    mask = face_image >= 0
     rgb = np.zeros((height, width, 3), np.float32)
-    c0, r0, box_w, box_h = cv2.boundingRect(mask.view(np.uint8))  # of the covered pixels
-    r1, c1 = r0 + box_h, c0 + box_w
-    if box_w and box_h:
-        # Shade the mask's bounding box densely: image-shaped maps go straight into cv2.remap
-        # and the result into the image, with no per-pixel gather or scatter of coordinates.
-        # Pixels of the box off the sheet get radiance 0 (face -1 picks the appended 0).
-        texture = _PYRAMIDS.level(scene.texture, _footprint_px(pix, depth))
-        th, tw = texture.shape[:2]
-        radiance = np.append(_face_radiance(scene), np.float32(0.0))
-        # Face -1 (off the sheet) picks an appended row: 1/z = 1 and u/z = v/z = 0 there, so
-        # its maps stay finite and inside the texture; its radiance is 0.
-        off_sheet_planes = np.array([[0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]])
-        face_image = ids.reshape(height, width)
-        columns = min(c1 - c0, _REMAP_MAX - 1)
-        rows_per_chunk = max(1, min(_SHADE_CHUNK // columns, _REMAP_MAX - 1))
-        for left in range(c0, c1, columns):
-            right = min(left + columns, c1)
-            px = np.arange(right - left, dtype=np.float32)
-            for top in range(r0, r1, rows_per_chunk):
-                bottom = min(top + rows_per_chunk, r1)
-                face = face_image[top:bottom, left:right]
-                py = np.arange(bottom - top, dtype=np.float32)[:, None]
-                # The planes moved (in float64) to this chunk's first pixel centre, so float32
-                # suffices: the remap maps are float32 anyway, and the small local coordinates
-                # keep the terms from cancelling.
-                planes = np.concatenate([texturing, off_sheet_planes]).reshape(-1, 3, 3)
-                planes[:-1, :, 2] += planes[:-1, :, 0] * (left + 0.5) + planes[:-1, :, 1] * (top + 0.5)
-                p = np.take(planes.reshape(-1, 9).astype(np.float32), face, axis=0)
-                inverse_depth = p[..., 0] * px + p[..., 1] * py + p[..., 2]
-                u = (p[..., 3] * px + p[..., 4] * py + p[..., 5]) / inverse_depth
-                v = (p[..., 6] * px + p[..., 7] * py + p[..., 8]) / inverse_depth
-                map_x = u * np.float32(tw) - np.float32(0.5)
-                map_y = (np.float32(1.0) - v) * np.float32(th) - np.float32(0.5)
-                albedo = cv2.remap(texture, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-                rgb[top:bottom, left:right] = albedo * np.take(radiance, face)[..., None]
-    if not antialias or not (box_w and box_h):
-        return BackendOutput(rgb=rgb, mask=mask, alpha=mask.astype(np.float32))
-    alpha = _edge_alpha(ids.reshape(height, width), coverage, mask, rgb, box=(r0, r1, c0, c1))
-    return BackendOutput(rgb=rgb, mask=mask, alpha=alpha)
-
-
-# Edge anti-aliasing: a rotated 4-sample grid (offsets from the pixel centre), plus the centre
-# itself, whose coverage is the mask; candidate faces are those seen at the pixel's own centre
-# and its 4 neighbours' centres.
-_AA_OFFSETS = np.array([[-0.125, -0.375], [0.375, -0.125], [0.125, 0.375], [-0.375, 0.125]])
-_NEIGHBOURS = np.array([(0, 0), (-1, 0), (1, 0), (0, -1), (0, 1)])
-_POPCOUNT4 = np.array([bin(value).count("1") for value in range(16)], dtype=np.uint8)
-
-
-def _edge_alpha(
-    ids: np.ndarray, coverage: np.ndarray, mask: np.ndarray, rgb: np.ndarray, box: tuple[int, int, int, int] | None = None
-) -> np.ndarray:
-    """Coverage of the pixels along the silhouette from 5 samples each; ``rgb`` of partly
-    covered pixels outside the mask (left black by the rasteriser) becomes the mean of their
-    covered neighbours, so compositing shows no dark fringe. Elsewhere alpha is the mask.
-    ``box``: the mask's (row0, row1, col0, col1) bounding box when the caller knows it."""
     alpha = mask.astype(np.float32)
-    height, width = mask.shape
-    if box is None:
-        mask_rows = np.flatnonzero(mask.any(axis=1))
-        if mask_rows.size == 0:
-            return alpha
-        mask_cols = np.flatnonzero(mask.any(axis=0))
-        box = (int(mask_rows[0]), int(mask_rows[-1]) + 1, int(mask_cols[0]), int(mask_cols[-1]) + 1)
-    # Work in the mask's bounding box grown by one pixel (the band reaches one pixel out).
-    r0, r1 = max(box[0] - 1, 0), min(box[1] + 1, height)
-    c0, c1 = max(box[2] - 1, 0), min(box[3] + 1, width)
-    local_u8 = np.ascontiguousarray(mask[r0:r1, c0:c1]).view(np.uint8)
-    band = cv2.compare(cv2.dilate(local_u8, None), cv2.erode(local_u8, None, borderType=cv2.BORDER_REPLICATE), cv2.CMP_NE)
-    # Band pixels in row-major order, as flat indices into the box padded by one pixel of -1.
-    padded_width = c1 - c0 + 2
-    points = cv2.findNonZero(band)  # (n, 1, 2) x, y in row-major order, like np.nonzero; None if empty
-    points = np.zeros((0, 2), np.int64) if points is None else points.reshape(-1, 2).astype(np.int64)
-    local_rows, local_cols = points[:, 1], points[:, 0]
-    in_padded = (local_rows + 1) * padded_width + (local_cols + 1)
-    rows, cols = local_rows + r0, local_cols + c0
-    padded = np.full((r1 - r0 + 2, padded_width), -1, dtype=ids.dtype)
-    padded[1:-1, 1:-1] = ids[r0:r1, c0:c1]
-    steps = _NEIGHBOURS[:, 0] * padded_width + _NEIGHBOURS[:, 1]
-    candidates = np.take(padded, in_padded[:, None] + steps)  # (n, 5) face ids, -1 for none
-    # Test each distinct (pixel, face) pair once: neighbours mostly share the pixel's own face.
-    fresh = candidates >= 0
-    fresh[:, 1:] &= candidates[:, 1:] != candidates[:, :1]
-    pair_pixel, pair_slot = np.nonzero(fresh)  # row-major: pairs grouped by pixel, in order
-    pair_face = candidates[pair_pixel, pair_slot]
-    p = coverage[pair_face, :6].astype(np.float32)
-    sx = (cols[pair_pixel, None] + 0.5 + _AA_OFFSETS[None, :, 0]).astype(np.float32)  # (pairs, 4) samples
-    sy = (rows[pair_pixel, None] + 0.5 + _AA_OFFSETS[None, :, 1]).astype(np.float32)
-    w0 = p[:, 0:1] * sx + p[:, 1:2] * sy + p[:, 2:3]
-    w1 = p[:, 3:4] * sx + p[:, 4:5] * sy + p[:, 5:6]
-    inside = (w0 >= -_EDGE_EPS) & (w1 >= -_EDGE_EPS) & (w0 + w1 <= 1.0 + _EDGE_EPS)
-    # One bit per sample, OR-ed over each pixel's pairs, then counted.
-    bits = np.packbits(inside, axis=1, bitorder="little")[:, 0]  # bit k: sample k inside
-    sample_bits = np.zeros(rows.size, np.uint8)
-    if pair_pixel.size:
-        starts = np.concatenate([[0], np.flatnonzero(pair_pixel[1:] != pair_pixel[:-1]) + 1])
-        sample_bits[pair_pixel[starts]] = np.bitwise_or.reduceat(bits, starts)
-    on_sheet = candidates >= 0  # the pixel itself and its 4 neighbours on the mask (never off-image)
-    centre = on_sheet[:, 0]
-    counts = _POPCOUNT4[sample_bits] + centre
-    fraction = counts.astype(np.float32) / 5.0
-    alpha[rows, cols] = fraction
-    fringe = np.flatnonzero(~centre & (counts > 0))
-    if fringe.size:
-        weights = on_sheet[fringe].astype(np.float32)
-        total = np.maximum(weights.sum(axis=1, keepdims=True), 1.0)
-        flat_rgb = rgb.reshape(-1, 3)
-        # Off-image neighbours have weight 0: any in-range index will do for them.
-        image_steps = _NEIGHBOURS[:, 0] * width + _NEIGHBOURS[:, 1]
-        neighbours = np.clip((rows[fringe] * width + cols[fringe])[:, None] + image_steps, 0, height * width - 1)
-        neighbour_rgb = np.take(flat_rgb, neighbours, axis=0)  # (m, 5, 3)
-        flat_rgb[rows[fringe] * width + cols[fringe]] = (neighbour_rgb * weights[:, :, None]).sum(axis=1) / total
-    return alpha
+    if box[1] > box[0]:
+        texture = _PYRAMIDS.level(scene.texture, _footprint_px(pix, depth))
+        _shade(face_image, box, texturing, _face_radiance(scene), texture, rgb)
+        if antialias:
+            _edge_alpha_kernel(face_image, mask, box, coverage, _AA_OFFSETS, alpha, rgb)
+    return BackendOutput(rgb=rgb, mask=mask, alpha=alpha)
 
 
 def _face_radiance(scene: Scene3D) -> np.ndarray:
     """Per face: irradiance * exposure * max(0, n . l) (float32), n turned towards the camera."""
-    vertices = np.asarray(scene.vertices, np.float64)
-    faces = np.asarray(scene.faces, np.int64)
-    v0 = vertices[faces[:, 0]]
-    e1 = vertices[faces[:, 1]] - v0
-    e2 = vertices[faces[:, 2]] - v0
-    normals = np.stack(
-        [
-            e1[:, 1] * e2[:, 2] - e1[:, 2] * e2[:, 1],
-            e1[:, 2] * e2[:, 0] - e1[:, 0] * e2[:, 2],
-            e1[:, 0] * e2[:, 1] - e1[:, 1] * e2[:, 0],
-        ],
-        axis=1,
-    )
-    norms = np.maximum(np.sqrt((normals * normals).sum(axis=1)), 1e-300)
-    camera_centre = -scene.camera.R.T @ scene.camera.t
-    facing = np.where(((camera_centre - v0) * normals).sum(axis=1) >= 0, 1.0, -1.0)
     light = np.asarray(scene.light_direction, np.float64)
-    light = light / max(float(np.linalg.norm(light)), 1e-300)
-    cosine = np.maximum(0.0, facing * (normals @ light) / norms)
-    return (scene.irradiance * scene.exposure * cosine).astype(np.float32)
+    return _face_radiance_kernel(
+        np.ascontiguousarray(scene.vertices, np.float64),
+        np.ascontiguousarray(scene.faces, np.int64),
+        -scene.camera.R.T @ scene.camera.t,
+        light / max(float(np.linalg.norm(light)), 1e-300),
+        float(scene.irradiance) * float(scene.exposure),
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _face_radiance_kernel(vertices, faces, camera_centre, light, scale):  # pragma: no cover - compiled
+    radiance = np.zeros(faces.shape[0], np.float32)
+    for f in range(faces.shape[0]):
+        v0, v1, v2 = vertices[faces[f, 0]], vertices[faces[f, 1]], vertices[faces[f, 2]]
+        e1 = v1 - v0
+        e2 = v2 - v0
+        nx = e1[1] * e2[2] - e1[2] * e2[1]
+        ny = e1[2] * e2[0] - e1[0] * e2[2]
+        nz = e1[0] * e2[1] - e1[1] * e2[0]
+        norm = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-300)
+        towards_camera = (camera_centre[0] - v0[0]) * nx + (camera_centre[1] - v0[1]) * ny + (camera_centre[2] - v0[2]) * nz
+        facing = 1.0 if towards_camera >= 0 else -1.0
+        cosine = max(0.0, facing * (nx * light[0] + ny * light[1] + nz * light[2]) / norm)
+        radiance[f] = scale * cosine
+    return radiance
 
 
 def silhouette(scene: Scene3D, camera: Camera | None = None) -> np.ndarray:
@@ -401,7 +434,7 @@ def silhouette(scene: Scene3D, camera: Camera | None = None) -> np.ndarray:
     camera = camera or scene.camera
     pix, depth = camera.project(np.asarray(scene.vertices, np.float64))
     faces = np.asarray(scene.faces, np.int64)
-    ids, _, _ = rasterize_face_ids(pix, depth, faces, camera.width, camera.height, z_test=False)
+    ids, _, _, _ = rasterize_face_ids(pix, depth, faces, camera.width, camera.height, z_test=False)
     return (ids >= 0).reshape(camera.height, camera.width)
 
 

@@ -1,5 +1,5 @@
 """The render pipeline's speed-ups keep what they replace: per-asset caches return what a fresh
-computation gives, chunked and whole-box shading agree, rewritten patterns match their formulas."""
+computation gives, rewritten patterns match their formulas."""
 
 from __future__ import annotations
 
@@ -101,24 +101,6 @@ def test_random_crop_mirrors_like_the_mirrored_crop():
         # Area resampling is symmetric up to OpenCV's fixed-point rounding: at most one level.
         assert np.abs(crop.astype(int) - expected).max() <= 1
     assert 0 < mirrored < 12  # both paths ran
-
-
-def test_chunked_shading_matches_one_chunk(monkeypatch):
-    texture = np.random.default_rng(1).integers(0, 256, (64, 96, 3), dtype=np.uint8)
-    vertices = np.array([[-1.5, -1.0, 0.0], [1.5, -1.0, 0.3], [1.5, 1.0, 0.0], [-1.5, 1.0, -0.3]])
-    faces = np.array([[0, 1, 2], [0, 2, 3]])
-    uv = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
-    scene = build_scene(vertices, faces, uv, texture, image_size=96, roll=0.3, pitch=0.2, yaw=0.4)
-    whole = raster.render_scene(scene)
-    monkeypatch.setattr(raster, "_SHADE_CHUNK", 50)  # many row chunks
-    monkeypatch.setattr(raster, "_REMAP_MAX", 18)  # and several column chunks
-    chunked = raster.render_scene(scene)
-    assert whole.mask.sum() > 1000
-    assert np.array_equal(whole.mask, chunked.mask) and np.array_equal(whole.alpha, chunked.alpha)
-    # Each chunk moves the planes to its own origin: float32 rounding differs, nothing more.
-    assert np.abs(whole.rgb - chunked.rgb).max() < 0.05
-    assert np.abs(whole.rgb - chunked.rgb).mean() < 1e-4
-    assert not chunked.rgb[~chunked.mask & (chunked.alpha == 0)].any()  # off the sheet stays black
 
 
 def test_unblurred_images_composite_only_the_drawn_box_with_the_same_bytes():
