@@ -358,12 +358,12 @@ def rasterize_face_ids(
     uv: np.ndarray | None = None,
     z_test: bool = True,
 ):
-    """(height*width,) int64 index of the nearest face whose triangle covers each pixel centre
+    """(height*width,) int32 index of the nearest face whose triangle covers each pixel centre
     (-1: none), the per-face texturing planes (None without ``uv``), coverage planes, and the
     covered pixels' bounding box (row0, row1, col0, col1; all 0 when nothing is covered).
     Without ``z_test`` the face of a covered pixel is any face covering it (for silhouettes)."""
     coverage, texturing, usable, x, y = _face_planes(pix, depth, faces, uv)
-    ids = np.full(width * height, -1, dtype=np.int64)
+    ids = np.full(width * height, -1, dtype=np.int32)
     inverse_depth = np.empty(width * height if z_test else 0, dtype=np.float64)  # read only where ids >= 0
     box = _scan_faces(x, y, usable, coverage, int(width), int(height), bool(z_test), ids, inverse_depth)
     return ids, texturing, coverage, box
@@ -388,10 +388,13 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
         pix, depth, faces, width, height, uv=np.asarray(scene.uv, np.float64)
     )
     face_image = ids.reshape(height, width)
-    mask = face_image >= 0
     rgb = np.zeros((height, width, 3), np.float32)
-    alpha = mask.astype(np.float32)
+    mask = np.zeros((height, width), bool)
+    alpha = np.zeros((height, width), np.float32)
     if box[1] > box[0]:
+        inside = (slice(box[0], box[1]), slice(box[2], box[3]))  # nothing is covered outside the box
+        np.greater_equal(face_image[inside], 0, out=mask[inside])
+        alpha[inside] = mask[inside]
         texture = _PYRAMIDS.level(scene.texture, _footprint_px(pix, depth))
         _shade(face_image, box, texturing, _face_radiance(scene), texture, rgb)
         if antialias:
