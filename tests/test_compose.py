@@ -512,6 +512,33 @@ def test_the_wheel_the_image_installs_carries_the_code_and_migrates_from_outside
     assert "database at head" in ran.stdout and database.is_file()
 
 
+def test_image_compiles_the_rasteriser_kernels_into_a_cache_its_workers_load(instructions, tmp_path):
+    """The Dockerfile's compile step, run as written with its NUMBA_CACHE_DIR (moved under
+    tmp_path), leaves a cache from which a later process loads every kernel without compiling."""
+    environment_lines = " ".join(arguments for keyword, arguments in instructions if keyword == "ENV")
+    (cache_dir,) = re.findall(r"NUMBA_CACHE_DIR=(\S+)", environment_lines)
+    runs = [arguments for keyword, arguments in instructions if keyword == "RUN" and "compile_kernels" in arguments]
+    assert len(runs) == 1 and f"chown -R foldwise:foldwise {cache_dir}" in runs[0]
+    users = [(i, a) for i, (k, a) in enumerate(instructions) if k == "USER"]
+    compile_at = next(i for i, (k, a) in enumerate(instructions) if k == "RUN" and "compile_kernels" in a)
+    assert users[-1][0] > compile_at, "the runtime user is set after the kernels are compiled"
+    command = re.search(r'python -c "([^"]+)"', runs[0]).group(1)
+    environment = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / cache_dir.lstrip("/"))}
+    compiled = subprocess.run([sys.executable, "-c", command], env=environment, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert compiled.returncode == 0, compiled.stderr[-2000:]
+    assert list((tmp_path / cache_dir.lstrip("/")).rglob("*.nbi")), "the compile step wrote no numba cache"
+    check = (
+        "from workers.render import raster\n"
+        f"{command}\n"
+        "kernels = [raster._face_planes_kernel, raster._scan_faces, raster._shade, raster._edge_alpha_kernel, raster._face_radiance_kernel]\n"
+        "print(sum(sum(k.stats.cache_misses.values()) for k in kernels), sum(sum(k.stats.cache_hits.values()) for k in kernels))\n"
+    )
+    loaded = subprocess.run([sys.executable, "-c", check], env=environment, cwd=REPO, capture_output=True, text=True, timeout=300)
+    assert loaded.returncode == 0, loaded.stderr[-2000:]
+    misses, hits = map(int, loaded.stdout.split())
+    assert misses == 0 and hits >= 5
+
+
 # The shared libraries bpy's extension module needs from the system (its NEEDED entries, through
 # the libraries bundled in the wheel), and the Debian package that provides each in the image.
 # A library missing here is one a new bpy wants: find its package (`dpkg -S`) and add both.

@@ -369,6 +369,25 @@ def rasterize_face_ids(
     return ids, texturing, coverage, box
 
 
+def compile_kernels() -> None:
+    """Compile (or load from numba's cache) every kernel, for each way the pipeline calls it:
+    a worker image runs this once at build time, so no worker process spends its first image
+    compiling (about 6 s)."""
+    from workers.render.scene import Camera as _Camera
+
+    camera = _Camera(K=np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]), R=np.eye(3), t=np.array([0.0, 0, 2]), width=8, height=8)
+    vertices = np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
+    scene = Scene3D(
+        vertices=vertices,
+        faces=np.array([[0, 1, 2], [0, 2, 3]]),
+        uv=(vertices[:, :2] + 0.5),
+        texture=np.full((4, 4, 3), 128, np.uint8),
+        camera=camera,
+    )
+    render_scene(scene)
+    silhouette(scene)
+
+
 def _footprint_px(pix: np.ndarray, depth: np.ndarray) -> float:
     ok = depth > NEAR
     if not ok.any():
