@@ -23,6 +23,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 
 MIN_VISIBLE_PIXELS = 16
@@ -50,11 +51,10 @@ class Annotation:
 
 def tight_box(mask: np.ndarray) -> list[float] | None:
     """[x0, y0, x1, y1] in pixel edges of a boolean mask; None when it is empty."""
-    rows = np.flatnonzero(mask.any(axis=1))
-    if rows.size == 0:
+    x, y, width, height = cv2.boundingRect(np.ascontiguousarray(mask).view(np.uint8))  # of the non-zero pixels
+    if width == 0:
         return None
-    cols = np.flatnonzero(mask.any(axis=0))
-    return [float(cols[0]), float(rows[0]), float(cols[-1] + 1), float(rows[-1] + 1)]
+    return [float(x), float(y), float(x + width), float(y + height)]
 
 
 def annotate(visible_mask: np.ndarray, amodal_pixels: float, amodal_box: list[float] | None) -> Annotation:

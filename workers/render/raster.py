@@ -38,6 +38,7 @@ import cv2
 import numba
 import numpy as np
 
+from workers.render.annotation import tight_box
 from workers.render.scene import BackendOutput, Camera, Scene3D
 
 NEAR = 1e-3
@@ -504,14 +505,10 @@ def amodal_extent(
 
 
 def _mask_extent(mask: np.ndarray, x_offset: int, y_offset: int, step: int):
-    rows = np.flatnonzero(mask.any(axis=1))
-    if rows.size == 0:
+    box = tight_box(mask)
+    if box is None:
         return 0.0, None
-    cols = np.flatnonzero(mask.any(axis=0))
-    box = [
-        float(x_offset + cols[0] * step),
-        float(y_offset + rows[0] * step),
-        float(x_offset + (cols[-1] + 1) * step),
-        float(y_offset + (rows[-1] + 1) * step),
-    ]
-    return float(np.count_nonzero(mask)) * step * step, box
+    return (
+        float(cv2.countNonZero(mask.view(np.uint8))) * step * step,
+        [x_offset + box[0] * step, y_offset + box[1] * step, x_offset + box[2] * step, y_offset + box[3] * step],
+    )

@@ -36,6 +36,22 @@ def test_same_theta_gives_identical_bytes_and_box(condition):
     assert first.label == used["label"]
 
 
+def test_tight_box_is_in_pixel_edges_and_none_for_an_empty_mask():
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        mask = np.zeros((37, 53), bool)
+        r0, c0 = rng.integers(0, 30), rng.integers(0, 40)
+        mask[r0 : r0 + rng.integers(1, 8), c0 : c0 + rng.integers(1, 14)] = True
+        mask &= rng.random(mask.shape) < 0.7
+        if not mask.any():
+            continue
+        rows, cols = np.nonzero(mask)
+        assert tight_box(mask) == [cols.min(), rows.min(), cols.max() + 1, rows.max() + 1]
+        assert tight_box(mask[:, ::-1]) == [53 - cols.max() - 1, rows.min(), 53 - cols.min(), rows.max() + 1]  # a view
+    assert tight_box(np.zeros((5, 5), bool)) is None
+    assert tight_box(np.ones((1, 1), bool)) == [0.0, 0.0, 1.0, 1.0]
+
+
 @pytest.mark.parametrize("condition, difficulty", [("eo", "medium"), ("po", "hard"), ("sc", "hard"), ("de", "hard")])
 def test_box_is_the_tight_box_of_the_visible_mask(condition, difficulty):
     for seed in range(3):
