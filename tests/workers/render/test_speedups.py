@@ -53,7 +53,8 @@ def test_prepared_occluder_cache_matches_a_fresh_conversion_and_skips_writable_a
     assert cached[0] is first[0]  # a hit: the same converted array
     fresh = compositing._prepared_occluder(rgb, alpha, limit=30)  # writable: computed anew
     assert fresh[0] is not first[0]
-    assert np.array_equal(fresh[0], first[0]) and np.array_equal(fresh[1][0], first[1][0])
+    assert np.array_equal(fresh[0], first[0]) and np.array_equal(fresh[1].mask, first[1].mask)
+    assert fresh[1].pivot == first[1].pivot  # the alpha's radial profile comes with it
     assert max(first[0].shape[:2]) == 30 and first[0].dtype == np.float32
     rgb[:] = 0  # a writable array may change between calls: nothing stale comes back
     assert not compositing._prepared_occluder(rgb, alpha, limit=30)[0].any()
