@@ -37,12 +37,22 @@ into arcs A and B; the guiding rulings' ends are drawn as increasing positions a
 along B and the i-th of A is paired with the i-th of B (nested chords never alternate along
 the perimeter). Arcs A and B share no side, so both ends of a ruling are on different sides.
 Every chain of non-crossing rulings arises this way for some pair of corners. Layouts with
-ends too near a corner or strips narrower than ``min_strip`` are redrawn.
+ends too near a corner or strips narrower than ``min_strip`` are redrawn. Each layout draws,
+in this order: the pair of corners (``rng.integers``), the arc positions on A and on B and
+the angles (one ``rng.random(3n)``, scaled as ``rng.uniform`` would), then the angles' signs
+(``rng.integers(0, 2, n)``).
 
 Self-intersection (``SelfIntersection``, the caller resamples): a sheet whose bends add up
 past ``max_total_bend`` (270°) between two regions curls into itself; otherwise every two
 regions that do not share a ruling are tested as the planar convex polygons they are (exact,
 cheap, done before meshing), counting layers closer than ``clearance`` as touching.
+
+Cost. A sheet has few regions (one more than its fold lines), so array code would spend its
+time on per-call overhead: the layout checks, the regions and their transforms, the
+self-intersection tests and the minimal mesh run as compiled loops instead (numba, no
+fastmath: the same draw gives the same bytes), a tenth of a millisecond or two per sheet.
+They compile on the first call after the source changes (some seconds) and are cached on
+disk after that.
 """
 
 from __future__ import annotations
@@ -53,6 +63,7 @@ from functools import lru_cache
 from os import PathLike
 from typing import Any, Sequence
 
+import numba
 import numpy as np
 
 Point = tuple[float, float]
@@ -129,31 +140,21 @@ class SheetMesh:
 
 
 class _Border:
-    """Perimeter coordinate ``s`` in [0, 2(W+H)), counter-clockwise from the corner (0, 0)."""
+    """Perimeter coordinate ``s`` in [0, 2(W+H)), counter-clockwise from the corner (0, 0).
+    Read-only once made (shared: see ``_border``)."""
 
     def __init__(self, width: float, height: float):
         self.width = width
         self.height = height
         self.length = 2.0 * (width + height)
-        self.corners = np.array([0.0, width, width + height, 2.0 * width + height])
-        self.breaks = np.append(self.corners, self.length)  # side k is [breaks[k], breaks[k + 1]]
+        self.corner_s = np.array([0.0, width, width + height, 2.0 * width + height])
+        self.breaks = np.append(self.corner_s, self.length)  # side k is [breaks[k], breaks[k + 1]]
         self.corner_points = np.array([[0.0, 0.0], [width, 0.0], [width, height], [0.0, height]])
-        self._corner_x = np.array([0.0, width, width, 0.0, 0.0])  # at each break, back to (0, 0)
-        self._corner_y = np.array([0.0, 0.0, height, height, 0.0])
-
-    def points(self, s: np.ndarray) -> np.ndarray:
-        """(n, 2) flat points at perimeter positions ``s`` (any real numbers, taken modulo)."""
-        s = np.asarray(s, np.float64).ravel() % self.length
-        out = np.empty((len(s), 2))
-        # x and y are piecewise linear in s between the corners; the clamp keeps round-off
-        # from pushing a border point off the sheet (uv stays in [0, 1]).
-        out[:, 0] = np.interp(s, self.breaks, self._corner_x)
-        out[:, 1] = np.interp(s, self.breaks, self._corner_y)
-        return np.minimum(np.maximum(out, 0.0, out=out), (self.width, self.height), out=out)
-
-    def point(self, s: float) -> Point:
-        x, y = self.points(np.array([s]))[0].tolist()
-        return (x, y)
+        self.corner_x = np.array([0.0, width, width, 0.0, 0.0])  # at each break, back to (0, 0)
+        self.corner_y = np.array([0.0, 0.0, height, height, 0.0])
+        self.size = np.array([width, height])
+        for array in (self.corner_s, self.breaks, self.corner_points, self.corner_x, self.corner_y, self.size):
+            array.setflags(write=False)
 
     def position(self, point: Sequence[float], tol: float) -> float:
         """``s`` of a border point; RulingLayoutError when the point is off the border."""
@@ -168,6 +169,11 @@ class _Border:
         x, y = min(max(x, 0.0), w), min(max(y, 0.0), h)
         return [x, w + y, w + h + (w - x), 2 * w + h + (h - y)][side] % self.length
 
+
+@lru_cache(maxsize=64)
+def _border(width: float, height: float) -> _Border:
+    """One _Border per sheet size: the pipeline draws many sheets of few sizes."""
+    return _Border(width, height)
 
 # -- options ---------------------------------------------------------------------------------
 
@@ -199,6 +205,19 @@ def _positive(name: str, value: Any) -> float:
 
 
 def _options(width: float, height: float, opts: dict) -> _Options:
+    """The options in force: ``opts`` checked, the defaults filled in (those of a sheet size,
+    when ``opts`` is empty, made once: _Options is immutable, so sharing it is safe)."""
+    if not opts:
+        return _default_options(width, height)
+    return _parse_options(width, height, opts)
+
+
+@lru_cache(maxsize=64)
+def _default_options(width: float, height: float) -> _Options:
+    return _parse_options(width, height, {})
+
+
+def _parse_options(width: float, height: float, opts: dict) -> _Options:
     unknown = sorted(set(opts) - _OPTION_NAMES)
     if unknown:
         raise TypeError(
@@ -265,6 +284,10 @@ def _check_sheet_size(width: Any, height: Any) -> tuple[float, float]:
 
 # -- rulings ---------------------------------------------------------------------------------
 
+# What _chords_and_problem found wrong with a layout (0: nothing).
+_NEAR_CORNER, _ONE_SIDE, _ENDS_CLOSE, _CROSSING, _STRIP_NARROW = 1, 2, 3, 4, 5
+_SIDE_NAMES = ("bottom", "right", "top", "left")
+
 
 @dataclass(frozen=True)
 class _Chords:
@@ -275,25 +298,6 @@ class _Chords:
     end_points: np.ndarray  # (2n, 2)
     angle: np.ndarray  # (n,) radians
 
-    def __len__(self) -> int:
-        return len(self.angle)
-
-    @property
-    def s0(self) -> np.ndarray:
-        return self.ends[: len(self.angle)]
-
-    @property
-    def s1(self) -> np.ndarray:
-        return self.ends[len(self.angle) :]
-
-    @property
-    def p0(self) -> np.ndarray:
-        return self.end_points[: len(self.angle)]
-
-    @property
-    def p1(self) -> np.ndarray:
-        return self.end_points[len(self.angle) :]
-
     def as_rulings(self) -> list[Ruling]:
         return _rulings(self.end_points, self.angle)
 
@@ -301,85 +305,162 @@ class _Chords:
 def _rulings(end_points: np.ndarray, angle: np.ndarray) -> list[Ruling]:
     """Rulings ((x0, y0), (x1, y1), angle) in plain floats; ``end_points``: all p0 then all p1."""
     n = len(angle)
-    ends = [tuple(point) for point in end_points.tolist()]
+    ends = list(map(tuple, end_points.tolist()))
     return list(zip(ends[:n], ends[n:], angle.tolist()))
 
 
-def _expand(border: _Border, guides: np.ndarray, options: _Options) -> _Chords:
-    """Interpolated rulings: each guiding ruling (s0, s1, angle) becomes a nested family
-    (s0 + o, s1 - o) of ``smooth_steps`` rulings sharing its angle equally."""
-    m = options.smooth_steps
-    offsets = (np.arange(m) - (m - 1) / 2.0) * options.bend_spacing
-    n = len(guides) * m
+@numba.njit(cache=True, nogil=True)
+def _border_points(s, length, breaks, corner_x, corner_y, width, height):  # pragma: no cover - compiled
+    """(n, 2) flat points at perimeter positions ``s`` (taken modulo ``length``): x and y are
+    piecewise linear in s between the corners, computed as np.interp does (slope times offset
+    plus the value at the break before), then clamped so that round-off never pushes a border
+    point off the sheet (uv stays in [0, 1])."""
+    out = np.empty((len(s), 2))
+    for i in range(len(s)):
+        at = s[i] % length
+        if at >= breaks[4]:  # the modulo rounded up to the full length: back at (0, 0)
+            x, y = corner_x[4], corner_y[4]
+        else:
+            side = 3
+            while breaks[side] > at:
+                side -= 1
+            if breaks[side] == at:
+                x, y = corner_x[side], corner_y[side]
+            else:
+                run = breaks[side + 1] - breaks[side]
+                x = (corner_x[side + 1] - corner_x[side]) / run * (at - breaks[side]) + corner_x[side]
+                y = (corner_y[side + 1] - corner_y[side]) / run * (at - breaks[side]) + corner_y[side]
+        out[i, 0] = min(max(x, 0.0), width)
+        out[i, 1] = min(max(y, 0.0), height)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _chords_and_problem(
+    guides, steps, bend_spacing, length, breaks, corner_x, corner_y, width, height, corner_gap, min_strip
+):  # pragma: no cover - compiled
+    """The fold lines of guiding rulings ``(s0, s1, angle)`` and the first problem of their
+    layout. Each guiding ruling becomes a nested family (s0 + o, s1 - o) of ``steps`` rulings
+    sharing its angle equally (offsets o ``bend_spacing`` apart, centred on 0).
+
+    Returns (ends (2n,), end points (2n, 2), angles (n,), guide end points (2 n_guides, 2),
+    problem, where, value): problem 0 when the layout is valid, else the first of
+    _NEAR_CORNER (``where``: the end), _ONE_SIDE (``where``: the side), _ENDS_CLOSE
+    (``value``: the gap along the border), _CROSSING, _STRIP_NARROW (``value``: the
+    distance), checked in that order.
+    """
+    n_guides = guides.shape[0]
+    n = n_guides * steps
     ends = np.empty(2 * n)
-    ends[:n] = (guides[:, :1] + offsets).ravel()
-    ends[n:] = (guides[:, 1:2] - offsets).ravel()
-    ends %= border.length
-    return _Chords(ends, border.points(ends), np.repeat(guides[:, 2] / m, m))
-
-
-def _guide_rulings(border: _Border, guides: np.ndarray) -> list[Ruling]:
-    return _rulings(border.points(np.concatenate([guides[:, 0], guides[:, 1]])), guides[:, 2])
-
-
-def _validate_layout(border: _Border, chords: _Chords, options: _Options) -> None:
-    """RulingLayoutError naming the first problem: ends at corners or on one side, ends nearly
-    shared, crossing rulings, strips narrower than ``min_strip``."""
-    n = len(chords)
+    angle = np.empty(n)
+    for g in range(n_guides):
+        share = guides[g, 2] / steps
+        for k in range(steps):
+            offset = (k - (steps - 1) / 2.0) * bend_spacing
+            ends[g * steps + k] = (guides[g, 0] + offset) % length
+            ends[n + g * steps + k] = (guides[g, 1] - offset) % length
+            angle[g * steps + k] = share
+    points = _border_points(ends, length, breaks, corner_x, corner_y, width, height)
+    guide_ends = np.empty(2 * n_guides)
+    guide_ends[:n_guides] = guides[:, 0]
+    guide_ends[n_guides:] = guides[:, 1]
+    guide_points = _border_points(guide_ends, length, breaks, corner_x, corner_y, width, height)
     if n == 0:
-        return
-    ends = chords.ends  # end k belongs to chord k % n
-    side = np.searchsorted(border.breaks, ends, side="right") - 1
-    to_corner = np.minimum(ends - border.breaks[side], border.breaks[side + 1] - ends)
-    if to_corner.min() < options.corner_gap:
-        x, y = border.point(ends[np.argmax(to_corner < options.corner_gap)])
-        raise RulingLayoutError(f"ruling end ({x:.4g}, {y:.4g}) is within {options.corner_gap:.3g} of a sheet corner")
-    same_side = side[:n] == side[n:]
-    if same_side.any():
-        names = ["bottom", "right", "top", "left"]
-        raise RulingLayoutError(f"a ruling has both ends on the {names[side[np.argmax(same_side)]]} side")
+        return ends, points, angle, guide_points, 0, 0, 0.0
+
+    # Ends at corners (end k belongs to chord k % n), then chords with both ends on one side.
+    side = np.empty(2 * n, np.int64)
+    for k in range(2 * n):
+        s = 0
+        while s < 4 and breaks[s + 1] <= ends[k]:
+            s += 1
+        side[k] = s
+        to_corner = 0.0 if s == 4 else min(ends[k] - breaks[s], breaks[s + 1] - ends[k])
+        if to_corner < corner_gap:
+            return ends, points, angle, guide_points, _NEAR_CORNER, k, 0.0
+    for c in range(n):
+        if side[c] == side[n + c]:
+            return ends, points, angle, guide_points, _ONE_SIDE, side[c], 0.0
     if n < 2:
-        return
+        return ends, points, angle, guide_points, 0, 0, 0.0
+
     # Around the border: the closest two ends of different rulings are neighbours (only ends of
     # one of those two rulings could lie between them, and they would be closer still).
-    order = np.argsort(ends, kind="stable")
-    around = ends[order]
-    gaps = np.concatenate([around[1:], around[:1] + border.length]) - around
-    chord_around = order % n
-    different = chord_around != np.concatenate([chord_around[1:], chord_around[:1]])
-    too_close = different & (gaps < options.min_strip)
-    if too_close.any():
-        raise RulingLayoutError(
-            f"two rulings have ends only {gaps[np.argmax(too_close)]:.3g} apart (min_strip {options.min_strip:.3g})"
-        )
+    order = np.argsort(ends, kind="mergesort")
+    for i in range(2 * n):
+        following = order[(i + 1) % (2 * n)]
+        if i + 1 < 2 * n:
+            gap = ends[following] - ends[order[i]]
+        else:
+            gap = ends[following] + length - ends[order[i]]
+        if order[i] % n != following % n and gap < min_strip:
+            return ends, points, angle, guide_points, _ENDS_CLOSE, 0, gap
     # Two chords cross exactly when their ends alternate along the border: read around it,
     # non-crossing chords pair up like nested brackets.
-    open_chords: list[int] = []
-    for chord in chord_around.tolist():
-        if open_chords and open_chords[-1] == chord:
-            open_chords.pop()
+    open_chords = np.empty(2 * n, np.int64)
+    n_open = 0
+    for i in range(2 * n):
+        chord = order[i] % n
+        if n_open and open_chords[n_open - 1] == chord:
+            n_open -= 1
         else:
-            open_chords.append(chord)
-    if open_chords:
-        raise RulingLayoutError("two rulings cross inside the sheet")
-    # Segments that do not cross are closest at an end of one of them: (2n, n) squared
-    # distances from every end to every ruling.
-    points = chords.end_points
-    x0, y0 = points[:n, 0], points[:n, 1]
-    dx, dy = points[n:, 0] - x0, points[n:, 1] - y0
-    ex = points[:, :1] - x0  # from each ruling's p0 to every end
-    ey = points[:, 1:] - y0
-    t = np.minimum(np.maximum((ex * dx + ey * dy) / (dx * dx + dy * dy), 0.0), 1.0)
-    ex -= t * dx
-    ey -= t * dy
-    squared = ex * ex + ey * ey
-    from_ends = np.minimum(squared[:n], squared[n:])  # [i, j]: ends of ruling i to ruling j
-    np.fill_diagonal(from_ends, np.inf)
-    closest = float(np.sqrt(np.min(from_ends)))
-    if closest < options.min_strip:
-        raise RulingLayoutError(
-            f"two rulings come within {closest:.3g} of each other (min_strip {options.min_strip:.3g})"
-        )
+            open_chords[n_open] = chord
+            n_open += 1
+    if n_open:
+        return ends, points, angle, guide_points, _CROSSING, 0, 0.0
+    # Segments that do not cross are closest at an end of one of them: every end against
+    # every other ruling.
+    closest = np.inf
+    for j in range(n):
+        x0, y0 = points[j, 0], points[j, 1]
+        dx, dy = points[n + j, 0] - x0, points[n + j, 1] - y0
+        for k in range(2 * n):
+            if k % n == j:
+                continue
+            ex, ey = points[k, 0] - x0, points[k, 1] - y0
+            t = min(max((ex * dx + ey * dy) / (dx * dx + dy * dy), 0.0), 1.0)
+            ex -= t * dx
+            ey -= t * dy
+            closest = min(closest, ex * ex + ey * ey)
+    closest = math.sqrt(closest)
+    if closest < min_strip:
+        return ends, points, angle, guide_points, _STRIP_NARROW, 0, closest
+    return ends, points, angle, guide_points, 0, 0, 0.0
+
+
+def _chords(border: _Border, guides: np.ndarray, options: _Options) -> tuple[_Chords, list[Ruling], str | None]:
+    """The fold lines of guiding rulings (n, 3) rows (s0, s1, angle), the guiding rulings as
+    ``Ruling`` tuples, and what is wrong with the layout (None when it is valid: no end near a
+    corner, no ruling with both ends on one side, no two ends of different rulings closer
+    than ``min_strip`` along the border, no crossing, no strip narrower than ``min_strip``)."""
+    return _checked(guides, *_chords_and_problem(guides, *_layout_arguments(border, options)), options)
+
+
+def _layout_arguments(border: _Border, options: _Options) -> tuple:
+    return (options.smooth_steps, options.bend_spacing, border.length, border.breaks, border.corner_x,
+            border.corner_y, border.width, border.height, options.corner_gap, options.min_strip)
+
+
+def _checked(
+    guides: np.ndarray, ends: np.ndarray, end_points: np.ndarray, angle: np.ndarray, guide_points: np.ndarray,
+    problem: int, where: int, value: float, options: _Options,
+) -> tuple[_Chords, list[Ruling], str | None]:
+    """_chords' answer from _chords_and_problem's: the problem, if any, in words."""
+    chords = _Chords(ends, end_points, angle)
+    if problem == 0:
+        return chords, _rulings(guide_points, guides[:, 2]), None
+    if problem == _NEAR_CORNER:
+        x, y = end_points[where].tolist()
+        message = f"ruling end ({x:.4g}, {y:.4g}) is within {options.corner_gap:.3g} of a sheet corner"
+    elif problem == _ONE_SIDE:
+        message = f"a ruling has both ends on the {_SIDE_NAMES[where]} side"
+    elif problem == _ENDS_CLOSE:
+        message = f"two rulings have ends only {value:.3g} apart (min_strip {options.min_strip:.3g})"
+    elif problem == _CROSSING:
+        message = "two rulings cross inside the sheet"
+    else:
+        message = f"two rulings come within {value:.3g} of each other (min_strip {options.min_strip:.3g})"
+    return chords, [], message
 
 
 @lru_cache(maxsize=256)
@@ -403,124 +484,607 @@ def _arc_splits(
     return tuple(splits)
 
 
-def _sample_guides(n: int, rng: np.random.Generator, border: _Border, options: _Options) -> np.ndarray | None:
-    """Guiding rulings as (n, 3) rows (s0, s1, angle) with nested ends on two arcs split by
-    two corners, or None when no pair of corners leaves room for ``n`` rulings."""
+@dataclass(frozen=True)
+class _GuideSampler:
+    """What drawing ``n`` guiding rulings needs besides the generator: the pairs of corners
+    that leave room for them (_arc_splits), as rows (corner i's position, then free length
+    and inner corners (NaN where fewer than two) of arc A, then the same of arc B), and the
+    spacings."""
+
+    splits: np.ndarray  # (k, 7)
+    keep_off: float  # ruling centres (of interpolated families) from the corners
+    spacing: float  # between neighbouring guiding rulings' centres
+
+
+@lru_cache(maxsize=256)
+def _guide_sampler(width: float, height: float, n: int, options: _Options) -> _GuideSampler | None:
+    """The sampler of ``n`` guiding rulings on a sheet, or None when no pair of corners leaves
+    room for them."""
     half_band = (options.smooth_steps - 1) / 2.0 * options.bend_spacing
     # Ruling ends (interpolated ones included) keep corner_gap from every corner: from the two
     # corners that bound the arcs, and from the corner in the middle of an arc (if any).
     keep_off = options.corner_gap + half_band
-    spacing = 2.0 * half_band + options.min_gap  # between neighbouring guiding rulings' centres
-    splits = _arc_splits(border.width, border.height, n, keep_off, spacing)
+    spacing = 2.0 * half_band + options.min_gap
+    splits = _arc_splits(width, height, n, keep_off, spacing)
     if not splits:
         return None
-    start, arc_a, arc_b = splits[int(rng.integers(len(splits)))]
+    rows = np.full((len(splits), 7), np.nan)
+    for row, (start, (free_a, inner_a), (free_b, inner_b)) in zip(rows, splits):
+        row[0], row[1], row[4] = start, free_a, free_b
+        row[2 : 2 + len(inner_a)], row[5 : 5 + len(inner_b)] = inner_a, inner_b
+    rows.setflags(write=False)
+    return _GuideSampler(rows, keep_off, spacing)
 
-    def increasing(free: float, inner_corners: tuple[float, ...]) -> np.ndarray:
-        # Uniform among positions at least `spacing` apart (sorted uniforms on the arc shortened
-        # by the gaps), then opened up around the arc's inner corners.
-        positions = keep_off + np.sort(rng.uniform(0.0, free, n)) + spacing * np.arange(n)
-        for corner in inner_corners:
-            positions[positions >= corner - keep_off] += 2 * keep_off
-        return positions
 
-    along_a, along_b = increasing(*arc_a), increasing(*arc_b)
+@numba.njit(cache=True, nogil=True)
+def _place_guides(split, unit, signs, keep_off, spacing, min_angle, angle_span, length):  # pragma: no cover - compiled
+    """Guiding rulings as (n, 3) rows (s0, s1, angle) from one row of _GuideSampler.splits and
+    the draws: ``unit``, 3n uniforms in [0, 1) (arc A, arc B, angles), ``signs``, n draws of
+    0 or 1. On each arc: positions uniform among those at least ``spacing`` apart (sorted
+    uniforms on the arc shortened by the gaps), opened up around the arc's inner corners. The
+    i-th of A is paired with the i-th of B. The arithmetic is that of rng.uniform and
+    np.sort, to the bit (free * sorted u is sorted free * u: scaling keeps the order)."""
+    n = len(signs)
     guides = np.empty((n, 3))
-    guides[:, 0] = (start + along_a) % border.length
-    guides[:, 1] = (start - along_b) % border.length
-    guides[:, 2] = rng.uniform(options.min_angle, options.max_angle, n)
-    guides[:, 2] *= rng.integers(0, 2, n) * 2.0 - 1.0  # the sign rng.choice([-1, 1], n) would draw
+    start = split[0]
+    for arc in range(2):
+        free = split[1 + 3 * arc]
+        draws = np.sort(unit[arc * n : (arc + 1) * n])
+        for i in range(n):
+            position = keep_off + free * draws[i] + spacing * i
+            for corner in split[2 + 3 * arc : 4 + 3 * arc]:
+                if position >= corner - keep_off:  # False for NaN: no such corner
+                    position += 2 * keep_off
+            guides[i, arc] = (start + position) % length if arc == 0 else (start - position) % length
+    for i in range(n):
+        guides[i, 2] = (min_angle + angle_span * unit[2 * n + i]) * (signs[i] * 2.0 - 1.0)
     return guides
 
 
-# -- regions ----------------------------------------------------------------------------------
+@numba.njit(cache=True, nogil=True)
+def _sampled_chords_and_problem(
+    split, unit, signs, keep_off, spacing, min_angle, angle_span,
+    steps, bend_spacing, length, breaks, corner_x, corner_y, width, height, corner_gap, min_strip,
+):  # pragma: no cover - compiled
+    """_place_guides, then _chords_and_problem: (guides, then what that returns)."""
+    guides = _place_guides(split, unit, signs, keep_off, spacing, min_angle, angle_span, length)
+    ends, points, angle, guide_points, problem, where, value = _chords_and_problem(
+        guides, steps, bend_spacing, length, breaks, corner_x, corner_y, width, height, corner_gap, min_strip
+    )
+    return guides, ends, points, angle, guide_points, problem, where, value
 
 
-@dataclass(frozen=True)
-class _Layout:
-    """The sheet cut by its rulings. Vertex ids: 0-3 the sheet corners (counter-clockwise from
-    (0, 0)), then 4 + 2c and 5 + 2c the ends p0 and p1 of chord c. Regions' corners are
-    stacked: region r's, counter-clockwise, are ``ids[start[r] : start[r] + counts[r]]``."""
-
-    points: np.ndarray  # (4 + 2n, 2) flat vertex positions
-    ids: np.ndarray  # stacked region corners
-    corner_lists: list[list[int]]  # the same, region by region
-    counts: np.ndarray  # corners per region
-    start: np.ndarray  # where each region's corners begin in ids
-    crossings: np.ndarray  # (2n, 2) (start id, end id): each region's rulings as it traverses them
-    first_crossing: np.ndarray  # where each region's rows begin in crossings (stacked region by region)
-    sides: list[list[tuple[int, int, int]]]  # per chord: its two (region, start id, end id)
-
-    @property
-    def polygons(self) -> list[np.ndarray]:
-        return [np.array(corners) for corners in self.corner_lists]
+def _sample_chords(
+    n: int, rng: np.random.Generator, border: _Border, sampler: _GuideSampler, options: _Options
+) -> tuple[_Chords, list[Ruling], str | None]:
+    """One random layout of ``n`` guiding rulings, as _chords answers. Draws, in order: the
+    pair of corners, 3n uniforms (rng.uniform(low, high, n) is low + (high - low) *
+    rng.random(n): the doubles of arc A, arc B and the angles in one call), the n signs
+    (those rng.choice([-1, 1], n) would draw)."""
+    split = sampler.splits[int(rng.integers(len(sampler.splits)))]
+    unit = rng.random(3 * n)
+    signs = rng.integers(0, 2, n)
+    guides, *answer = _sampled_chords_and_problem(
+        split, unit, signs, sampler.keep_off, sampler.spacing, options.min_angle,
+        options.max_angle - options.min_angle, *_layout_arguments(border, options),
+    )
+    return _checked(guides, *answer, options)
 
 
-def _trace_layout(border: _Border, chords: _Chords) -> _Layout:
-    """Walk the border counter-clockwise; at each ruling end, jump along the ruling to its
-    other end and walk on: every closed walk is one region, traced counter-clockwise."""
-    n = len(chords)
-    points = np.empty((4 + 2 * n, 2))
-    points[:4], points[4::2], points[5::2] = border.corner_points, chords.p0, chords.p1
+# -- regions, transforms, self-intersection, minimal mesh (compiled) --------------------------
+#
+# The sheet has few regions (one more than its fold lines), so array code spends its time on
+# per-call overhead; these loops run compiled instead (numba, no fastmath: the same input
+# gives the same bytes). Sheet vertex ids: 0-3 the sheet corners (counter-clockwise from
+# (0, 0)), then 4 + 2c and 5 + 2c the ends p0 and p1 of chord c. Regions' corners are stacked:
+# region r's, counter-clockwise, are ids[start[r] : start[r] + counts[r]].
+
+_CURLED, _CROSSED, _DEGENERATE = 1, 2, 3  # what _sheet_geometry found wrong (0: nothing)
+
+
+@numba.njit(cache=True, nogil=True)
+def _trace_regions(positions, n):  # pragma: no cover - compiled
+    """Walk the border counter-clockwise (``positions``: perimeter position of every vertex
+    id); at each ruling end, jump along the ruling to its other end and walk on: every closed
+    walk is one region, traced counter-clockwise. Returns the stacked region corners (ids,
+    counts, start), each region's rulings as it traverses them ((start id, end id) rows,
+    region by region from first_crossing[r]) and, per chord, its two sides (region, start id,
+    end id)."""
+    n_vertices = 4 + 2 * n
     if n == 0:
-        whole = [0, 1, 2, 3]
-        return _Layout(points, np.array(whole), [whole], np.array([4]), np.array([0]), np.zeros((0, 2), np.int64),
-                       np.array([0]), [])
-    positions = np.empty(4 + 2 * n)
-    positions[:4], positions[4::2], positions[5::2] = border.corners, chords.s0, chords.s1
-    sequence = np.argsort(positions, kind="stable").tolist()
+        whole = np.arange(4)
+        return (whole, np.full(1, 4), np.zeros(1, np.int64), np.zeros((0, 2), np.int64), np.zeros(1, np.int64),
+                np.zeros((0, 2, 3), np.int64))
+    sorted_ids = np.argsort(positions, kind="mergesort")
     first_end = 0
-    while sequence[first_end] < 4:
+    while sorted_ids[first_end] < 4:
         first_end += 1
-    sequence = sequence[first_end:] + sequence[:first_end]
+    sequence = np.concatenate((sorted_ids[first_end:], sorted_ids[:first_end]))
     # For each end (by vertex id): the sheet corners after it along the border, and the next end.
-    corners_after: list[list[int]] = [[] for _ in range(4 + 2 * n)]
-    next_end = [0] * (4 + 2 * n)
+    corners_after = np.zeros((n_vertices, 4), np.int64)
+    n_after = np.zeros(n_vertices, np.int64)
+    next_end = np.zeros(n_vertices, np.int64)
     current = sequence[0]
     for vertex in sequence[1:]:
         if vertex >= 4:
-            next_end[current] = current = vertex
+            next_end[current] = vertex
+            current = vertex
         else:
-            corners_after[current].append(vertex)
+            corners_after[current, n_after[current]] = vertex
+            n_after[current] += 1
     next_end[current] = sequence[0]
 
-    visited = [False] * (4 + 2 * n)
-    corner_lists: list[list[int]] = []
-    crossings: list[tuple[int, int]] = []
-    first_crossing: list[int] = []
-    sides: list[list[tuple[int, int, int]]] = [[] for _ in range(n)]
+    # A valid layout has n + 1 regions and 4n + 4 stacked corners (every end opens one step of
+    # a walk, which lists it, the corners after it and the next end).
+    visited = np.zeros(n_vertices, np.bool_)
+    ids = np.empty(4 * n + 4, np.int64)
+    counts = np.zeros(n + 1, np.int64)
+    start = np.zeros(n + 1, np.int64)
+    crossings = np.empty((2 * n, 2), np.int64)
+    first_crossing = np.zeros(n + 1, np.int64)
+    sides = np.empty((n, 2, 3), np.int64)
+    n_sides = np.zeros(n, np.int64)
+    n_ids, n_regions, n_crossings = 0, 0, 0
     for first in sequence:
         if first < 4 or visited[first]:
             continue
-        region, corners = len(corner_lists), []
-        first_crossing.append(len(crossings))
+        region = n_regions
+        n_regions += 1
+        start[region] = n_ids
+        first_crossing[region] = n_crossings
         current = first
         while True:
             visited[current] = True
             following = next_end[current]
             partner = following ^ 1  # the other end of the same ruling (ids 4 + 2c, 5 + 2c)
-            corners += [current, *corners_after[current], following]
+            ids[n_ids] = current
+            n_ids += 1
+            for k in range(n_after[current]):
+                ids[n_ids] = corners_after[current, k]
+                n_ids += 1
+            ids[n_ids] = following
+            n_ids += 1
             chord = (following - 4) >> 1
-            crossings.append((following, partner))
-            sides[chord].append((region, following, partner))
+            crossings[n_crossings, 0], crossings[n_crossings, 1] = following, partner
+            n_crossings += 1
+            sides[chord, n_sides[chord], 0] = region
+            sides[chord, n_sides[chord], 1] = following
+            sides[chord, n_sides[chord], 2] = partner
+            n_sides[chord] += 1
             current = partner
             if current == first:
                 break
-        corner_lists.append(corners)
-    counts = [len(corners) for corners in corner_lists]
-    start = [0] * len(counts)
-    for r in range(1, len(counts)):
-        start[r] = start[r - 1] + counts[r - 1]
-    return _Layout(
-        points,
-        np.array([vertex for corners in corner_lists for vertex in corners]),
-        corner_lists,
-        np.array(counts),
-        np.array(start),
-        np.array(crossings, np.int64),
-        np.array(first_crossing),
-        sides,
+        counts[region] = n_ids - start[region]
+    return ids, counts, start, crossings, first_crossing, sides
+
+
+@numba.njit(cache=True, nogil=True)
+def _sin2_smallest_angle(points, a, b, c):  # pragma: no cover - compiled
+    """sin² of the smallest angle of the triangle of vertex ids a, b, c (0 when degenerate or
+    clockwise). The smallest angle faces the shortest edge: sin = 2 area a_min / (a b c)."""
+    x0, y0, x1, y1, x2, y2 = points[a, 0], points[a, 1], points[b, 0], points[b, 1], points[c, 0], points[c, 1]
+    ax, ay, bx, by, cx, cy = x1 - x0, y1 - y0, x2 - x1, y2 - y1, x0 - x2, y0 - y2
+    a2, b2, c2 = ax * ax + ay * ay, bx * bx + by * by, cx * cx + cy * cy
+    twice_area = ax * by - ay * bx
+    if not twice_area > 0.0:
+        return 0.0
+    return twice_area * twice_area * min(min(a2, b2), c2) / max(a2 * b2 * c2, 1e-300)
+
+
+@numba.njit(cache=True, nogil=True)
+def _minimal_faces(points, ids, counts, start):  # pragma: no cover - compiled
+    """Every convex region triangulated from its corners alone, with the largest smallest
+    angle possible. Up to five corners every triangulation is a fan: the fan from the corner
+    whose worst triangle is best (the first such corner on a tie). More corners (rare): the
+    Delaunay triangulation, which has the largest smallest angle of all triangulations: on
+    each edge (i, j) of a pending piece it puts the corner m that sees the edge under the
+    widest angle (its circle holds no other corner), giving triangle (i, m, j), then does the
+    same on the two new edges. Returns (faces, region of each, ok), faces counter-clockwise,
+    region by region; ok is False when a triangle is degenerate (which convex regions with
+    strictly convex corners never give)."""
+    n_regions = len(counts)
+    n_faces = 0
+    for r in range(n_regions):
+        n_faces += counts[r] - 2
+    faces = np.empty((n_faces, 3), np.int64)
+    face_regions = np.empty(n_faces, np.int64)
+    f = 0
+    for r in range(n_regions):
+        k = counts[r]
+        corners = ids[start[r] : start[r] + k]
+        if k <= 5:
+            best_apex, best_quality = 0, -np.inf
+            for apex in range(k):
+                quality = np.inf
+                for j in range(k - 2):
+                    quality = min(quality, _sin2_smallest_angle(
+                        points, corners[apex], corners[(apex + j + 1) % k], corners[(apex + j + 2) % k]))
+                if quality > best_quality:
+                    best_apex, best_quality = apex, quality
+            if not best_quality > 0.0:
+                return faces, face_regions, False
+            for j in range(k - 2):
+                faces[f, 0] = corners[best_apex]
+                faces[f, 1] = corners[(best_apex + j + 1) % k]
+                faces[f, 2] = corners[(best_apex + j + 2) % k]
+                face_regions[f] = r
+                f += 1
+            continue
+        pending = np.empty((k, 2), np.int64)  # a stack of corner intervals (i, j)
+        pending[0, 0], pending[0, 1] = 0, k - 1
+        n_pending = 1
+        while n_pending:
+            n_pending -= 1
+            i, j = pending[n_pending, 0], pending[n_pending, 1]
+            xi, yi = points[corners[i], 0], points[corners[i], 1]
+            xj, yj = points[corners[j], 0], points[corners[j], 1]
+            widest, best = 2.0, i + 1
+            for m in range(i + 1, j):
+                xm, ym = points[corners[m], 0], points[corners[m], 1]
+                ux, uy, vx, vy = xi - xm, yi - ym, xj - xm, yj - ym
+                cosine = (ux * vx + uy * vy) / math.sqrt((ux * ux + uy * uy) * (vx * vx + vy * vy))
+                if cosine < widest:
+                    widest, best = cosine, m
+            faces[f, 0], faces[f, 1], faces[f, 2] = corners[i], corners[best], corners[j]
+            face_regions[f] = r
+            if not _sin2_smallest_angle(points, corners[i], corners[best], corners[j]) > 0.0:
+                return faces, face_regions, False
+            f += 1
+            if best - i >= 2:
+                pending[n_pending, 0], pending[n_pending, 1] = i, best
+                n_pending += 1
+            if j - best >= 2:
+                pending[n_pending, 0], pending[n_pending, 1] = best, j
+                n_pending += 1
+    return faces, face_regions, True
+
+
+@numba.njit(cache=True, nogil=True)
+def _worst_bend(order, parent, angle_to_parent):  # pragma: no cover - compiled
+    """The largest |sum of bending angles| over the rulings on the path between two regions
+    of the region tree (``order``: breadth first from its root; ``angle_to_parent``: the
+    angle of the ruling between a region and its parent). Children before parents, each
+    region keeps the largest and smallest sums down a path from it; a path with its top at
+    a region joins two of those (or one and the empty path)."""
+    n_regions = len(order)
+    down_max = np.zeros(n_regions)
+    down_min = np.zeros(n_regions)
+    worst = 0.0
+    for q in range(n_regions - 1, 0, -1):
+        child = order[q]
+        top = parent[child]
+        longest = angle_to_parent[child] + down_max[child]
+        lowest = angle_to_parent[child] + down_min[child]
+        worst = max(worst, down_max[top] + longest, -(down_min[top] + lowest))
+        down_max[top] = max(down_max[top], longest)
+        down_min[top] = min(down_min[top], lowest)
+    return worst
+
+
+@numba.njit(cache=True, nogil=True)
+def _clip_to_slab(polygon, heights, clearance):  # pragma: no cover - compiled
+    """The part of a convex polygon ((k, 3) corners, their heights above a plane) with
+    |height| <= clearance (Sutherland-Hodgman against the two faces of the slab); with
+    clearance 0, where it meets the plane. Returns (points, count)."""
+    points, values, n = polygon.copy(), heights.copy(), len(heights)
+    for sign in (1.0, -1.0):  # keep sign * height <= clearance
+        kept_points = np.empty((2 * n + 1, 3))
+        kept_values = np.empty(2 * n + 1)
+        kept = 0
+        for k in range(n):
+            following = (k + 1) % n
+            hp, hq = sign * values[k] - clearance, sign * values[following] - clearance
+            if hp <= 0:
+                kept_points[kept] = points[k]
+                kept_values[kept] = values[k]
+                kept += 1
+            if (hp < 0 < hq) or (hq < 0 < hp):
+                t = hp / (hp - hq)
+                for axis in range(3):
+                    a = points[k, axis]
+                    kept_points[kept, axis] = a + t * (points[following, axis] - a)
+                kept_values[kept] = sign * clearance  # exactly on the slab face, no round-off
+                kept += 1
+        points, values, n = kept_points, kept_values, kept
+        if n == 0:
+            break
+    return points, n
+
+
+@numba.njit(cache=True, nogil=True)
+def _convex_sets_overlap(first, n_first, second, n_second):  # pragma: no cover - compiled
+    """Separating-axis test for two convex 2D point sets given in boundary order (the first a
+    polygon, the second a polygon, a segment or a point): overlapping unless the projections
+    on the normal of some edge of either are apart; touching counts as overlapping."""
+    for which in range(2 if n_second >= 2 else 1):
+        shape, count = (first, n_first) if which == 0 else (second, n_second)
+        for k in range(count):
+            # The axis: the edge from corner k to the next, turned a quarter clockwise.
+            ex = shape[(k + 1) % count, 0] - shape[k, 0]
+            ey = shape[(k + 1) % count, 1] - shape[k, 1]
+            if not ex * ex + ey * ey > 0:
+                continue
+            low_a, high_a, low_b, high_b = np.inf, -np.inf, np.inf, -np.inf
+            for i in range(n_first):
+                projection = first[i, 0] * ey - first[i, 1] * ex
+                low_a, high_a = min(low_a, projection), max(high_a, projection)
+            for i in range(n_second):
+                projection = second[i, 0] * ey - second[i, 1] * ex
+                low_b, high_b = min(low_b, projection), max(high_b, projection)
+            if high_a < low_b or high_b < low_a:
+                return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _in_plane(corners, origin, rotation):  # pragma: no cover - compiled
+    """(k, 2) coordinates of 3D points in the plane of a region (its first corner ``origin``
+    and the first two columns of its rotation)."""
+    out = np.empty((len(corners), 2))
+    for i in range(len(corners)):
+        for axis in range(2):
+            out[i, axis] = ((corners[i, 0] - origin[0]) * rotation[0, axis]
+                            + (corners[i, 1] - origin[1]) * rotation[1, axis]
+                            + (corners[i, 2] - origin[2]) * rotation[2, axis])
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _heights(corners, origin, normal):  # pragma: no cover - compiled
+    """Heights of 3D points above the plane through ``origin`` with unit ``normal``."""
+    offset = normal[0] * origin[0] + normal[1] * origin[1] + normal[2] * origin[2]
+    out = np.empty(len(corners))
+    for i in range(len(corners)):
+        out[i] = normal[0] * corners[i, 0] + normal[1] * corners[i, 1] + normal[2] * corners[i, 2] - offset
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _wholly_beyond(corners, origin, normal, clearance):  # pragma: no cover - compiled
+    """Whether 3D points all lie further than ``clearance`` on one side of the plane through
+    ``origin`` with unit ``normal`` (the heights of _heights, without making the array)."""
+    offset = normal[0] * origin[0] + normal[1] * origin[1] + normal[2] * origin[2]
+    lowest, highest = np.inf, -np.inf
+    for i in range(len(corners)):
+        height = normal[0] * corners[i, 0] + normal[1] * corners[i, 1] + normal[2] * corners[i, 2] - offset
+        lowest, highest = min(lowest, height), max(highest, height)
+    return lowest > clearance or highest < -clearance
+
+
+@numba.njit(cache=True, nogil=True)
+def _self_intersection(corners, start, counts, rotations, adjacent, clearance):  # pragma: no cover - compiled
+    """The first pair (a, b), a < b, of non-adjacent regions that pass through each other or
+    come within ``clearance`` (measured across the plane of one of them), or (-1, -1).
+
+    Regions are planar convex polygons (``corners``: bent corner positions, stacked). Regions
+    sharing a ruling meet along it and bend by less than pi there, so only non-adjacent pairs
+    can cross. Two cheap exact tests set most pairs apart: their bounding boxes grown by
+    ``clearance`` miss each other, or one polygon lies wholly beyond ``clearance`` on one side
+    of the other's plane. For the rest, the slice of b near a's plane is compared with a
+    inside that plane. Exact for crossings, coplanar overlaps included.
+    """
+    n_regions = len(counts)
+    low = np.empty((n_regions, 3))
+    high = np.empty((n_regions, 3))
+    for r in range(n_regions):
+        for axis in range(3):
+            values = corners[start[r] : start[r] + counts[r], axis]
+            low[r, axis] = values.min() - clearance
+            high[r, axis] = values.max() + clearance
+    for a in range(n_regions):
+        corners_a = corners[start[a] : start[a] + counts[a]]
+        for b in range(a + 1, n_regions):
+            if adjacent[a, b]:
+                continue
+            apart = False
+            for axis in range(3):
+                if not (low[a, axis] <= high[b, axis] and low[b, axis] <= high[a, axis]):
+                    apart = True
+            if apart:
+                continue
+            corners_b = corners[start[b] : start[b] + counts[b]]
+            if _wholly_beyond(corners_b, corners_a[0], rotations[a, :, 2], clearance) or _wholly_beyond(
+                corners_a, corners_b[0], rotations[b, :, 2], clearance
+            ):
+                continue
+            piece, n_piece = _clip_to_slab(corners_b, _heights(corners_b, corners_a[0], rotations[a, :, 2]), clearance)
+            if n_piece == 0:
+                continue
+            if _convex_sets_overlap(_in_plane(corners_a, corners_a[0], rotations[a]), len(corners_a),
+                                    _in_plane(piece[:n_piece], corners_a[0], rotations[a]), n_piece):
+                return a, b
+    return -1, -1
+
+
+@numba.njit(cache=True, nogil=True)
+def _regions_and_frames(ends, end_points, angle, corner_s, corner_points, width, height):  # pragma: no cover - compiled
+    """The regions of a valid layout of chords (``ends``: perimeter positions, all p0 then all
+    p1; ``end_points`` the same as flat points; ``angle`` per chord) and their rigid
+    transforms. Returns (flat (4 + 2n, 2), bent vertices, ids, counts, start, adjacent
+    (R, R) bool, breadth-first order from the reference region, parent of each region,
+    angle of the ruling to the parent, rotations (R, 3, 3), translations (R, 3))."""
+    n = len(angle)
+    n_vertices = 4 + 2 * n
+    points = np.empty((n_vertices, 2))
+    positions = np.empty(n_vertices)
+    points[:4] = corner_points
+    positions[:4] = corner_s
+    for c in range(n):
+        points[4 + 2 * c] = end_points[c]
+        points[5 + 2 * c] = end_points[n + c]
+        positions[4 + 2 * c], positions[5 + 2 * c] = ends[c], ends[n + c]
+    ids, counts, start, crossings, first_crossing, sides = _trace_regions(positions, n)
+    n_regions = len(counts)
+
+    # Region graph (a tree): each ruling borders exactly two regions. Neighbours of each
+    # region (region, chord, start id, end id of the ruling as the neighbour traverses it),
+    # in chord order.
+    neighbour_start = np.zeros(n_regions + 1, np.int64)
+    for c in range(n):
+        neighbour_start[sides[c, 0, 0] + 1] += 1
+        neighbour_start[sides[c, 1, 0] + 1] += 1
+    for r in range(n_regions):
+        neighbour_start[r + 1] += neighbour_start[r]
+    filled = neighbour_start[:-1].copy()
+    neighbour_region = np.empty(2 * n, np.int64)
+    neighbour_chord = np.empty(2 * n, np.int64)
+    neighbour_ends = np.empty((2 * n, 2), np.int64)
+    adjacent = np.zeros((n_regions, n_regions), np.bool_)
+    for c in range(n):
+        for side in range(2):
+            r, other = sides[c, side, 0], sides[c, 1 - side, 0]
+            e = filled[r]
+            filled[r] += 1
+            neighbour_region[e], neighbour_chord[e] = other, c
+            neighbour_ends[e, 0], neighbour_ends[e, 1] = sides[c, 1 - side, 1], sides[c, 1 - side, 2]
+            adjacent[r, other] = True
+
+    # Reference region: the one holding the sheet centre (the first, if it is on a ruling).
+    # A region lies left of the rulings it traverses: how far the centre is outside it is the
+    # largest distance of the centre to the right of them.
+    reference = 0
+    if n:
+        least = np.inf
+        for r in range(n_regions):
+            outside = -np.inf
+            stop = first_crossing[r + 1] if r + 1 < n_regions else len(crossings)
+            for k in range(first_crossing[r], stop):
+                sx, sy = points[crossings[k, 0], 0], points[crossings[k, 0], 1]
+                ax, ay = points[crossings[k, 1], 0] - sx, points[crossings[k, 1], 1] - sy
+                cx, cy = width / 2.0 - sx, height / 2.0 - sy
+                outside = max(outside, (ay * cx - ax * cy) / np.hypot(ax, ay))
+            if outside < least:
+                least, reference = outside, r
+
+    # Breadth first from the reference region; every region's transform is its parent's
+    # composed with the rotation about the ruling between them. The child traverses that
+    # ruling start -> end with itself on the left, so a rotation by +angle about that
+    # direction lifts it towards +z (valley fold). Points are centred: flat (x, y) sits at
+    # (x - W/2, y - H/2, 0) before bending.
+    centred = np.empty((n_vertices, 2))
+    for v in range(n_vertices):
+        centred[v, 0], centred[v, 1] = points[v, 0] - width / 2.0, points[v, 1] - height / 2.0
+    rotations = np.zeros((n_regions, 3, 3))
+    translations = np.zeros((n_regions, 3))
+    rotations[reference, 0, 0] = rotations[reference, 1, 1] = rotations[reference, 2, 2] = 1.0
+    # Each vertex moves with a region holding it: a sheet corner with its region, a ruling end
+    # with the neighbour nearest the reference (both agree there, up to round-off).
+    owner = np.zeros(n_vertices, np.int64)
+    for r in range(n_regions):
+        for i in range(start[r], start[r] + counts[r]):
+            owner[ids[i]] = r
+    order = np.empty(n_regions, np.int64)
+    parent_of = np.zeros(n_regions, np.int64)
+    angle_to_parent = np.zeros(n_regions)
+    placed = np.zeros(n_regions, np.bool_)
+    order[0] = reference
+    placed[reference] = True
+    n_placed = 1
+    local = np.empty((3, 3))
+    for q in range(n_regions):
+        if q >= n_placed:
+            break
+        parent = order[q]
+        for e in range(neighbour_start[parent], neighbour_start[parent + 1]):
+            child = neighbour_region[e]
+            if placed[child]:
+                continue
+            placed[child] = True
+            parent_of[child], angle_to_parent[child] = parent, angle[neighbour_chord[e]]
+            order[n_placed] = child
+            n_placed += 1
+            a, b = neighbour_ends[e, 0], neighbour_ends[e, 1]
+            owner[a] = owner[b] = parent
+            # Rodrigues with the horizontal unit axis (ux, uy, 0) through the point a.
+            ax, ay = centred[a, 0], centred[a, 1]
+            ux, uy = centred[b, 0] - ax, centred[b, 1] - ay
+            length = np.hypot(ux, uy)
+            ux, uy = ux / length, uy / length
+            sin, cos = np.sin(angle_to_parent[child]), np.cos(angle_to_parent[child])
+            versine = 1.0 - cos
+            local[0, 0], local[0, 1], local[0, 2] = cos + ux * ux * versine, ux * uy * versine, uy * sin
+            local[1, 0], local[1, 1], local[1, 2] = ux * uy * versine, cos + uy * uy * versine, -ux * sin
+            local[2, 0], local[2, 1], local[2, 2] = -uy * sin, ux * sin, cos
+            # The line stays put: the local translation is a - R a (a has z = 0).
+            shift_x = ax - local[0, 0] * ax - local[0, 1] * ay
+            shift_y = ay - local[1, 0] * ax - local[1, 1] * ay
+            shift_z = 0.0 - local[2, 0] * ax - local[2, 1] * ay
+            for i in range(3):
+                p0, p1, p2 = rotations[parent, i, 0], rotations[parent, i, 1], rotations[parent, i, 2]
+                for j in range(3):
+                    rotations[child, i, j] = p0 * local[0, j] + p1 * local[1, j] + p2 * local[2, j]
+                translations[child, i] = p0 * shift_x + p1 * shift_y + p2 * shift_z + translations[parent, i]
+    vertices = np.empty((n_vertices, 3))
+    for v in range(n_vertices):
+        r = owner[v]
+        x, y = centred[v, 0], centred[v, 1]
+        for i in range(3):
+            vertices[v, i] = rotations[r, i, 0] * x + rotations[r, i, 1] * y + translations[r, i]
+    return (points, vertices, ids, counts, start, adjacent, order, parent_of, angle_to_parent, rotations,
+            translations)
+
+
+@numba.njit(cache=True, nogil=True)
+def _sheet_geometry(
+    ends, end_points, angle, corner_s, corner_points, width, height, check, max_total_bend, clearance, minimal
+):  # pragma: no cover - compiled
+    """_regions_and_frames, the self-intersection checks, then (``minimal``) the minimal mesh.
+    Returns (problem, worst bend, region a, region b, flat (4 + 2n, 2), bent vertices, faces,
+    face regions); problem is 0, _CURLED (worst bend past ``max_total_bend``), _CROSSED
+    (regions a and b pass through each other) or _DEGENERATE (a triangle of the minimal
+    mesh); faces are empty unless ``minimal`` and problem is 0."""
+    n = len(angle)
+    points, vertices, ids, counts, start, adjacent, order, parent_of, angle_to_parent, rotations, _ = (
+        _regions_and_frames(ends, end_points, angle, corner_s, corner_points, width, height)
     )
+    problem, worst, first, second = 0, 0.0, -1, -1
+    if check and n:
+        # Bends adding up along a path: a sheet curled past max_total_bend is rejected.
+        worst = _worst_bend(order, parent_of, angle_to_parent)
+        if worst > max_total_bend + 1e-12:
+            problem = _CURLED
+        else:
+            # Regions are rigid planar polygons: check them before spending time on the mesh.
+            bent_corners = np.empty((len(ids), 3))
+            for i in range(len(ids)):
+                bent_corners[i] = vertices[ids[i]]
+            first, second = _self_intersection(bent_corners, start, counts, rotations, adjacent, clearance)
+            if first >= 0:
+                problem = _CROSSED
+    faces, face_regions = np.zeros((0, 3), np.int64), np.zeros(0, np.int64)
+    if minimal and problem == 0:
+        faces, face_regions, ok = _minimal_faces(points, ids, counts, start)
+        if not ok:
+            problem = _DEGENERATE
+    return problem, worst, first, second, points, vertices, faces, face_regions
+
+
+@numba.njit(cache=True, nogil=True)
+def _sheet_frames(ends, end_points, angle, corner_s, corner_points, width, height):  # pragma: no cover - compiled
+    """What the refined mesh needs of _regions_and_frames: (ids, counts, start, order,
+    rotations, translations)."""
+    _, _, ids, counts, start, _, order, _, _, rotations, translations = _regions_and_frames(
+        ends, end_points, angle, corner_s, corner_points, width, height
+    )
+    return ids, counts, start, order, rotations, translations
+
+
+# -- refined mesh --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """The sheet cut by its rulings, for the refined mesh: flat vertex positions (ids as in
+    _sheet_geometry) and the stacked region corners."""
+
+    points: np.ndarray  # (4 + 2n, 2) flat vertex positions
+    ids: np.ndarray  # stacked region corners, counter-clockwise per region
+    counts: np.ndarray  # corners per region
+    start: np.ndarray  # where each region's corners begin in ids
+
+    @property
+    def polygons(self) -> list[np.ndarray]:
+        return [self.ids[s : s + k] for s, k in zip(self.start.tolist(), self.counts.tolist())]
 
 
 @dataclass(frozen=True)
@@ -555,116 +1119,6 @@ class _RegionEdges:
         following = self.points + self.vectors
         cross = self.points[:, 0] * following[:, 1] - self.points[:, 1] * following[:, 0]
         return 0.5 * np.bincount(self.region, weights=cross, minlength=len(self.start))
-
-
-def _local_transforms(a: np.ndarray, b: np.ndarray, angles: np.ndarray) -> np.ndarray:
-    """(n, 4, 4) homogeneous rotations by ``angles`` about the lines through a[i] and b[i],
-    points of the z = 0 plane (Rodrigues with a horizontal axis, entry by entry; positive =
-    counter-clockwise looking from b towards a)."""
-    ux, uy = (b[:, 0] - a[:, 0]), (b[:, 1] - a[:, 1])
-    length = np.hypot(ux, uy)
-    ux, uy = ux / length, uy / length
-    sin, cos = np.sin(angles), np.cos(angles)
-    versine = 1.0 - cos
-    transforms = np.zeros((len(a), 4, 4))
-    transforms[:, 0, 0] = cos + ux * ux * versine
-    transforms[:, 0, 1] = transforms[:, 1, 0] = ux * uy * versine
-    transforms[:, 0, 2], transforms[:, 2, 0] = uy * sin, -uy * sin
-    transforms[:, 1, 1] = cos + uy * uy * versine
-    transforms[:, 1, 2], transforms[:, 2, 1] = -ux * sin, ux * sin
-    transforms[:, 2, 2] = cos
-    transforms[:, 3, 3] = 1.0
-    # The line stays put: translation a - R a (a has z = 0).
-    ax, ay = a[:, 0], a[:, 1]
-    transforms[:, :3, 3] = a - transforms[:, :3, 0] * ax[:, None] - transforms[:, :3, 1] * ay[:, None]
-    return transforms
-
-
-# -- meshes ----------------------------------------------------------------------------------
-
-
-def _sin2_smallest_angle(x: np.ndarray, y: np.ndarray) -> np.ndarray:
-    """sin² of the smallest angle of triangles with corner coordinates ``x``, ``y`` (..., 3)
-    (0 when degenerate or clockwise). The smallest angle faces the shortest edge:
-    sin = 2 area a_min / (a b c)."""
-    x0, x1, x2 = x[..., 0], x[..., 1], x[..., 2]
-    y0, y1, y2 = y[..., 0], y[..., 1], y[..., 2]
-    ax, ay, bx, by, cx, cy = x1 - x0, y1 - y0, x2 - x1, y2 - y1, x0 - x2, y0 - y2
-    a2, b2, c2 = ax * ax + ay * ay, bx * bx + by * by, cx * cx + cy * cy
-    twice_area = ax * by - ay * bx
-    sin2 = twice_area * twice_area * np.minimum(np.minimum(a2, b2), c2) / np.maximum(a2 * b2 * c2, 1e-300)
-    return np.where(twice_area > 0.0, sin2, 0.0)
-
-
-@lru_cache(maxsize=64)
-def _fan_corners(most: int) -> np.ndarray:
-    """(most, most - 2, 3) corner positions (a, a + j, a + j + 1), before the modulo by a
-    region's corner count: fan from apex a, triangle j."""
-    apex = np.arange(most)[:, None]
-    step = np.arange(1, most - 1)[None]
-    table = np.empty((most, most - 2, 3), np.int64)
-    table[..., 0], table[..., 1], table[..., 2] = apex, apex + step, apex + step + 1
-    table.setflags(write=False)
-    return table
-
-
-def _delaunay_polygon(corners: list[list[float]]) -> list[tuple[int, int, int]]:
-    """The Delaunay triangulation of a strictly convex polygon (counter-clockwise corners),
-    which has the largest smallest angle of all its triangulations: on each edge (i, j) it
-    puts the corner that sees the edge under the widest angle (its circle holds no other
-    corner), then does the same on the two new edges. Triangles (i, m, j), i < m < j, ccw."""
-    triangles = []
-    pending = [(0, len(corners) - 1)]
-    while pending:
-        i, j = pending.pop()
-        (xi, yi), (xj, yj) = corners[i], corners[j]
-        widest, best = 2.0, i + 1
-        for m in range(i + 1, j):
-            xm, ym = corners[m]
-            ux, uy, vx, vy = xi - xm, yi - ym, xj - xm, yj - ym
-            cosine = (ux * vx + uy * vy) / math.sqrt((ux * ux + uy * uy) * (vx * vx + vy * vy))
-            if cosine < widest:
-                widest, best = cosine, m
-        triangles.append((i, best, j))
-        pending += [(a, b) for a, b in ((i, best), (best, j)) if b - a >= 2]
-    return triangles
-
-
-def _minimal_mesh(layout: _Layout) -> tuple[np.ndarray, np.ndarray]:
-    """Every convex region triangulated from its corners alone, with the largest smallest
-    angle possible. Up to five corners every triangulation is a fan, so the best fan is
-    chosen, for all regions at once (padded to the largest corner count); regions with more
-    corners (rare) get their Delaunay triangulation. Returns (faces, region of each), faces
-    counter-clockwise, region by region."""
-    counts = layout.counts
-    n_regions, most = len(counts), int(counts.max())
-    rows = np.arange(n_regions)
-    padded = np.array([corners + corners[:1] * (most - len(corners)) for corners in layout.corner_lists])
-    k = counts[:, None, None, None]
-    triangles = padded[rows[:, None, None, None], _fan_corners(most) % k]  # (region, apex, j, 3)
-    real = np.arange(most - 2) < counts[:, None] - 2  # (region, j): a k-gon's fan has k - 2 triangles
-    sin2 = _sin2_smallest_angle(layout.points[:, 0][triangles], layout.points[:, 1][triangles])
-    quality = np.where(real[:, None], sin2, np.inf).min(axis=2)
-    quality[np.arange(most) >= counts[:, None]] = -np.inf  # apexes past the region's corners
-    best = quality.argmax(axis=1)
-    if not np.all(quality[rows, best] > 0.0):
-        raise RuntimeError("paper model: degenerate triangle in a region (please report)")
-    faces, face_regions = triangles[rows, best][real], np.repeat(rows, counts - 2)
-    if most <= 5:
-        return faces, face_regions
-    large = np.flatnonzero(counts > 5)
-    kept = counts[face_regions] <= 5
-    extra = []
-    for r in large.tolist():
-        corners = layout.corner_lists[r]
-        triangles = np.array(corners)[np.array(_delaunay_polygon(layout.points[corners].tolist()))]
-        if not np.all(_sin2_smallest_angle(layout.points[triangles, 0], layout.points[triangles, 1]) > 0.0):
-            raise RuntimeError("paper model: degenerate triangle in a region (please report)")
-        extra.append(triangles)
-    faces = np.concatenate([faces[kept], *extra])
-    face_regions = np.concatenate([face_regions[kept], np.repeat(large, counts[large] - 2)])
-    order = np.argsort(face_regions, kind="stable")
-    return faces[order], face_regions[order]
 
 
 def _subdivide(a: np.ndarray, b: np.ndarray, step: float) -> np.ndarray:
@@ -752,89 +1206,6 @@ def _refined_mesh(
     return flat, faces_arr, face_regions_arr
 
 
-# -- self-intersection ----------------------------------------------------------------------
-
-
-def _clip_to_slab(polygon: list[list[float]], heights: list[float], clearance: float) -> np.ndarray:
-    """The part of a convex polygon (corners as [x, y, z] lists, their heights above a plane)
-    with |height| <= clearance (Sutherland-Hodgman against the two faces of the slab); with
-    clearance 0, where it meets the plane. In plain floats: a handful of corners."""
-    points, values = polygon, heights
-    for sign in (1.0, -1.0):  # keep sign * height <= clearance
-        kept_points, kept_values = [], []
-        n = len(points)
-        for k in range(n):
-            p, q = points[k], points[(k + 1) % n]
-            hp, hq = sign * values[k] - clearance, sign * values[(k + 1) % n] - clearance
-            if hp <= 0:
-                kept_points.append(p)
-                kept_values.append(values[k])
-            if (hp < 0 < hq) or (hq < 0 < hp):
-                t = hp / (hp - hq)
-                kept_points.append([a + t * (b - a) for a, b in zip(p, q)])
-                kept_values.append(sign * clearance)  # exactly on the slab face, no round-off
-        points, values = kept_points, kept_values
-        if not points:
-            break
-    return np.array(points).reshape(-1, 3)
-
-
-def _convex_sets_overlap(first: np.ndarray, second: np.ndarray) -> bool:
-    """Separating-axis test for two convex 2D point sets given in boundary order (the first a
-    polygon, the second a polygon, a segment or a point); touching counts as overlapping."""
-    both = [first, second] if len(second) >= 2 else [first]
-    edges = np.concatenate([np.append(points[1:], points[:1], axis=0) - points for points in both])
-    axes = edges[np.einsum("ij,ij->i", edges, edges) > 0][:, ::-1] * (1.0, -1.0)
-    a, b = first @ axes.T, second @ axes.T  # projections on every axis at once
-    return not np.any((a.max(axis=0) < b.min(axis=0)) | (b.max(axis=0) < a.min(axis=0)))
-
-
-@lru_cache(maxsize=64)
-def _pairs_once(n: int) -> np.ndarray:
-    """(n, n) bool, True above the diagonal: each unordered pair once, (a, b) with a < b."""
-    mask = np.triu(np.ones((n, n), bool), k=1)
-    mask.setflags(write=False)
-    return mask
-
-
-def _find_self_intersection(
-    corners: np.ndarray, start: np.ndarray, rotations: np.ndarray, adjacent: np.ndarray, clearance: float
-) -> tuple[int, int] | None:
-    """The first pair of non-adjacent regions that pass through each other or come within
-    ``clearance`` (measured across the plane of one of them), or None.
-
-    Regions are planar convex polygons (``corners``: bent corner positions, stacked, region
-    r's from ``start[r]``). Regions sharing a ruling meet along it and bend by less than pi there, so only
-    non-adjacent pairs can cross. Two cheap exact tests, for all pairs at once, set most pairs
-    apart: their bounding boxes grown by ``clearance`` miss each other, or one polygon lies
-    wholly beyond ``clearance`` on one side of the other's plane. For the rest, the slice of
-    one near the other's plane is compared with the other polygon inside that plane. Exact
-    for crossings, coplanar overlaps included.
-    """
-    low = np.minimum.reduceat(corners, start, axis=0) - clearance
-    high = np.maximum.reduceat(corners, start, axis=0) + clearance
-    boxes_meet = ((low[:, None] <= high[None]) & (low[None] <= high[:, None])).all(axis=2)
-    candidates = boxes_meet & ~adjacent & _pairs_once(len(start))
-    if not candidates.any():
-        return None
-    normals = rotations[:, :, 2]
-    origins = corners[start]
-    # heights[r, k]: height of corner k above the plane of region r.
-    heights = normals @ corners.T - (normals * origins).sum(axis=1)[:, None]
-    above = np.maximum.reduceat(heights, start, axis=1)  # [a, b]: highest corner of b above a
-    below = np.minimum.reduceat(heights, start, axis=1)
-    beyond = (below > clearance) | (above < -clearance)  # [a, b]: b wholly off a's plane
-    stop = np.concatenate([start[1:], [len(corners)]])
-    for a, b in zip(*np.nonzero(candidates & ~beyond & ~beyond.T)):
-        piece = _clip_to_slab(corners[start[b] : stop[b]].tolist(), heights[a, start[b] : stop[b]].tolist(), clearance)
-        if not len(piece):
-            continue
-        basis = rotations[a][:, :2]
-        if _convex_sets_overlap((corners[start[a] : stop[a]] - origins[a]) @ basis, (piece - origins[a]) @ basis):
-            return int(a), int(b)
-    return None
-
-
 # -- public API ------------------------------------------------------------------------------
 
 
@@ -842,105 +1213,41 @@ def _assemble(
     width: float, height: float, border: _Border, chords: _Chords, guides: list[Ruling], options: _Options
 ) -> SheetMesh:
     """Regions, their rigid transforms, the self-intersection checks, then the mesh."""
-    layout = _trace_layout(border, chords)
-    n_regions, n_chords = len(layout.counts), len(chords)
+    minimal = options.max_edge is None
+    sheet = (chords.ends, chords.end_points, chords.angle, border.corner_s, border.corner_points, width, height)
+    problem, worst, first, second, points, vertices, faces, face_regions = _sheet_geometry(
+        *sheet, options.check_self_intersection, options.max_total_bend, options.clearance, minimal
+    )
+    if problem == _CURLED:
+        raise SelfIntersection(
+            f"bends add up to {math.degrees(worst):.0f} degrees between two regions "
+            f"(limit {math.degrees(options.max_total_bend):.0f}): the sheet would curl into itself"
+        )
+    if problem == _CROSSED:
+        raise SelfIntersection(
+            f"regions {first} and {second} of the bent sheet pass through each other "
+            f"(or come within {options.clearance:.3g} m)"
+        )
+    if problem == _DEGENERATE:
+        raise RuntimeError("paper model: degenerate triangle in a region (please report)")
 
-    # Region graph (a tree): each ruling borders exactly two regions.
-    neighbours: list[list[tuple[int, int, int, int]]] = [[] for _ in range(n_regions)]
-    first_side, second_side = [], []
-    for chord_index, ((r0, s0, e0), (r1, s1, e1)) in enumerate(layout.sides):
-        neighbours[r0].append((r1, chord_index, s1, e1))
-        neighbours[r1].append((r0, chord_index, s0, e0))
-        first_side.append(r0)
-        second_side.append(r1)
-
-    # Reference region: the one holding the sheet centre (the first, if it is on a ruling).
-    # A region lies left of the rulings it traverses: how far the centre is outside it is the
-    # largest distance of the centre to the right of them.
-    reference = 0
-    if n_chords:
-        start, end = layout.points[layout.crossings[:, 0]], layout.points[layout.crossings[:, 1]]
-        along, to_centre = end - start, (width / 2.0, height / 2.0) - start
-        right = (along[:, 1] * to_centre[:, 0] - along[:, 0] * to_centre[:, 1]) / np.hypot(along[:, 0], along[:, 1])
-        reference = int(np.argmin(np.maximum.reduceat(right, layout.first_crossing)))
-
-    # Breadth first from the reference region: each region's parent and the ruling crossed to
-    # reach it (traversed start -> end with the child on the left).
-    parent = list(range(n_regions))
-    via = [(0, 0, 0)] * n_regions  # (chord, start id, end id)
-    depth = [0] * n_regions
-    order = [reference]
-    for r in order:  # grows while it is read: a breadth-first queue
-        for child, chord_index, start, end in neighbours[r]:
-            if child != reference and parent[child] == child:
-                parent[child], via[child], depth[child] = r, (chord_index, start, end), depth[r] + 1
-                order.append(child)
-
-    # Every region's transform T_r = T_parent o Rot(ruling to the parent) and the rulings on
-    # its path from the reference, composed by pointer jumping (log2(depth) batched rounds).
-    # The child traverses its ruling start -> end with itself on the left, so a rotation by
-    # +angle about that direction lifts it towards +z (valley fold).
-    origin = np.array([width / 2.0, height / 2.0, 0.0])
-    flat3 = np.zeros((len(layout.points), 3))
-    flat3[:, :2] = layout.points - origin[:2]
-    transforms = np.zeros((n_regions, 4, 4))
-    transforms.reshape(n_regions, 16)[:, ::5] = 1.0  # identities
-    on_path = np.zeros((n_regions, n_chords))
-    # Each vertex moves with a region holding it: a sheet corner with its region, a ruling end
-    # with the neighbour nearest the reference (both agree there, up to round-off).
-    owner = np.zeros(len(layout.points), np.int64)
-    owner[layout.ids] = np.repeat(np.arange(n_regions), layout.counts)
-    if n_chords:
-        children = np.array(order[1:])
-        chord_index, start, end = np.array([via[c] for c in order[1:]]).T
-        transforms[children] = _local_transforms(flat3[start], flat3[end], chords.angle[chord_index])
-        on_path[children, chord_index] = 1.0
-        owner[start] = owner[end] = np.array(parent)[children]
-        jump = np.array(parent)
-        for _ in range(max(depth).bit_length()):
-            transforms = transforms[jump] @ transforms
-            on_path += on_path[jump]
-            jump = jump[jump]
-    rotations, translations = transforms[:, :3, :3], transforms[:, :3, 3]
-    moves = transforms[owner]  # flat3 has z = 0: x, y times the first two columns, plus the translation
-    vertices = moves[:, :3, 0] * flat3[:, :1] + moves[:, :3, 1] * flat3[:, 1:2] + moves[:, :3, 3]
-
-    if options.check_self_intersection and n_chords:
-        # Bends adding up along a path: a sheet curled past max_total_bend is rejected. The
-        # path between a and b holds the rulings on exactly one of their paths from the reference.
-        to_reference = on_path @ chords.angle
-        bends = to_reference[:, None] + to_reference[None] - 2.0 * ((on_path * chords.angle) @ on_path.T)
-        worst = max(float(bends.max()), -float(bends.min()))
-        if worst > options.max_total_bend + 1e-12:
-            raise SelfIntersection(
-                f"bends add up to {math.degrees(worst):.0f} degrees between two regions "
-                f"(limit {math.degrees(options.max_total_bend):.0f}): the sheet would curl into itself"
-            )
-        # Regions are rigid planar polygons: check them before spending time on the mesh.
-        adjacent = np.zeros((n_regions, n_regions), bool)
-        adjacent[first_side, second_side] = adjacent[second_side, first_side] = True
-        found = _find_self_intersection(vertices[layout.ids], layout.start, rotations, adjacent, options.clearance)
-        if found is not None:
-            raise SelfIntersection(
-                f"regions {found[0]} and {found[1]} of the bent sheet pass through each other "
-                f"(or come within {options.clearance:.3g} m)"
-            )
-
-    if options.max_edge is None:
-        flat = layout.points
-        faces, face_regions = _minimal_mesh(layout)
+    if minimal:
+        flat = points
     else:
+        ids, counts, start, order, rotations, translations = _sheet_frames(*sheet)
+        layout = _Layout(points, ids, counts, start)
         flat, faces, face_regions = _refined_mesh(layout, width, height, options.max_edge)
         # The new points move with a region holding them, on a ruling with the one nearest
-        # the reference, as above.
+        # the reference (the earliest in breadth-first order), as the layout's vertices do.
+        n_regions = len(counts)
         rank = np.empty(n_regions, np.int64)
         rank[order] = np.arange(n_regions)
         owner_rank = np.full(len(flat), n_regions)
         np.minimum.at(owner_rank, faces.ravel(), np.repeat(rank[face_regions], 3))
-        new = np.arange(len(layout.points), len(flat))
-        new_owner = np.asarray(order)[owner_rank[new]]
+        new = np.arange(len(points), len(flat))
+        new_owner = order[owner_rank[new]]
         new_flat3 = np.zeros((len(new), 3))
-        new_flat3[:, :2] = flat[new] - origin[:2]
+        new_flat3[:, :2] = flat[new] - (width / 2.0, height / 2.0)
         new_vertices = (rotations[new_owner] @ new_flat3[:, :, None])[:, :, 0] + translations[new_owner]
         vertices = np.concatenate([vertices, new_vertices])
 
@@ -948,9 +1255,9 @@ def _assemble(
         flat=flat,
         vertices=vertices,
         faces=faces,
-        uv=flat / np.array([width, height]),
-        width=float(width),
-        height=float(height),
+        uv=flat / border.size,
+        width=width,
+        height=height,
         rulings=guides,
         fold_lines=chords.as_rulings(),
         face_regions=face_regions,
@@ -981,7 +1288,7 @@ def build_sheet(
     """
     width, height = _check_sheet_size(width, height)
     options = _options(width, height, opts)
-    border = _Border(width, height)
+    border = _border(width, height)
     tol = 1e-9 * max(width, height)
     guides = []
     for index, ruling in enumerate(rulings):
@@ -998,10 +1305,10 @@ def build_sheet(
                 f"ruling {index}: bending angle {angle!r} must be finite and below pi in magnitude"
             )
         guides.append((border.position(p0, tol), border.position(p1, tol), angle))
-    guides_arr = np.array(guides, np.float64).reshape(-1, 3)
-    chords = _expand(border, guides_arr, options)
-    _validate_layout(border, chords, options)
-    return _assemble(width, height, border, chords, _guide_rulings(border, guides_arr), options)
+    chords, guide_rulings, problem = _chords(border, np.array(guides, np.float64).reshape(-1, 3), options)
+    if problem is not None:
+        raise RulingLayoutError(problem)
+    return _assemble(width, height, border, chords, guide_rulings, options)
 
 
 def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height: float, **opts) -> SheetMesh:
@@ -1024,27 +1331,25 @@ def sample_sheet(n_rulings: int, rng: np.random.Generator, width: float, height:
         )
     width, height = _check_sheet_size(width, height)
     options = _options(width, height, opts)
-    border = _Border(width, height)
+    border = _border(width, height)
     if n_rulings == 0:
-        chords = _expand(border, np.zeros((0, 3)), options)
+        chords, _, _ = _chords(border, np.zeros((0, 3)), options)
         return _assemble(width, height, border, chords, [], options)
+    sampler = _guide_sampler(width, height, int(n_rulings), options)
+    if sampler is None:
+        border_per_ruling = (options.smooth_steps - 1) * options.bend_spacing + options.min_gap
+        raise ValueError(
+            f"{n_rulings} guiding rulings do not fit on a {width:g} x {height:g} sheet with mesh_step "
+            f"{options.mesh_step:g} (each needs about {border_per_ruling:.3g} of border on both ends): "
+            "use fewer rulings, fewer smooth_steps or a smaller mesh_step"
+        )
     last_problem = None
     for _ in range(options.max_tries):
-        guides = _sample_guides(int(n_rulings), rng, border, options)
-        if guides is None:
-            border_per_ruling = (options.smooth_steps - 1) * options.bend_spacing + options.min_gap
-            raise ValueError(
-                f"{n_rulings} guiding rulings do not fit on a {width:g} x {height:g} sheet with mesh_step "
-                f"{options.mesh_step:g} (each needs about {border_per_ruling:.3g} of border on both ends): "
-                "use fewer rulings, fewer smooth_steps or a smaller mesh_step"
-            )
-        chords = _expand(border, guides, options)
-        try:
-            _validate_layout(border, chords, options)
-        except RulingLayoutError as problem:
+        chords, guide_rulings, problem = _sample_chords(int(n_rulings), rng, border, sampler, options)
+        if problem is not None:
             last_problem = problem
             continue
-        return _assemble(width, height, border, chords, _guide_rulings(border, guides), options)
+        return _assemble(width, height, border, chords, guide_rulings, options)
     raise ValueError(
         f"no valid layout of {n_rulings} rulings in {options.max_tries} tries; last problem: {last_problem}"
     )

@@ -315,6 +315,43 @@ def test_same_generator_state_gives_the_same_sheet():
     assert first.rulings != other.rulings
 
 
+def test_the_draws_are_pinned():
+    # The layout's random draws and their order (module docstring) decide every rendered sheet:
+    # these are the values of the array implementation the compiled one replaced.
+    mesh = sample_sheet(3, np.random.default_rng(2018), *A4)
+    assert mesh.rulings == [
+        ((0.08240964512944982, 0.0), (0.0, 0.06823121036148194), -0.6044079225881946),
+        ((0.21, 0.20710071645334474), (0.0, 0.1227809780804334), 0.35218417009072867),
+        ((0.21, 0.2746665017093413), (0.1747085448156295, 0.297), 0.724122784863628),
+    ]
+    assert mesh.faces.tolist() == [
+        [7, 5, 4], [7, 4, 6], [6, 8, 9], [6, 9, 7], [11, 9, 8], [11, 8, 1], [11, 1, 10], [10, 12, 13], [10, 13, 11],
+        [12, 14, 15], [12, 15, 13], [17, 3, 15], [17, 15, 14], [17, 14, 16], [16, 18, 19], [16, 19, 17],
+        [18, 20, 21], [18, 21, 19], [20, 2, 21], [5, 0, 4],
+    ]
+
+
+def test_default_options_are_made_once_and_never_mixed_with_given_ones():
+    from workers.render import paper_model  # noqa: PLC0415 - the private option cache
+
+    width, height = A4
+    default = paper_model._options(width, height, {})
+    assert paper_model._options(width, height, {}) is default, "one default per sheet size"
+    assert paper_model._options(0.3, 0.2, {}).mesh_step != default.mesh_step, "defaults follow the sheet size"
+    assert paper_model._options(width, height, {"smooth_steps": 1}).smooth_steps == 1
+    assert paper_model._options(width, height, {"smooth_steps": 3}) == default
+    assert paper_model._options(width, height, {}).smooth_steps == 3
+    before = sample_sheet(3, np.random.default_rng(4), *A4)
+    other = sample_sheet(3, np.random.default_rng(4), *A4, smooth_steps=1, max_edge=0.03, clearance=0.0)
+    after = sample_sheet(3, np.random.default_rng(4), *A4)
+    explicit = sample_sheet(3, np.random.default_rng(4), *A4, smooth_steps=3)
+    assert len(other.fold_lines) == 3 and len(before.fold_lines) == len(after.fold_lines) == 9
+    for mesh in (after, explicit):
+        assert mesh.fold_lines == before.fold_lines
+        for name in ("flat", "vertices", "faces", "uv", "face_regions"):
+            np.testing.assert_array_equal(getattr(mesh, name), getattr(before, name))
+
+
 def test_interpolated_rulings_share_their_guiding_angle():
     mesh = sample_sheet(3, np.random.default_rng(5), *A4, smooth_steps=4)
     assert len(mesh.fold_lines) == 12
@@ -504,6 +541,23 @@ def test_bends_adding_up_past_the_limit_are_rejected():
     # Alternating signs never curl: 100 - 100 + 100.
     alternating = [(p0, p1, a * s) for (p0, p1, a), s in zip(rulings, (1, -1, 1))]
     assert_valid_sheet(build_sheet(width, height, alternating))
+
+
+def test_bends_add_up_along_paths_through_a_tree_of_regions():
+    width, height = A4
+    # Four corner flaps around an octagon: the path between two flaps crosses both their
+    # rulings, so opposite flaps folded the same way (2 x 2.5 rad) curl past 270°; flaps folded
+    # opposite ways cancel.
+    cuts = [((0.03, 0.0), (0.0, 0.04)), ((0.21, 0.05), (0.17, 0.0)), ((0.16, 0.297), (0.21, 0.25)),
+            ((0.0, 0.24), (0.05, 0.297))]
+    with pytest.raises(SelfIntersection, match="add up to 286 degrees"):
+        build_sheet(width, height, [(p0, p1, a) for (p0, p1), a in zip(cuts, (2.5, -2.5, 2.5, -2.5))], smooth_steps=1)
+    # The worst sum may be negative: flaps at -2.5 and -0.5 rad (3.0 rad, 172°) beat the largest
+    # positive pair (2.5 + 0.3 rad).
+    mixed = [(p0, p1, a) for (p0, p1), a in zip(cuts, (2.5, -2.5, -0.5, 0.3))]
+    with pytest.raises(SelfIntersection, match="add up to 172 degrees"):
+        build_sheet(width, height, mixed, smooth_steps=1, max_total_bend=2.9)
+    assert_valid_sheet(build_sheet(width, height, mixed, smooth_steps=1))
 
 
 def test_high_bending_angles_get_rejected_sometimes_and_never_pass_intersecting():
