@@ -7,12 +7,17 @@ one run (interleaved, alternating which goes first, so machine load hits both al
   only, ``2 n_fold + 2`` triangles;
 * ``refined``: ``max_edge`` = the layout step (sqrt(W H)/16 for an A4 sheet), the mesh the
   paper model always built before the minimal one (border and rulings subdivided, grid
-  points inside every region, Delaunay per region): the "before".
+  points inside every region, Delaunay per region);
+* with ``--baseline REV``, ``baseline``: the default minimal mesh of the paper model as it
+  was at git revision REV (loaded from ``git show``), to time a change old against new in
+  one process. Its sheets are compared with today's: the same seeds should give the same
+  rulings and faces, and vertices within 1e-12 of the sheet size.
 
 Reported per count and mesh: milliseconds per call, wall clock and CPU time (process time,
 less sensitive to other processes on a shared machine), as median, mean, p10 and p90, over
 every call (sheets rejected as self-intersecting included: the pipeline pays for them too);
-triangle and vertex counts; rejections. Then the refined / minimal ratio of median times,
+triangle and vertex counts; rejections. Then the refined / minimal ratio of median times
+(and baseline / minimal, with how many sheets and rejections agree),
 the targets (minimal, CPU median: 8 rulings <= 2 ms, 2 rulings <= 1 ms) met or not, and the
 load average before and after. ``--profile`` adds the functions where the minimal mesh's
 time goes (cProfile, own time per sheet) for the largest count.
@@ -20,24 +25,29 @@ time goes (cProfile, own time per sheet) for the largest count.
 Prints JSON to stdout (and to ``--out FILE``). Example::
 
     python bench/paper_model.py --seeds 300 --out paper_model.json
+    python bench/paper_model.py --counts 2 3 5 8 --baseline HEAD~1
 """
 
 from __future__ import annotations
 
 import argparse
 import cProfile
+import importlib.util
 import json
 import math
 import os
 import platform
 import pstats
+import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 
 TARGETS_MS = {8: 2.0, 2: 1.0}  # minimal mesh, CPU median per sheet
+ROOT = Path(__file__).resolve().parent.parent
 
 
 def layout_step(width: float, height: float) -> float:
@@ -66,14 +76,51 @@ def time_one(n_rulings: int, seed: int, width: float, height: float, opts: dict,
     return time.perf_counter() - wall, time.process_time() - cpu, mesh
 
 
-def run(counts: list[int], seeds: int, width: float, height: float, profile: bool) -> dict:
+def load_baseline(revision: str):
+    """The paper model module as it was at a git revision, imported from a temporary file (a
+    file, not a string, so that compiled code can cache as usual)."""
+    source = subprocess.run(
+        ["git", "show", f"{revision}:workers/render/paper_model.py"], cwd=ROOT, capture_output=True, text=True,
+        check=True,
+    ).stdout
+    path = Path(tempfile.mkdtemp(prefix="paper_model_baseline_")) / "paper_model_baseline.py"
+    path.write_text(source)
+    spec = importlib.util.spec_from_file_location("paper_model_baseline", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the class is made
+    spec.loader.exec_module(module)
+    return module
+
+
+def same_sheet(first, second) -> bool:
+    """Both rejected, or the same rulings and mesh with vertices within 1e-12 of the size."""
+    if first is None or second is None:
+        return first is None and second is None
+    scale = max(first.width, first.height)
+    return (
+        first.rulings == second.rulings
+        and first.fold_lines == second.fold_lines
+        and np.array_equal(first.flat, second.flat)
+        and np.array_equal(first.faces, second.faces)
+        and np.allclose(first.vertices, second.vertices, rtol=0, atol=1e-12 * scale)
+    )
+
+
+def run(counts: list[int], seeds: int, width: float, height: float, profile: bool, baseline: str | None = None) -> dict:
     from workers.render.paper_model import SelfIntersection, sample_sheet
 
-    modes = {"minimal": {}, "refined": {"max_edge": layout_step(width, height)}}
-    # Warm-up outside the clock: imports (scipy for the refined mesh), caches.
-    for opts in modes.values():
+    # mode -> (sample_sheet, options, rejection)
+    modes = {
+        "minimal": (sample_sheet, {}, SelfIntersection),
+        "refined": (sample_sheet, {"max_edge": layout_step(width, height)}, SelfIntersection),
+    }
+    if baseline is not None:
+        old = load_baseline(baseline)
+        modes["baseline"] = (old.sample_sheet, {}, old.SelfIntersection)
+    # Warm-up outside the clock: imports (scipy for the refined mesh), compiled code, caches.
+    for function, opts, rejection in modes.values():
         for n in counts:
-            time_one(n, 10**6, width, height, opts, sample_sheet, SelfIntersection)
+            time_one(n, 10**6, width, height, opts, function, rejection)
 
     load_before = os.getloadavg()
     results = {}
@@ -83,10 +130,14 @@ def run(counts: list[int], seeds: int, width: float, height: float, profile: boo
         triangles = {m: [] for m in modes}
         vertices = {m: [] for m in modes}
         rejected = {m: 0 for m in modes}
+        agree = 0
         names = list(modes)
         for seed in range(seeds):
+            meshes = {}
             for mode in names if seed % 2 == 0 else names[::-1]:
-                seconds, cpu_seconds, mesh = time_one(n, seed, width, height, modes[mode], sample_sheet, SelfIntersection)
+                function, opts, rejection = modes[mode]
+                seconds, cpu_seconds, mesh = time_one(n, seed, width, height, opts, function, rejection)
+                meshes[mode] = mesh
                 wall[mode].append(seconds)
                 cpu[mode].append(cpu_seconds)
                 if mesh is None:
@@ -94,6 +145,8 @@ def run(counts: list[int], seeds: int, width: float, height: float, profile: boo
                 else:
                     triangles[mode].append(len(mesh.faces))
                     vertices[mode].append(len(mesh.flat))
+            if baseline is not None:
+                agree += same_sheet(meshes["minimal"], meshes["baseline"])
         row = {}
         for mode in modes:
             row[mode] = {
@@ -104,9 +157,14 @@ def run(counts: list[int], seeds: int, width: float, height: float, profile: boo
                 "vertices_mean": float(np.mean(vertices[mode])) if vertices[mode] else None,
                 "rejected": rejected[mode],
             }
-        row["refined_over_minimal"] = {
-            clock: row["refined"][clock]["median"] / row["minimal"][clock]["median"] for clock in ("wall_ms", "cpu_ms")
-        }
+        for other in ("refined", "baseline"):
+            if other in modes:
+                row[f"{other}_over_minimal"] = {
+                    clock: row[other][clock]["median"] / row["minimal"][clock]["median"]
+                    for clock in ("wall_ms", "cpu_ms")
+                }
+        if baseline is not None:
+            row["baseline_same_sheets"] = f"{agree}/{seeds}"
         results[str(n)] = row
 
     targets = {
@@ -118,8 +176,10 @@ def run(counts: list[int], seeds: int, width: float, height: float, profile: boo
     report = {
         "sheet_m": [width, height],
         "seeds_per_count": seeds,
-        "modes": {m: opts for m, opts in modes.items()},
+        "modes": {m: opts for m, (_, opts, _) in modes.items()},
+        "baseline_revision": baseline,
         "by_rulings": results,
+        "minimal_ms_per_sheet": {n: row["minimal"]["wall_ms"]["median"] for n, row in results.items()},
         "targets_minimal_cpu_median": targets,
         "machine": {
             "python": platform.python_version(),
@@ -165,11 +225,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--width", type=float, default=0.21, help="sheet width, metres")
     parser.add_argument("--height", type=float, default=0.297, help="sheet height, metres")
     parser.add_argument("--profile", action="store_true", help="add a cProfile breakdown of the minimal mesh")
+    parser.add_argument("--baseline", metavar="REV", help="also time the paper model of this git revision")
     parser.add_argument("--out", type=Path, help="also write the JSON here")
     args = parser.parse_args(argv)
     if args.seeds < 1 or any(n < 0 for n in args.counts):
         parser.error("--seeds must be >= 1 and --counts non-negative")
-    report = run(args.counts, args.seeds, args.width, args.height, args.profile)
+    report = run(args.counts, args.seeds, args.width, args.height, args.profile, args.baseline)
     text = json.dumps(report, indent=2)
     print(text)
     if args.out:
