@@ -446,6 +446,11 @@ def stack(database_url, broker, celery_control, tmp_path_factory) -> Iterator[St
     global _running_stack
     _running_stack = stack
     try:
+        # As the image does at build time: the render kernels compiled (or loaded) here, into
+        # the cache the workers then load from, so the workers do not each compile them.
+        from workers.render.pipeline import compile_kernels
+
+        compile_kernels()
         migrated = stack.run_once("migrate")
         if migrated.returncode != 0:
             stack.fail(f"migrate exited {migrated.returncode}")

@@ -32,7 +32,7 @@ import numpy as np
 from workers.render.annotation import RenderRejected, annotate
 from workers.render.parameters import check_theta, derive_seed, resample_theta
 
-__all__ = ["RenderResult", "RenderRejected", "render_theta", "render_with_resample", "BACKENDS"]
+__all__ = ["RenderResult", "RenderRejected", "render_theta", "render_with_resample", "compile_kernels", "BACKENDS"]
 
 BACKENDS = ("raster", "blender")
 # How far the achieved visible fraction may be from θ's before the placement is rejected.
@@ -230,3 +230,23 @@ def render_with_resample(
     raise RenderRejected(
         f"θ and its {max_resamples} resamples were all rejected; last reason: {reasons[-1]}", reasons
     )
+
+
+def compile_kernels() -> None:
+    """Compile (or load from numba's cache) every kernel the raster pipeline runs: the paper
+    model's, the rasteriser's and the occluder placement's, by rendering one small θ of every
+    condition at its hardest. A worker image runs this at build time and the integration tests
+    before they start workers, so no worker process spends its first images compiling."""
+    from foldwise.conditions import load_condition_table
+    from workers.render import compositing, raster
+    from workers.render.parameters import generate_parameters
+
+    raster.compile_kernels()
+    compositing.compile_kernels()
+    table = load_condition_table()
+    for index, condition in enumerate(table.codes):
+        for theta in generate_parameters(condition, table.difficulties[-1], 1, seed=derive_seed(2018, index), image_size=64):
+            try:
+                render_with_resample(theta, backend="raster", max_resamples=5)
+            except RenderRejected:
+                pass  # the kernels ran all the same
