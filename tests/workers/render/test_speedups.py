@@ -104,23 +104,72 @@ def test_random_crop_mirrors_like_the_mirrored_crop():
     assert 0 < mirrored < 12  # both paths ran
 
 
-def test_unblurred_images_composite_only_the_drawn_box_with_the_same_bytes():
-    rng = np.random.default_rng(5)
-    background = rng.integers(0, 256, (40, 50, 3), dtype=np.uint8)
-    linear = rng.random((40, 50, 3), dtype=np.float32) * 1.2  # some values past white
-    alpha = np.zeros((40, 50), np.float32)
+def _composite_as_written(background_f: np.ndarray, linear: np.ndarray, alpha: np.ndarray, occ=None) -> np.ndarray:
+    """The float path as first written: OpenCV's blend of the sRGB-encoded object over the
+    background inside the object's box, then of the occluder over everything."""
+    import cv2
+
+    image = background_f.copy()
+    x, y, w, h = cv2.boundingRect((alpha > 0).view(np.uint8))
+    if w and h:
+        box = (slice(y, y + h), slice(x, x + w))
+        a = np.ascontiguousarray(alpha[box])
+        image[box] = cv2.blendLinear(compositing.linear_to_srgb(linear[box]), image[box], a, 1.0 - a)
+    if occ is not None:
+        image = cv2.blendLinear(occ.rgb, image, occ.alpha, 1.0 - occ.alpha)
+    return image
+
+
+def _composite_case(seed: int, height: int = 40, width: int = 50):
+    rng = np.random.default_rng(seed)
+    background = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    linear = rng.random((height, width, 3), dtype=np.float32) * 1.4 - 0.2  # some values past white and below black
+    alpha = np.zeros((height, width), np.float32)
     alpha[10:20, 5:30] = rng.random((10, 25), dtype=np.float32)
-    occluder_alpha = np.zeros((40, 50), np.float32)
-    occluder_alpha[25:35, 30:45] = 0.7
+    alpha[12:18, 8:25] = 1.0  # fully covered, some of it under the occluder's zero weights
+    alpha[14, 10:14] = 0.0  # a hole inside the box
+    occluder_alpha = np.zeros((height, width), np.float32)
+    occluder_alpha[15:35, 20:45] = rng.choice(np.float32([0.0, 0.3, 0.7, 1.0]), (20, 25))
     occlusion = compositing.Occlusion(
-        rgb=rng.random((40, 50, 3), dtype=np.float32) * (occluder_alpha > 0)[..., None],
+        rgb=rng.random((height, width, 3), dtype=np.float32) * (occluder_alpha > 0)[..., None],
         alpha=occluder_alpha, mask=occluder_alpha >= 0.5, target_fraction=0.5, achieved_fraction=0.5,
     )
-    for occ in (None, occlusion):
-        as_float = np.multiply(background, np.float32(1.0 / 255.0), dtype=np.float32)  # as the pipeline does
-        whole = compositing.composite_object(as_float, linear, alpha)
-        whole = compositing.to_uint8(whole if occ is None else compositing.composite(whole, occ.rgb, occ.alpha))
-        boxed = compositing.composite_to_uint8(background, linear, alpha, occ)
-        assert np.array_equal(boxed, whole)
-        assert np.array_equal(boxed[:10], background[:10])  # above everything drawn: untouched
-    assert np.array_equal(compositing.composite_to_uint8(background, linear, np.zeros_like(alpha)), background)
+    return background, linear, alpha, occlusion
+
+
+def test_composite_object_is_the_opencv_blend_of_the_encoded_object():
+    for seed in range(6):
+        background, linear, alpha, _ = _composite_case(seed)
+        as_float = np.multiply(background, np.float32(1.0 / 255.0), dtype=np.float32)
+        expected = _composite_as_written(as_float, linear, alpha)
+        assert np.array_equal(compositing.composite_object(as_float.copy(), linear, alpha), expected)
+        strided = np.zeros((40, 50, 4), np.float32)[:, :, :3]  # not C-ordered: modified in place all the same
+        strided[...] = as_float
+        assert compositing.composite_object(strided, linear, alpha) is strided and np.array_equal(strided, expected)
+
+
+def test_unblurred_images_composite_only_the_drawn_box_with_the_same_bytes():
+    for seed in range(6):
+        background, linear, alpha, occlusion = _composite_case(seed)
+        for occ in (None, occlusion):
+            as_float = np.multiply(background, np.float32(1.0 / 255.0), dtype=np.float32)  # as the pipeline does
+            whole = compositing.to_uint8(_composite_as_written(as_float, linear, alpha, occ))
+            boxed = compositing.composite_to_uint8(background, linear, alpha, occ)
+            assert np.array_equal(boxed, whole), (seed, occ is None)
+            assert np.array_equal(boxed[:10], background[:10])  # above everything drawn: untouched
+        assert np.array_equal(compositing.composite_to_uint8(background, linear, np.zeros_like(alpha)), background)
+        only_occluder = compositing.composite_to_uint8(background, linear, np.zeros_like(alpha), occlusion)
+        as_float = np.multiply(background, np.float32(1.0 / 255.0), dtype=np.float32)
+        assert np.array_equal(only_occluder, compositing.to_uint8(_composite_as_written(as_float, linear, np.zeros_like(alpha), occlusion)))
+
+
+def test_every_level_survives_the_float_round_trip_and_zero_weight_blends():
+    """Why composite_to_uint8 may leave pixels nothing covers alone."""
+    import cv2
+
+    levels = np.arange(256, dtype=np.uint8).reshape(16, 16, 1).repeat(3, axis=2)
+    image = np.multiply(levels, np.float32(1.0 / 255.0), dtype=np.float32)
+    zero = np.zeros((16, 16), np.float32)
+    for _ in range(3):
+        assert np.array_equal(compositing.to_uint8(image), levels)
+        image = cv2.blendLinear(np.ones_like(image), image, zero, 1.0 - zero)
