@@ -231,44 +231,46 @@ def _scan_faces(x, y, usable, coverage, width, height, z_test, ids, inverse_dept
 def _shade(face_image, box, texturing, radiance, texture, rgb):  # pragma: no cover - compiled
     """``rgb`` of every covered pixel in ``box``: the perspective-correct UV of its face
     (u/z, v/z and 1/z are affine on screen), a bilinear fetch from the linear-light
-    ``texture`` (edge texels repeated outside it), times the face's radiance."""
+    ``texture`` (edge texels repeated outside it), times the face's radiance.
+
+    Per run of pixels of one face, its planes are moved (in float64) to the run's row and
+    scaled to texels; per pixel, float32 (a texel coordinate to ~1e-4 of a texel)."""
     th, tw = texture.shape[0], texture.shape[1]
+    x_last, y_last = np.float32(tw - 1), np.float32(th - 1)
+    zero, one, half = np.float32(0.0), np.float32(1.0), np.float32(0.5)
     row0, row1, col0, col1 = box
     for row in range(row0, row1):
         py = row + 0.5
         current = -1
-        # The face's planes, loaded once per run of pixels of one face.
-        a_inv = b_inv = a_u = b_u = a_v = b_v = 0.0
-        weight = np.float32(0.0)
+        a_inverse = b_inverse = a_x = b_x = a_y = b_y = zero
+        weight = zero
         for col in range(col0, col1):
             face = face_image[row, col]
             if face < 0:
                 continue
             if face != current:
                 current = face
-                a_inv = texturing[face, 0]
-                b_inv = texturing[face, 1] * py + texturing[face, 2]
-                a_u = texturing[face, 3]
-                b_u = texturing[face, 4] * py + texturing[face, 5]
-                a_v = texturing[face, 6]
-                b_v = texturing[face, 7] * py + texturing[face, 8]
+                p = texturing[face]
+                # At pixel centre (col + 0.5, py): value = a * col + b. Texel (r, c) sits at
+                # u = (c + 0.5) / w, v = 1 - (r + 0.5) / h (scene.py): x = u w - 0.5, y = (1 - v) h - 0.5.
+                a_inverse = np.float32(p[0])
+                b_inverse = np.float32(p[0] * 0.5 + p[1] * py + p[2])
+                a_x = np.float32(p[3] * tw)
+                b_x = np.float32((p[3] * 0.5 + p[4] * py + p[5]) * tw)
+                a_y = np.float32(p[6] * th)
+                b_y = np.float32((p[6] * 0.5 + p[7] * py + p[8]) * th)
                 weight = radiance[face]
-            px = col + 0.5
-            depth = 1.0 / (a_inv * px + b_inv)
-            u = (a_u * px + b_u) * depth
-            v = (a_v * px + b_v) * depth
-            # Texel (r, c) sits at u = (c + 0.5) / w, v = 1 - (r + 0.5) / h (scene.py).
-            tx = min(max(u * tw - 0.5, 0.0), tw - 1.0)
-            ty = min(max((1.0 - v) * th - 0.5, 0.0), th - 1.0)
+            x = np.float32(col)
+            depth = one / (a_inverse * x + b_inverse)
+            tx = min(max((a_x * x + b_x) * depth - half, zero), x_last)
+            ty = min(max(np.float32(th) - half - (a_y * x + b_y) * depth, zero), y_last)
             if not (tx == tx and ty == ty):  # NaN from a degenerate plane: the first texel
-                tx = ty = 0.0
+                tx = ty = zero
             x0, y0 = int(tx), int(ty)
             x1, y1 = min(x0 + 1, tw - 1), min(y0 + 1, th - 1)
-            fx, fy = np.float32(tx - x0), np.float32(ty - y0)
-            w00 = (np.float32(1.0) - fx) * (np.float32(1.0) - fy) * weight
-            w01 = fx * (np.float32(1.0) - fy) * weight
-            w10 = (np.float32(1.0) - fx) * fy * weight
-            w11 = fx * fy * weight
+            fx, fy = tx - np.float32(x0), ty - np.float32(y0)
+            gx, gy = one - fx, one - fy
+            w00, w01, w10, w11 = gx * gy * weight, fx * gy * weight, gx * fy * weight, fx * fy * weight
             for channel in range(3):
                 rgb[row, col, channel] = (
                     texture[y0, x0, channel] * w00
