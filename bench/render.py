@@ -7,7 +7,12 @@ with a fixed seed at ``--size``² pixels. Each θ is rendered by every backend i
 
 * images per second per backend and their ratio (raster / blender) for the whole
   ``render_theta`` and for its 3D ``render`` stage alone, with the mean of each pipeline
-  stage's time (``RenderResult.timings``) so it is plain where the time goes;
+  stage's time (``RenderResult.timings``) so it is plain where the time goes. The headline
+  ratio (``speed_ratio.value``) times raster in passes of its own over the θ set, one before
+  and one after the interleaved loop (so drift in machine load cancels), because a render
+  worker runs one backend: right after a Cycles render, whose threads sweep every CPU cache,
+  raster's first touches of its code and data all miss, which no raster worker meets. The
+  interleaved figure is reported beside it (``speed_ratio.interleaved``), never dropped;
 * raster's all-cores throughput (``--processes``, default the CPUs allowed; 0 skips it): Cycles
   keeps every core busy with threads in one process, raster is mostly single-threaded, so the
   same θ set is also dealt round-robin to that many single-threaded raster processes (caches
@@ -115,6 +120,22 @@ def _raster_worker(thetas: list[dict], repeats: int, barrier, results) -> None:
     results.put({"rendered": rendered, "rejected": rejected, "errors": errors, "begin": begin, "end": end})
 
 
+def _raster_pass(thetas: list[dict], assets) -> dict:
+    """One timed raster pass over ``thetas`` in this process (rejections count in the time)."""
+    from workers.render.pipeline import RenderRejected, render_theta
+
+    rendered = 0
+    begin = time.perf_counter()
+    for theta in thetas:
+        try:
+            render_theta(theta, backend="raster", assets=assets)
+            rendered += 1
+        except RenderRejected:
+            pass
+    seconds = time.perf_counter() - begin
+    return {"images": rendered, "seconds": seconds, "images_per_second": rendered / seconds if seconds > 0 else math.nan}
+
+
 def raster_all_cores(thetas: list[dict], processes: int, repeats: int) -> dict:
     """Raster throughput with ``processes`` worker processes (θ dealt round-robin), measured
     from a common start to the last worker's end: the same θ set, all cores busy, as Cycles
@@ -183,6 +204,9 @@ def run(
                 render_theta(theta, backend="raster", assets=assets)
 
     load_before = os.getloadavg()
+    own_passes = []  # raster alone over the θ set, before and after the interleaved loop
+    if "raster" in backends and len(backends) > 1:
+        own_passes.append(_raster_pass(thetas, assets))
     seconds = {b: 0.0 for b in backends}
     rendered = {b: 0 for b in backends}
     stage_seconds = {b: defaultdict(float) for b in backends}
@@ -239,6 +263,8 @@ def run(
             print(f"\r{index + 1}/{len(thetas)} θ", end="", file=sys.stderr, flush=True)
     if progress:
         print(file=sys.stderr)
+    if own_passes:
+        own_passes.append(_raster_pass(thetas, assets))
 
     speed = {}
     for backend in backends:
@@ -251,6 +277,14 @@ def run(
             "mean_stage_seconds": {k: v / max(count, 1) for k, v in sorted(stage_seconds[backend].items())},
             "rejection_reasons": dict(rejections[backend]),
             "errors": failures[backend],
+        }
+    if own_passes:
+        images = sum(p["images"] for p in own_passes)
+        own_seconds = sum(p["seconds"] for p in own_passes)
+        speed["raster"]["interleaved_images_per_second"] = speed["raster"]["images_per_second"]
+        speed["raster"]["own_passes"] = {
+            "passes": own_passes,
+            "images_per_second": images / own_seconds if own_seconds > 0 else math.nan,
         }
     report: dict = {
         "settings": {
@@ -277,8 +311,13 @@ def run(
         fast, slow = "raster", "blender"  # the ratio reads the same whatever order was asked
         report["speed_ratio"] = {
             "of": f"{fast}/{slow} images per second, whole render_theta, each in one process "
-            f"(Cycles with {report['machine']['cpus_allowed']} threads, raster's OpenCV with its default threads)",
-            "value": speed[fast]["images_per_second"] / speed[slow]["images_per_second"],
+            f"(Cycles with {report['machine']['cpus_allowed']} threads, raster's OpenCV with its default threads); "
+            f"{fast} timed in passes of its own before and after the interleaved loop",
+            "value": speed[fast]["own_passes"]["images_per_second"] / speed[slow]["images_per_second"],
+            "interleaved": {
+                "of": f"{fast} timed per θ right after or before {slow} on the same θ",
+                "value": speed[fast]["interleaved_images_per_second"] / speed[slow]["images_per_second"],
+            },
             # The 3D backend alone (the "render" stage): what differs between the two.
             "render_stage": speed[slow]["mean_stage_seconds"].get("render", math.nan)
             / speed[fast]["mean_stage_seconds"].get("render", math.nan),
@@ -323,6 +362,7 @@ def run(
         report["targets"] = {
             "mean_box_iou_at_least_0.98": bool(ious) and float(np.mean(ious)) >= 0.98,
             f"{fast}_at_least_100x_{slow}_whole_pipeline": report["speed_ratio"]["value"] >= 100.0,
+            f"{fast}_interleaved_at_least_100x_{slow}_whole_pipeline": report["speed_ratio"]["interleaved"]["value"] >= 100.0,
             f"{fast}_at_least_100x_{slow}_render_stage": report["speed_ratio"]["render_stage"] >= 100.0,
         }
         if "all_cores" in report["speed_ratio"]:
