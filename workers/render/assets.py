@@ -31,6 +31,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Callable
 
+import numba
 import numpy as np
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
@@ -338,8 +339,86 @@ def random_crop(image: np.ndarray, size: int, rng: np.random.Generator) -> np.nd
     return _resize_crop(image, y0, x0, side, size, mirror)
 
 
+_PATTERN_CODES = {"gradient": 0, "stripes": 1, "checker": 2}
+
+
+@numba.njit(cache=True, nogil=True)
+def _two_colour_pattern(code, size, colours, cos_angle, sin_angle, period):
+    """Gradient (code 0), stripes (1) or checker (2) as (size, size, 3) uint8 RGB in one pass.
+
+    Every step is the float32 arithmetic, in the same order, of the NumPy formula it replaces:
+    xs = arange(size, float32) / size; along = cos * xs + sin * ys; across = -sin * xs + cos * ys;
+    gradient weight = (along - along.min()) / max(ptp(along), 1e-6); stripes: sin(2 pi along /
+    period) > 0; checker: parity of floor(along / period) + floor(across / period); and each
+    pixel clip(colour0 + (colour1 - colour0) * weight + 0.5, 0, 255) truncated to uint8."""
+    n = np.float32(size)
+    half, top = np.float32(0.5), np.float32(255.0)
+    step = np.empty(3, np.float32)
+    for k in range(3):
+        step[k] = colours[1, k] - colours[0, k]
+    # The two colours of stripes and checker: the gradient's formula at weight 0 and 1.
+    two = np.empty((2, 3), np.uint8)
+    for w in range(2):
+        for k in range(3):
+            value = colours[0, k] + step[k] * np.float32(w) + half
+            two[w, k] = np.uint8(min(max(value, np.float32(0.0)), top))
+    along_x = np.empty(size, np.float32)
+    along_y = np.empty(size, np.float32)
+    across_x = np.empty(size, np.float32)
+    across_y = np.empty(size, np.float32)
+    for i in range(size):
+        t = np.float32(i) / n
+        along_x[i] = cos_angle * t
+        along_y[i] = sin_angle * t
+        across_x[i] = -sin_angle * t
+        across_y[i] = cos_angle * t
+    # along is monotonic in each of along_x and along_y (float rounding is monotonic), so its
+    # extremes are at corners: the sum of the extreme terms.
+    low = along_x.min() + along_y.min()
+    spread = along_x.max() + along_y.max() - low
+    divisor = spread if spread > np.float32(1e-6) else np.float32(1e-6)
+    two_pi = np.float32(2 * np.pi)
+    turn = 1.0 / (2.0 * np.pi)
+    zero = np.float32(0.0)
+    out = np.empty((size, size, 3), np.uint8)
+    weights = np.empty(size, np.float32)  # one row's gradient weights
+    colour_of = np.empty(size, np.uint8)  # one row's colour index, 0 or 1
+    # Each row: a loop over pixels without branches on ``code`` (so LLVM can vectorise it),
+    # then a loop writing the RGB bytes.
+    for y in range(size):
+        row_y, across_row = along_y[y], across_y[y]
+        if code == 0:
+            for x in range(size):
+                weights[x] = ((along_x[x] + row_y) - low) / divisor
+            for x in range(size):
+                for k in range(3):
+                    value = colours[0, k] + step[k] * weights[x] + half
+                    out[y, x, k] = np.uint8(min(max(value, zero), top))
+            continue
+        if code == 1:
+            # sin(z) > 0 for z = 2 pi along / period (float32) iff z / (2 pi) has a fractional
+            # part in (0, 1/2); taken in float64, exact but for a float32 z within ~1e-16
+            # relative of a multiple of pi, where NumPy's float32 sin could not tell either.
+            for x in range(size):
+                turns = np.float64((two_pi * (along_x[x] + row_y)) / period) * turn
+                fraction = turns - math.floor(turns)
+                colour_of[x] = np.uint8(fraction > 0.0) & np.uint8(fraction < 0.5)
+        else:
+            for x in range(size):
+                cells = math.floor((along_x[x] + row_y) / period) + math.floor((across_x[x] + across_row) / period)
+                colour_of[x] = np.uint8(np.int32(cells) & 1)
+        for x in range(size):
+            c = colour_of[x]
+            out[y, x, 0] = two[c, 0]
+            out[y, x, 1] = two[c, 1]
+            out[y, x, 2] = two[c, 2]
+    return out
+
+
 def procedural_background(kind: str, size: int, rng: np.random.Generator) -> np.ndarray:
-    """Seeded synthetic backgrounds: smooth colour noise, a linear gradient, stripes, a checkerboard."""
+    """Seeded synthetic backgrounds: smooth colour noise, a linear gradient, stripes, a checkerboard.
+
+    The last three are one compiled pass (_two_colour_pattern), to the bytes of their NumPy formula."""
     import cv2
 
     colours = rng.uniform(0, 255, size=(2, 3))
@@ -363,30 +442,13 @@ def procedural_background(kind: str, size: int, rng: np.random.Generator) -> np.
         return cv2.resize(small, (size, size), interpolation=cv2.INTER_CUBIC)  # saturates like the clip
     elif kind in ("gradient", "stripes", "checker"):
         angle = rng.uniform(0, np.pi)
-        xs = (np.arange(size, dtype=np.float32) / size)[None, :]
-        ys = (np.arange(size, dtype=np.float32) / size)[:, None]
-        along = np.float32(np.cos(angle)) * xs + np.float32(np.sin(angle)) * ys
-        colours = colours.astype(np.float32)
-        step = colours[1] - colours[0]
-        if kind == "gradient":
-            weight = (along - along.min()) / max(float(np.ptp(along)), 1e-6)
-            # Channel by channel: the same float32 arithmetic as broadcasting over a last axis
-            # of 3, several times faster (NumPy's inner loop would run over 3 elements).
-            return cv2.merge([np.clip(colours[0, k] + step[k] * weight + 0.5, 0, 255).astype(np.uint8) for k in range(3)])
+        period = 0.0
         if kind == "stripes":
             period = rng.uniform(0.05, 0.3)
-            second = np.sin(2 * np.pi * along / period) > 0
-        else:
-            across = np.float32(-np.sin(angle)) * xs + np.float32(np.cos(angle)) * ys
+        elif kind == "checker":
             period = rng.uniform(0.08, 0.3)
-            cell_sum = (np.floor(along / period) + np.floor(across / period)).astype(np.int32)
-            second = (cell_sum & 1).astype(bool)  # parity; & 1 is % 2 for negatives too
-        # Two colours: each computed once, by the formula of the gradient with weight 0 or 1
-        # (the same bytes), and looked up per pixel.
-        weights = np.array([0.0, 1.0], np.float32)
-        palette = np.zeros((256, 1, 3), np.uint8)
-        palette[:2, 0] = np.stack([np.clip(colours[0, k] + step[k] * weights + 0.5, 0, 255).astype(np.uint8) for k in range(3)], axis=1)
-        return cv2.LUT(cv2.cvtColor(second.view(np.uint8), cv2.COLOR_GRAY2RGB), palette)
+        return _two_colour_pattern(_PATTERN_CODES[kind], size, colours.astype(np.float32),
+                                   np.float32(np.cos(angle)), np.float32(np.sin(angle)), np.float32(period))
     else:
         raise AssetError(f"unknown procedural background {kind!r}; known: {', '.join(PROCEDURAL_BACKGROUNDS)}")
 

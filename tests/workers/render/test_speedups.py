@@ -60,16 +60,19 @@ def test_prepared_occluder_cache_matches_a_fresh_conversion_and_skips_writable_a
     assert not compositing._prepared_occluder(rgb, alpha, limit=30)[0].any()
 
 
+@pytest.mark.parametrize("size", [1, 17, 48, 256])
 @pytest.mark.parametrize("kind", ["gradient", "stripes", "checker"])
-def test_two_colour_patterns_match_their_broadcast_formula(kind):
-    for seed in range(6):
-        image = procedural_background(kind, 48, np.random.default_rng(seed))
+def test_two_colour_patterns_match_their_broadcast_formula(kind, size):
+    for seed in range(6 if size == 256 else 40):
+        drawn = np.random.default_rng(seed)
+        image = procedural_background(kind, size, drawn)
+        assert image.shape == (size, size, 3) and image.dtype == np.uint8 and image.flags.c_contiguous
         # The formula as first written: a weight per pixel, colours broadcast over channels.
         rng = np.random.default_rng(seed)
         colours = rng.uniform(0, 255, size=(2, 3))
         angle = rng.uniform(0, np.pi)
-        xs = (np.arange(48, dtype=np.float32) / 48)[None, :]
-        ys = (np.arange(48, dtype=np.float32) / 48)[:, None]
+        xs = (np.arange(size, dtype=np.float32) / size)[None, :]
+        ys = (np.arange(size, dtype=np.float32) / size)[:, None]
         along = np.float32(np.cos(angle)) * xs + np.float32(np.sin(angle)) * ys
         if kind == "gradient":
             weight = (along - along.min()) / max(float(np.ptp(along)), 1e-6)
@@ -81,7 +84,8 @@ def test_two_colour_patterns_match_their_broadcast_formula(kind):
             weight = ((np.floor(along / period) + np.floor(across / period)) % 2).astype(np.float32)
         colours = colours.astype(np.float32)
         expected = np.clip(colours[0] + (colours[1] - colours[0]) * weight[..., None] + 0.5, 0, 255).astype(np.uint8)
-        assert np.array_equal(image, expected), (kind, seed)
+        assert np.array_equal(image, expected), (kind, size, seed)
+        assert drawn.random() == rng.random()  # the same draws, in the same order
 
 
 def test_random_crop_mirrors_like_the_mirrored_crop():
