@@ -239,10 +239,12 @@ def compile_kernels() -> None:
     before they start workers, so no worker process spends its first images compiling."""
     from foldwise.conditions import load_condition_table
     from workers.render import compositing, raster
+    from workers.render.assets import procedural_background
     from workers.render.parameters import generate_parameters
 
     raster.compile_kernels()
     compositing.compile_kernels()
+    procedural_background("checker", 16, np.random.default_rng(0))  # gradient, stripes and checker share one kernel
     table = load_condition_table()
     for index, condition in enumerate(table.codes):
         for theta in generate_parameters(condition, table.difficulties[-1], 1, seed=derive_seed(2018, index), image_size=64):
