@@ -6,9 +6,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.render import compositing, raster
+from workers.render import compositing
 from workers.render.assets import load_assets, procedural_background, random_crop
-from workers.render.camera import build_scene
 
 
 def test_occluders_come_back_as_the_same_read_only_arrays():
