@@ -89,8 +89,9 @@ def summarise(values: list[float]) -> dict:
 
 
 def _raster_worker(thetas: list[dict], repeats: int, barrier, results, opencv_threads: int | None = 1) -> None:
-    """One all-cores raster process: single-threaded OpenCV (the processes are the parallelism),
-    caches warmed on its θ untimed, then its θ ``repeats`` times between two barriers."""
+    """One raster process: OpenCV with ``opencv_threads`` (1 when the processes are the
+    parallelism, None for its default), caches warmed on its θ untimed, then its θ
+    ``repeats`` times between two barriers."""
     try:
         import cv2
 
@@ -126,14 +127,15 @@ def _raster_pass(thetas: list[dict], repeats: int) -> dict:
     """``repeats`` timed raster passes over ``thetas`` in one fresh process that never loads
     bpy, as a raster render worker runs (OpenCV with its default threads; caches warmed
     untimed). In the benchmark's own process, once bpy has rendered, raster runs ~15% slower."""
-    measured = raster_all_cores(thetas, 1, repeats, opencv_threads=None)
+    measured = raster_in_processes(thetas, 1, repeats, opencv_threads=None)
     return {key: measured[key] for key in ("images", "rejected", "errors", "wall_seconds", "images_per_second")}
 
 
-def raster_all_cores(thetas: list[dict], processes: int, repeats: int, opencv_threads: int | None = 1) -> dict:
-    """Raster throughput with ``processes`` worker processes (θ dealt round-robin), measured
-    from a common start to the last worker's end: the same θ set, all cores busy, as Cycles
-    keeps them busy with its threads inside one process."""
+def raster_in_processes(thetas: list[dict], processes: int, repeats: int, opencv_threads: int | None = 1) -> dict:
+    """Raster throughput with ``processes`` fresh worker processes that never load bpy (θ dealt
+    round-robin), measured from a common start to the last worker's end. With as many
+    processes as CPUs: the same θ set, all cores busy, as Cycles keeps them busy with its
+    threads inside one process."""
     import multiprocessing
 
     context = multiprocessing.get_context("spawn")  # never fork a process that holds bpy
@@ -301,7 +303,7 @@ def run(
         },
     }
     if "raster" in backends and processes > 0:
-        report["raster_all_cores"] = raster_all_cores(thetas, processes, parallel_repeats)
+        report["raster_all_cores"] = raster_in_processes(thetas, processes, parallel_repeats)
     if len(backends) == 2:
         fast, slow = "raster", "blender"  # the ratio reads the same whatever order was asked
         report["speed_ratio"] = {

@@ -6,7 +6,7 @@ Three compiled passes (numba), each touching only the pixels it must:
    centres inside it follows from its three edge functions (barycentric coordinates >= 0,
    pixel centres per scene.py, edges inclusive so shared edges leave no gaps); each pixel of
    the run keeps the nearest face (largest 1/z, which is affine on screen; the lower face
-   index on an exact tie). The per-face planes come from one vectorised NumPy pass.
+   index on an exact tie). The per-face planes come from one compiled pass over the faces.
 2. Shading, over the covered pixels of the mask's bounding box: perspective-correct UVs of
    the pixel's face (u/z, v/z and 1/z are affine on screen), a bilinear fetch from the
    linear-light texture, times the face's Lambertian factor
@@ -373,12 +373,9 @@ def rasterize_face_ids(
 
 
 def compile_kernels() -> None:
-    """Compile (or load from numba's cache) every kernel, for each way the pipeline calls it:
-    a worker image runs this once at build time, so no worker process spends its first image
-    compiling (about 6 s)."""
-    from workers.render.scene import Camera as _Camera
-
-    camera = _Camera(K=np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]), R=np.eye(3), t=np.array([0.0, 0, 2]), width=8, height=8)
+    """Compile (or load from numba's cache) the rasteriser's kernels for both ways the pipeline
+    calls them: a textured render and a bare silhouette (part of pipeline.compile_kernels)."""
+    camera = Camera(K=np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]), R=np.eye(3), t=np.array([0.0, 0, 2]), width=8, height=8)
     vertices = np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
     scene = Scene3D(
         vertices=vertices,
