@@ -209,8 +209,21 @@ def draw_boxes(image, box, amodal_box):
     return canvas
 
 
+def preview_rows(table, conditions) -> list[tuple[str, str | None]]:
+    """(condition, variant) per contact-sheet row: one row per variant where a condition has
+    several (scale small and large, lighting dark and bright), so each shows at every
+    difficulty; variant None for a condition with one."""
+    rows = []
+    for code in conditions:
+        variants = list(table.conditions[code].variants)
+        rows.extend([(code, variant) for variant in variants] if len(variants) > 1 else [(code, None)])
+    return rows
+
+
 def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, conditions=None, samples: int = 16):
-    """Contact sheet: one row per condition, columns canonical, easy, medium, hard; boxes drawn."""
+    """Contact sheet: one row per condition (per variant where it has several), columns
+    canonical, easy, medium, hard; boxes drawn. The rows of one condition's variants show the
+    same objects and backgrounds, so only the variant's parameter differs between them."""
     import cv2
     import numpy as np
 
@@ -219,24 +232,31 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
     from workers.render.pipeline import RenderRejected, render_with_resample
 
     table = load_condition_table()
-    conditions = conditions or list(table.codes)
+    rows = preview_rows(table, conditions or list(table.codes))
     label_w, header_h, caption_h, pad = 150, 24, 16, 4
     cell_h = image_size + caption_h
-    height = header_h + len(conditions) * (cell_h + pad)
+    height = header_h + len(rows) * (cell_h + pad)
     width = label_w + len(PREVIEW_COLUMNS) * (image_size + pad)
     sheet = np.full((height, width, 3), 255, np.uint8)
     font = cv2.FONT_HERSHEY_SIMPLEX
     for col, difficulty in enumerate(PREVIEW_COLUMNS):
         x = label_w + col * (image_size + pad)
         cv2.putText(sheet, difficulty, (x + 4, header_h - 8), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
-    for row, code in enumerate(conditions):
+    for row, (code, variant) in enumerate(rows):
         y = header_h + row * (cell_h + pad)
+        name = table.conditions[code].name + (f" ({variant})" if variant else "")
         cv2.putText(sheet, code, (6, y + image_size // 2 - 6), font, 0.6, (0, 0, 0), 2, cv2.LINE_AA)
-        cv2.putText(sheet, table.conditions[code].name, (6, y + image_size // 2 + 14), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(sheet, name, (6, y + image_size // 2 + 14), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
         for col, difficulty in enumerate(PREVIEW_COLUMNS):
             x = label_w + col * (image_size + pad)
             theta = generate_parameters(
-                code, difficulty, 1, _pair_seed(seed, code, difficulty), image_size=image_size, assets=assets
+                code,
+                difficulty,
+                1,
+                _pair_seed(seed, code, difficulty),
+                image_size=image_size,
+                assets=assets,
+                variant=None if difficulty == "canonical" else variant,
             )[0]
             try:
                 result, used, reasons = render_with_resample(theta, backend=backend, assets=assets, samples=samples)

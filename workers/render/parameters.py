@@ -92,8 +92,11 @@ def draw_theta(
     background_names: list[str],
     occluder_names: list[str],
     table: ConditionTable | None = None,
+    variant: str | None = None,
 ) -> dict[str, Any]:
-    """One θ for (condition, difficulty), every random choice drawn from ``seed``."""
+    """One θ for (condition, difficulty), every random choice drawn from ``seed``. ``variant``
+    (e.g. "dark" for lighting) fixes the variant the θ would otherwise draw; the rest of the
+    draw is the same as without it."""
     table = table or load_condition_table()
     rng = np.random.default_rng(seed)
     theta: dict[str, Any] = {
@@ -115,7 +118,10 @@ def draw_theta(
         return theta
     spec = table.check(condition, difficulty)
     variant_names = sorted(spec.variants)
-    variant = variant_names[int(rng.integers(len(variant_names)))] if len(variant_names) > 1 else variant_names[0]
+    drawn = variant_names[int(rng.integers(len(variant_names)))] if len(variant_names) > 1 else variant_names[0]
+    if variant is not None and variant not in spec.variants:
+        raise ValueError(f"condition {condition!r} has no variant {variant!r}; known: {', '.join(variant_names)}")
+    variant = variant or drawn
     theta["variant"] = variant
     for parameter, value_spec in spec.variants[variant][difficulty].items():
         value = _draw_value(value_spec, rng)
@@ -146,14 +152,21 @@ def generate_parameters(
     *,
     image_size: int = 128,
     assets=None,
+    variant: str | None = None,
 ) -> list[dict]:
-    """n θ for one condition (code or name) at one difficulty (or "canonical"), from ``seed``."""
+    """n θ for one condition (code or name) at one difficulty (or "canonical"), from ``seed``;
+    all of one ``variant`` (scale "small" or "large", lighting "dark" or "bright") when given,
+    else each θ draws its variant."""
     from workers.render.assets import load_assets
 
     table = load_condition_table()
     code = resolve_condition(condition, table)
     if difficulty != CANONICAL:
-        table.check(code, difficulty)
+        spec = table.check(code, difficulty)
+        if variant is not None and variant not in spec.variants:
+            raise ValueError(f"condition {code!r} has no variant {variant!r}; known: {', '.join(sorted(spec.variants))}")
+    elif variant is not None:
+        raise ValueError(f"canonical θ have no variant (asked for {variant!r}): every condition keeps its canonical value")
     if n < 0:
         raise ValueError(f"n must be >= 0, got {n}")
     if not isinstance(image_size, (int, np.integer)) or not 16 <= image_size <= MAX_IMAGE_SIZE:
@@ -175,14 +188,17 @@ def generate_parameters(
             background_names=backgrounds,
             occluder_names=occluders,
             table=table,
+            variant=variant,
         )
         for i, s in zip(objects, seeds)
     ]
 
 
 def resample_theta(theta: dict, attempt: int, assets=None) -> dict:
-    """The θ redrawn for resample ``attempt`` (1, 2, ...): same condition, difficulty, object and
-    image size; every other choice redrawn from a seed derived from the original seed and attempt."""
+    """The θ redrawn for resample ``attempt`` (1, 2, ...): same condition, difficulty, variant,
+    object and image size; every other choice redrawn from a seed derived from the original seed
+    and attempt. The variant is kept so that rejections cannot shift a set's mix of variants
+    (were dark images rejected more often, redrawing would turn them into bright ones)."""
     from workers.render.assets import load_assets
 
     assets = assets or load_assets()
@@ -196,6 +212,7 @@ def resample_theta(theta: dict, attempt: int, assets=None) -> dict:
         image_size=int(theta["image_size"]),
         background_names=[a.name for a in assets.backgrounds],
         occluder_names=[a.name for a in assets.occluders],
+        variant=None if theta["difficulty"] == CANONICAL else theta.get("variant"),
     )
     redrawn["resample"] = int(attempt)
     redrawn["origin_seed"] = original_seed

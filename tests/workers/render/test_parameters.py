@@ -73,6 +73,36 @@ def test_variants_are_drawn_per_image():
     assert set(lights) == {"dark", "bright"} and min(lights.values()) > 25
 
 
+@pytest.mark.parametrize("code, variant", [("sc", "small"), ("sc", "large"), ("li", "dark"), ("li", "bright")])
+def test_a_fixed_variant_draws_only_from_its_ranges_and_keeps_every_other_draw(code, variant):
+    drawn = generate_parameters(code, "hard", 30, seed=2)
+    fixed = generate_parameters(code, "hard", 30, seed=2, variant=variant)
+    parameter = "scale" if code == "sc" else "irradiance"
+    low, high = TABLE.conditions[code].variants[variant]["hard"][parameter]
+    assert all(t["variant"] == variant and low <= t[parameter] <= high for t in fixed)
+    for free, forced in zip(drawn, fixed):
+        for key in ("seed", "object", "background"):
+            assert free[key] == forced[key]
+        if free["variant"] == variant:  # the same θ, whether the variant was drawn or asked for
+            assert free == forced
+
+
+def test_bad_variants_name_the_problem():
+    with pytest.raises(ValueError, match="no variant 'dim'; known: bright, dark"):
+        generate_parameters("li", "easy", 1, 0, variant="dim")
+    with pytest.raises(ValueError, match="no variant 'small'; known: default"):
+        generate_parameters("po", "easy", 1, 0, variant="small")
+    with pytest.raises(ValueError, match="canonical θ have no variant"):
+        generate_parameters("li", "canonical", 1, 0, variant="dark")
+
+
+def test_resample_keeps_the_variant():
+    # Redrawing a rejected image must not change the set's mix of variants.
+    for theta in generate_parameters("li", "hard", 12, seed=4):
+        for attempt in (1, 2, 3):
+            assert resample_theta(theta, attempt)["variant"] == theta["variant"]
+
+
 def test_objects_are_balanced_and_labels_match_the_catalog():
     assets = load_assets()
     thetas = generate_parameters("fb", "easy", 23, seed=5, assets=assets)

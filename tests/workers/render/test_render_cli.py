@@ -89,6 +89,26 @@ def test_preview_contact_sheet(app, tmp_path):
     assert not (sheet == 255).all()
 
 
+def test_preview_shows_every_variant_of_a_condition_in_a_row_of_its_own(app, tmp_path):
+    from foldwise.conditions import load_condition_table
+    from workers.render.cli import preview_rows
+
+    rows = preview_rows(load_condition_table(), ["fb", "sc", "li"])
+    assert rows == [("fb", None), ("sc", "small"), ("sc", "large"), ("li", "dark"), ("li", "bright")]
+    out = tmp_path / "sheet.png"
+    result = invoke(app, "render", "--preview", "--out", out, "--image-size", 32, "--condition", "li")
+    assert result.exit_code == 0, result.output
+    sheet = cv2.imread(str(out))[:, :, ::-1]
+    header, cell, caption, pad, label = 24, 32, 16, 4, 150
+    assert sheet.shape[0] == header + 2 * (cell + caption + pad)
+    # Same objects and backgrounds in both rows: at hard, the dark cell is far darker than the bright one.
+    x = label + 3 * (cell + pad)
+    dark = sheet[header:header + cell, x:x + cell].astype(float).mean()
+    y = header + cell + caption + pad
+    bright = sheet[y:y + cell, x:x + cell].astype(float).mean()
+    assert bright > dark + 20
+
+
 def test_mesh_writes_an_obj(app, tmp_path):
     out = tmp_path / "sheet.obj"
     result = invoke(app, "mesh", "--rulings", 3, "--seed", 2, "--out", out)
