@@ -31,7 +31,7 @@ from db.models import (
 )
 from db.session import get_engine, get_sessionmaker, reset_engines
 from foldwise.config import ExperimentConfig
-from foldwise.settings import Settings, get_settings
+from foldwise.settings import get_settings
 from services.api.app import create_app
 
 with warnings.catch_warnings():

@@ -12,7 +12,6 @@ import math
 import pytest
 from sqlalchemy import func, select
 
-import workers.train.tasks
 from db.models import (
     Evaluation,
     Experiment,
