@@ -194,6 +194,15 @@ def generate_parameters(
     ]
 
 
+def _kept_variant(theta: dict) -> str | None:
+    """θ's variant when it is one of its condition's (a hand-edited θ may carry another: its
+    resample then draws one)."""
+    if theta["difficulty"] == CANONICAL:
+        return None
+    variants = load_condition_table().check(theta["condition"], theta["difficulty"]).variants
+    return theta.get("variant") if theta.get("variant") in variants else None
+
+
 def resample_theta(theta: dict, attempt: int, assets=None) -> dict:
     """The θ redrawn for resample ``attempt`` (1, 2, ...): same condition, difficulty, variant,
     object and image size; every other choice redrawn from a seed derived from the original seed
@@ -212,7 +221,7 @@ def resample_theta(theta: dict, attempt: int, assets=None) -> dict:
         image_size=int(theta["image_size"]),
         background_names=[a.name for a in assets.backgrounds],
         occluder_names=[a.name for a in assets.occluders],
-        variant=None if theta["difficulty"] == CANONICAL else theta.get("variant"),
+        variant=_kept_variant(theta),
     )
     redrawn["resample"] = int(attempt)
     redrawn["origin_seed"] = original_seed

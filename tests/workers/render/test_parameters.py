@@ -101,6 +101,9 @@ def test_resample_keeps_the_variant():
     for theta in generate_parameters("li", "hard", 12, seed=4):
         for attempt in (1, 2, 3):
             assert resample_theta(theta, attempt)["variant"] == theta["variant"]
+    # A hand-edited θ whose variant is not its condition's draws one instead of failing.
+    edited = {**generate_parameters("po", "canonical", 1, seed=4)[0], "condition": "sc", "difficulty": "hard"}
+    assert resample_theta(edited, 1)["variant"] in ("small", "large")
 
 
 def test_objects_are_balanced_and_labels_match_the_catalog():
