@@ -81,6 +81,11 @@ def _draw_value(spec, rng: np.random.Generator) -> float:
     return float(spec)
 
 
+def _check_variant(condition: str, spec, variant: str | None) -> None:
+    if variant is not None and variant not in spec.variants:
+        raise ValueError(f"condition {condition!r} has no variant {variant!r}; known: {', '.join(sorted(spec.variants))}")
+
+
 def draw_theta(
     condition: str,
     difficulty: str,
@@ -119,8 +124,7 @@ def draw_theta(
     spec = table.check(condition, difficulty)
     variant_names = sorted(spec.variants)
     drawn = variant_names[int(rng.integers(len(variant_names)))] if len(variant_names) > 1 else variant_names[0]
-    if variant is not None and variant not in spec.variants:
-        raise ValueError(f"condition {condition!r} has no variant {variant!r}; known: {', '.join(variant_names)}")
+    _check_variant(condition, spec, variant)
     variant = variant or drawn
     theta["variant"] = variant
     for parameter, value_spec in spec.variants[variant][difficulty].items():
@@ -162,9 +166,7 @@ def generate_parameters(
     table = load_condition_table()
     code = resolve_condition(condition, table)
     if difficulty != CANONICAL:
-        spec = table.check(code, difficulty)
-        if variant is not None and variant not in spec.variants:
-            raise ValueError(f"condition {code!r} has no variant {variant!r}; known: {', '.join(sorted(spec.variants))}")
+        _check_variant(code, table.check(code, difficulty), variant)
     elif variant is not None:
         raise ValueError(f"canonical θ have no variant (asked for {variant!r}): every condition keeps its canonical value")
     if n < 0:
