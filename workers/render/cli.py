@@ -228,7 +228,7 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
     import numpy as np
 
     from foldwise.conditions import load_condition_table
-    from workers.render.parameters import generate_parameters
+    from workers.render.parameters import CANONICAL, generate_parameters
     from workers.render.pipeline import RenderRejected, render_with_resample
 
     table = load_condition_table()
@@ -242,6 +242,7 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
     for col, difficulty in enumerate(PREVIEW_COLUMNS):
         x = label_w + col * (image_size + pad)
         cv2.putText(sheet, difficulty, (x + 4, header_h - 8), font, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    first_row_of = {}  # condition -> y of its first row: its variants share the canonical cell
     for row, (code, variant) in enumerate(rows):
         y = header_h + row * (cell_h + pad)
         name = table.conditions[code].name + (f" ({variant})" if variant else "")
@@ -249,6 +250,10 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
         cv2.putText(sheet, name, (6, y + image_size // 2 + 14), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
         for col, difficulty in enumerate(PREVIEW_COLUMNS):
             x = label_w + col * (image_size + pad)
+            if difficulty == CANONICAL and code in first_row_of:  # the same θ: copy, do not render again
+                y0 = first_row_of[code]
+                sheet[y:y + cell_h, x:x + image_size] = sheet[y0:y0 + cell_h, x:x + image_size]
+                continue
             theta = generate_parameters(
                 code,
                 difficulty,
@@ -256,7 +261,7 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
                 _pair_seed(seed, code, difficulty),
                 image_size=image_size,
                 assets=assets,
-                variant=None if difficulty == "canonical" else variant,
+                variant=None if difficulty == CANONICAL else variant,
             )[0]
             try:
                 result, used, reasons = render_with_resample(theta, backend=backend, assets=assets, samples=samples)
@@ -267,6 +272,7 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
             sheet[y:y + image_size, x:x + image_size] = draw_boxes(result.image, result.box, result.amodal_box)
             caption = describe(used) + (f" (+{len(reasons)})" if reasons else "")
             cv2.putText(sheet, caption, (x + 2, y + image_size + 12), font, 0.34, (0, 0, 0), 1, cv2.LINE_AA)
+        first_row_of.setdefault(code, y)
     _write_png(Path(out), sheet)
     return sheet
 
