@@ -62,7 +62,7 @@ def render_canonical_set(name: str, n: int, seed: int, image_size: int) -> Path:
     import cv2
 
     from workers.render.assets import load_assets
-    from workers.render.parameters import generate_parameters
+    from foldwise.sampling import generate_parameters
     from workers.render.pipeline import render_with_resample
 
     folder = RESULTS / "cache" / f"{name}-canonical-n{n}-s{seed}-px{image_size}"
@@ -87,9 +87,9 @@ def render_canonical_set(name: str, n: int, seed: int, image_size: int) -> Path:
                 "file_name": file_name,
                 "width": width,
                 "height": height,
-                "condition": rendered_theta["condition"],
-                "difficulty": rendered_theta["difficulty"],
-                "theta": rendered_theta,
+                "condition": rendered_theta.condition,
+                "difficulty": rendered_theta.difficulty,
+                "theta": rendered_theta.to_dict(),
             }
         )
         annotations.append(

@@ -123,7 +123,9 @@ class Stage(Base):
 
 
 class ParameterSet(Base):
-    """A θ: what one image shows. Test θ have no stage; train θ belong to (stage, k)."""
+    """A θ: what one image shows. Test θ have no stage; train θ belong to (stage, k).
+
+    ``theta`` holds the record of ``foldwise.theta`` (any version: ``Theta.parse`` reads them all)."""
 
     __tablename__ = "parameter_sets"
     __table_args__ = (UniqueConstraint("experiment_id", "key"),)
@@ -146,6 +148,10 @@ class ParameterSet(Base):
     rendered_theta: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     rejections: Mapped[list[Any] | None] = mapped_column(JSON)
     image_path: Mapped[str | None] = mapped_column(String(500))
+    # Every target in the image ({object, label, box, amodal_box, visible_fraction} each; an
+    # empty list for an image without the object); label, box, amodal_box and visible_fraction
+    # repeat the first one (θ's own object), None when there is none.
+    objects: Mapped[list[Any] | None] = mapped_column(JSON)
     label: Mapped[int | None]
     box: Mapped[list[Any] | None] = mapped_column(JSON)
     amodal_box: Mapped[list[Any] | None] = mapped_column(JSON)

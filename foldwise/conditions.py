@@ -1,4 +1,9 @@
-"""Table 3 of the paper, read from ``configs/conditions.yaml`` (data, not code)."""
+"""The imaging conditions (Table 3 of the paper and the rest of its Table 1), read from
+``configs/conditions.yaml`` (data, not code).
+
+Every θ parameter (``foldwise.theta.parameter_names``) has a canonical value in the table, and
+the table names no parameter θ does not know, so a table and the renderer cannot drift apart.
+"""
 
 from __future__ import annotations
 
@@ -47,10 +52,20 @@ class ConditionTable:
     difficulties: tuple[str, ...]
     canonical: dict[str, float]
     conditions: dict[str, Condition]
+    # The paper's curriculum (its Table 3), a subset of ``conditions`` in the paper's order.
+    table3: tuple[str, ...] = ()
 
     @property
     def codes(self) -> tuple[str, ...]:
         return tuple(self.conditions)
+
+    def name(self, code: str) -> str:
+        """A condition's full name ("focus blur"); the mixed stage's is "several conditions"."""
+        from foldwise.theta import MIXED
+
+        if code == MIXED:
+            return "several conditions at once"
+        return self.conditions[code].name if code in self.conditions else code
 
     def check(self, condition: str, difficulty: str) -> Condition:
         if condition not in self.conditions:
@@ -82,11 +97,22 @@ def _parse_parameters(raw: dict, canonical: dict[str, float], where: str, diffic
 
 
 def parse_condition_table(data: dict) -> ConditionTable:
+    from foldwise.theta import MIXED, parameter_names
+
     difficulties = tuple(data["difficulties"])
     canonical = {k: parse_number(v, f"canonical.{k}") for k, v in data["canonical"].items()}
+    known = parameter_names()
+    unknown = sorted(set(canonical) - set(known))
+    if unknown:
+        raise ValueError(f"canonical: {unknown} are not θ parameters; known: {', '.join(known)}")
+    missing = [name for name in known if name not in canonical]
+    if missing:
+        raise ValueError(f"canonical: no value for the θ parameter(s) {missing}")
     conditions: dict[str, Condition] = {}
     for code, spec in data["conditions"].items():
         where = f"conditions.{code}"
+        if code == MIXED:
+            raise ValueError(f"{where}: {MIXED!r} names the mixed stage, not a condition")
         if "variants" in spec:
             variants = {
                 name: _parse_parameters(params, canonical, f"{where}.variants.{name}", difficulties)
@@ -95,7 +121,11 @@ def parse_condition_table(data: dict) -> ConditionTable:
         else:
             variants = {"default": _parse_parameters(spec["parameters"], canonical, f"{where}.parameters", difficulties)}
         conditions[code] = Condition(code=code, name=spec.get("name", code), variants=variants)
-    return ConditionTable(difficulties=difficulties, canonical=canonical, conditions=conditions)
+    table3 = tuple(data.get("table3", conditions))
+    strangers = [code for code in table3 if code not in conditions]
+    if strangers:
+        raise ValueError(f"table3: {strangers} are not conditions of the table")
+    return ConditionTable(difficulties=difficulties, canonical=canonical, conditions=conditions, table3=table3)
 
 
 @lru_cache

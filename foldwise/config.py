@@ -36,6 +36,9 @@ class AssetsConfig(_Section):
 
 class RenderConfig(_Section):
     backend: Literal["raster", "blender"] = "raster"
+    # Interpolated rulings per guiding ruling: 1 gives the paper's sharp creases (2 rulings,
+    # 3 regions), 3 smooth bends (7 regions); None: the condition table's canonical value.
+    smooth_steps: int | None = Field(default=None, ge=1, le=16)
     image_size: int = Field(default=128, ge=32, le=2048)
     # Cycles samples per pixel and device for the blender backend.
     samples: int = Field(default=16, ge=1, le=4096)
@@ -46,9 +49,49 @@ class RenderConfig(_Section):
     batch_size: int = Field(default=8, ge=1, le=1000)
 
 
+class MixedStageConfig(_Section):
+    """The mixed stage(s) that end a curriculum: each image draws several conditions at
+    random difficulties up to the stage's (the paper's future work; foldwise.sampling)."""
+
+    # One mixed stage per difficulty listed, in this order, after every single-condition stage.
+    difficulties: list[str] = Field(default_factory=lambda: ["hard"], min_length=1)
+    # How many conditions each image draws: [low, high], inclusive.
+    conditions_per_image: tuple[int, int] = (2, 4)
+    # Which conditions it draws from (empty: every condition of the table).
+    draw_from: list[str] = Field(default_factory=list)
+    # The share of its images that show no object at all.
+    negatives: float = Field(default=0.1, ge=0.0, le=0.9)
+
+    @model_validator(mode="after")
+    def _known(self) -> "MixedStageConfig":
+        table = load_condition_table()
+        low, high = self.conditions_per_image
+        if not 1 <= low <= high:
+            raise ValueError(f"conditions_per_image: needs 1 <= low <= high, got {list(self.conditions_per_image)}")
+        pool = self.draw_from or list(table.codes)
+        for i, code in enumerate(self.draw_from):
+            if code not in table.conditions:
+                raise ValueError(f"draw_from[{i}]: unknown condition {code!r}; known: {', '.join(table.codes)}")
+        if high > len(pool):
+            raise ValueError(f"conditions_per_image: {high} conditions per image, but only {len(pool)} to draw from")
+        for i, difficulty in enumerate(self.difficulties):
+            if difficulty not in table.difficulties:
+                raise ValueError(
+                    f"difficulties[{i}]: unknown difficulty {difficulty!r}; known: {', '.join(table.difficulties)}"
+                )
+        return self
+
+    def draw(self):
+        from foldwise.sampling import MixedDraw
+
+        return MixedDraw(tuple(self.conditions_per_image), tuple(self.draw_from), self.negatives)
+
+
 class CurriculumConfig(_Section):
     conditions: list[str] = Field(default_factory=lambda: ["fb", "mb", "po", "de", "eo", "sc", "li"], min_length=1)
     difficulties: list[str] = Field(default_factory=lambda: ["easy", "medium", "hard"], min_length=1)
+    # Stages of several conditions at once after the single-condition ones (None: none).
+    mixed: MixedStageConfig | None = None
 
     @model_validator(mode="after")
     def _known(self) -> "CurriculumConfig":
@@ -71,9 +114,10 @@ class CurriculumConfig(_Section):
 class TestSetConfig(_Section):
     # n: standard test images per (condition, difficulty); the paper has 30 per object.
     per_stage: int = Field(default=150, ge=1)
-    # Which (condition, difficulty) pairs the standard test set covers: all of Table 3
-    # ("all") as in the paper, or only those in the curriculum ("curriculum").
-    covers: Literal["all", "curriculum"] = "curriculum"
+    # Which (condition, difficulty) pairs the standard test set covers: the paper's Table 3
+    # ("table3", its 7 conditions), every condition of the table ("all"), or only the
+    # curriculum's stages ("curriculum", mixed stages included).
+    covers: Literal["table3", "all", "curriculum"] = "curriculum"
 
 
 class ActiveLearningConfig(_Section):
@@ -163,14 +207,27 @@ class ExperimentConfig(_Section):
         return value
 
     def stage_order(self) -> list[tuple[str, str]]:
-        """(condition, difficulty) in curriculum order: for c in C, for δ in Δ."""
-        return [(c, d) for c in self.curriculum.conditions for d in self.curriculum.difficulties]
+        """(condition, difficulty) in curriculum order: for c in C, for δ in Δ; then the mixed
+        stages ("mixed", δ)."""
+        from foldwise.theta import MIXED
+
+        stages = [(c, d) for c in self.curriculum.conditions for d in self.curriculum.difficulties]
+        if self.curriculum.mixed is not None:
+            stages += [(MIXED, d) for d in self.curriculum.mixed.difficulties]
+        return stages
 
     def test_pairs(self) -> list[tuple[str, str]]:
         if self.test_set.covers == "curriculum":
             return self.stage_order()
         table = load_condition_table()
-        return [(c, d) for c in table.codes for d in table.difficulties]
+        codes = table.table3 if self.test_set.covers == "table3" else table.codes
+        return [(c, d) for c in codes for d in table.difficulties]
+
+    def mixed_draw(self):
+        """How this experiment's mixed θ draw their conditions (foldwise.sampling.MixedDraw)."""
+        from foldwise.sampling import MixedDraw
+
+        return self.curriculum.mixed.draw() if self.curriculum.mixed is not None else MixedDraw()
 
 
 def _format_validation_error(error: ValidationError) -> str:

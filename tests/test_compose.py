@@ -498,7 +498,7 @@ def test_the_wheel_the_image_installs_carries_the_code_and_migrates_from_outside
         "import sys, foldwise, db\n"
         f"assert foldwise.__file__.startswith({str(site)!r}), foldwise.__file__\n"
         "from foldwise.conditions import load_condition_table\n"
-        "print(sorted(load_condition_table().codes))\n"
+        "print(sorted(load_condition_table().table3))\n"
         "from services.cli import main\n"
         "sys.argv = ['foldwise', 'db', 'upgrade']\n"
         "main()\n"

@@ -331,11 +331,26 @@ def _assets(config: ExperimentConfig):
 def _sample(
     config: ExperimentConfig, condition: str, difficulty: str, n: int, seed: int
 ) -> list[dict]:
-    from workers.render.parameters import generate_parameters
+    from foldwise.sampling import generate_parameters
 
-    return generate_parameters(
-        condition, difficulty, n, seed, image_size=config.render.image_size, assets=_assets(config)
+    thetas = generate_parameters(
+        condition,
+        difficulty,
+        n,
+        seed,
+        image_size=config.render.image_size,
+        assets=_assets(config),
+        smooth_steps=config.render.smooth_steps,
+        mixed=config.mixed_draw(),
     )
+    return [theta.to_dict() for theta in thetas]
+
+
+def _condition_index(table, condition: str) -> int:
+    """A stable index for seeding: the table's order; the mixed stage a number of its own."""
+    from foldwise.theta import MIXED
+
+    return 1000 if condition == MIXED else table.codes.index(condition)
 
 
 def apply(
@@ -356,7 +371,7 @@ def apply(
                     session.add(Stage(experiment=experiment, order=order, condition=condition, difficulty=difficulty))
                 for condition, difficulty in config.test_pairs():
                     seed = derive_seed(
-                        experiment.seed, 1, table.codes.index(condition), table.difficulties.index(difficulty)
+                        experiment.seed, 1, _condition_index(table, condition), table.difficulties.index(difficulty)
                     )
                     thetas = _sample(config, condition, difficulty, config.test_set.per_stage, seed)
                     session.add_all(

@@ -1,15 +1,20 @@
-"""Table 3 as data: the shipped table matches the paper and malformed tables fail clearly."""
+"""The condition table as data: the shipped table matches the paper (Table 3, then the rest of
+Table 1), it covers exactly θ's parameters, and malformed tables fail clearly."""
 
 import math
 
 import pytest
 
 from foldwise.conditions import load_condition_table, parse_condition_table, parse_number
+from foldwise.theta import V1_DEFAULTS, parameter_names
+
+SHIPPED_CANONICAL = dict(load_condition_table().canonical)
 
 
 def test_table_3_of_the_paper():
     table = load_condition_table()
-    assert table.codes == ("fb", "mb", "po", "de", "eo", "sc", "li")
+    assert table.table3 == ("fb", "mb", "po", "de", "eo", "sc", "li")
+    assert table.codes[:7] == table.table3
     assert table.difficulties == ("easy", "medium", "hard")
     fb = table.conditions["fb"].variants["default"]
     assert fb["hard"]["focus_blur_pct"] == (2.14, 2.92)
@@ -26,6 +31,21 @@ def test_table_3_of_the_paper():
     assert table.canonical["rulings"] == 2 and table.canonical["irradiance"] == 1.0
 
 
+def test_the_rest_of_table_1_and_its_canonical_values_leave_version_1_images_alone():
+    table = load_condition_table()
+    names = {code: table.conditions[code].name for code in table.codes[7:]}
+    assert names == {
+        "or": "orientation", "cl": "clutter", "sh": "shadows", "sp": "specularities", "wr": "wrinkles",
+        "lc": "light colour and sources", "ci": "camera intrinsics", "fv": "field-of-view crop",
+        "sn": "sensor noise and compression", "mo": "several objects",
+    }  # fmt: skip
+    assert set(table.canonical) == set(parameter_names())
+    # The canonical values of the new parameters are those a version-1 θ renders with.
+    assert all(table.canonical[name] == value for name, value in V1_DEFAULTS.items() if name in table.canonical)
+    assert table.conditions["or"].variants["default"]["hard"]["rotation"] == (math.pi / 2, math.pi)
+    assert set(table.conditions["ci"].variants) == {"narrow", "wide"}
+
+
 @pytest.mark.parametrize(("text", "value"), [("pi", math.pi), ("pi/6", math.pi / 6), ("2*pi/3", 2 * math.pi / 3), (0.5, 0.5)])
 def test_numbers_and_pi_expressions(text, value):
     assert parse_number(text, "x") == pytest.approx(value)
@@ -40,14 +60,23 @@ def test_bad_numbers_name_their_place(bad):
 def test_malformed_table_names_the_key():
     data = {
         "difficulties": ["easy", "hard"],
-        "canonical": {"blur": 0},
-        "conditions": {"fb": {"parameters": {"blur": {"easy": [2, 1], "hard": [1, 2]}}}},
+        "canonical": dict(SHIPPED_CANONICAL),
+        "conditions": {"fb": {"parameters": {"focus_blur_pct": {"easy": [2, 1], "hard": [1, 2]}}}},
     }
-    with pytest.raises(ValueError, match=r"conditions.fb.parameters.blur.easy: low 2.0 above high 1.0"):
+    with pytest.raises(ValueError, match=r"conditions.fb.parameters.focus_blur_pct.easy: low 2.0 above high 1.0"):
         parse_condition_table(data)
     data["conditions"]["fb"]["parameters"] = {"size": {"easy": 1, "hard": 2}}
     with pytest.raises(ValueError, match="no canonical value"):
         parse_condition_table(data)
+    with pytest.raises(ValueError, match=r"canonical: \['blur'\] are not θ parameters"):
+        parse_condition_table({**data, "canonical": {**SHIPPED_CANONICAL, "blur": 0}})
+    short = {k: v for k, v in SHIPPED_CANONICAL.items() if k != "shadow"}
+    with pytest.raises(ValueError, match=r"canonical: no value for the θ parameter\(s\) \['shadow'\]"):
+        parse_condition_table({**data, "canonical": short})
+    with pytest.raises(ValueError, match=r"table3: \['xx'\] are not conditions"):
+        parse_condition_table({**data, "conditions": {}, "table3": ["xx"]})
+    with pytest.raises(ValueError, match="names the mixed stage"):
+        parse_condition_table({**data, "conditions": {"mixed": data["conditions"]["fb"]}})
 
 
 def test_unknown_condition_or_difficulty():

@@ -22,6 +22,7 @@ def test_paper_config_has_the_papers_values():
     al = config.active_learning
     assert (al.M, al.N, al.tau, al.m, al.t) == (3, 8, 0.02, 50, 1000)
     assert config.test_set.per_stage == 150 and len(config.test_pairs()) == 21  # 3,150 test images
+    assert {c for c, _ in config.test_pairs()} == set(config.curriculum.conditions)
     assert config.evaluation.score_threshold == 0.8
 
 

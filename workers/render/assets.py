@@ -180,6 +180,37 @@ class AssetCatalog:
     def classes(self) -> list[str]:
         return [a.name for a in self.objects]
 
+    @property
+    def names(self):
+        """The names θ may carry (foldwise.sampling.AssetNames)."""
+        from foldwise.sampling import AssetNames
+
+        return AssetNames(
+            objects=tuple(self.classes),
+            backgrounds=tuple(a.name for a in self.backgrounds),
+            occluders=tuple(a.name for a in self.occluders),
+        )
+
+    @property
+    def distractors(self) -> list[str]:
+        """What clutter is printed with: every occluder and background photograph, and the
+        procedural patterns ("occluders/…", "backgrounds/…"); never an object's texture."""
+        return [f"occluders/{a.name}" for a in self.occluders] + [f"backgrounds/{a.name}" for a in self.backgrounds]
+
+    def distractor(self, name: str, rng: np.random.Generator, size: int = 256) -> np.ndarray:
+        """(h, w, 3) uint8 RGB of distractor ``name`` (see ``distractors``): the photograph
+        (read-only, cached), or a procedural pattern of ``size`` pixels drawn from ``rng``."""
+        kind, _, asset_name = name.partition("/")
+        if kind == "occluders":
+            return self.occluder(asset_name)[0]
+        if kind == "backgrounds":
+            asset = self._get("backgrounds", asset_name)
+            if asset.procedural:
+                return procedural_background(asset_name[len(PROCEDURAL_PREFIX):], size, rng)
+            photo = asset.load()
+            return photo if photo.shape[2] == 3 else np.ascontiguousarray(photo[:, :, :3])
+        raise AssetError(f"unknown distractor {name!r}: expected occluders/<name> or backgrounds/<name>")
+
     def _get(self, kind: str, name: str) -> Asset:
         try:
             return self._by_name[kind][name]

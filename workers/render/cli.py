@@ -23,16 +23,18 @@ def _split(value: str) -> list[str]:
 
 
 def resolve_conditions(value: str) -> list[str]:
-    """Codes from "po", "pose", "fb,mb" or "all"."""
+    """Codes from "po", "pose", "fb,mb", "mixed" or "all" (every condition and the mixed stage)."""
     from foldwise.conditions import load_condition_table
-    from workers.render.parameters import resolve_condition
+    from foldwise.sampling import resolve_condition
 
     table = load_condition_table()
     names = _split(value)
     if not names:
         raise typer.BadParameter("no condition given")
     if names == ["all"]:
-        return list(table.codes)
+        from foldwise.theta import MIXED
+
+        return [*table.codes, MIXED]
     try:
         codes = [resolve_condition(name, table) for name in names]
     except ValueError as error:
@@ -58,9 +60,10 @@ def resolve_difficulties(value: str) -> list[str]:
 
 def _pair_seed(seed: int, condition: str, difficulty: str) -> int:
     from foldwise.conditions import load_condition_table
-    from workers.render.parameters import derive_seed
+    from foldwise.seeds import derive_seed
+    from foldwise.theta import MIXED
 
-    codes = load_condition_table().codes
+    codes = load_condition_table().codes + (MIXED,)
     return derive_seed(seed, codes.index(condition), _DIFFICULTY_INDEX[difficulty])
 
 
@@ -86,8 +89,8 @@ def render_dataset(
     echo=print,
 ) -> dict:
     """Render n images per (condition, difficulty) into ``out``: images/ + annotations.json (COCO)."""
+    from foldwise.sampling import generate_parameters
     from workers.render.pipeline import RenderRejected, render_with_resample
-    from workers.render.parameters import generate_parameters
 
     out = Path(out)
     (out / "images").mkdir(parents=True, exist_ok=True)
@@ -107,7 +110,7 @@ def render_dataset(
                         theta, backend=backend, max_resamples=max_resamples, assets=assets, samples=samples
                     )
                 except RenderRejected as rejected:
-                    failures.append({"name": name, "theta": theta, "reasons": rejected.reasons})
+                    failures.append({"name": name, "theta": theta.to_dict(), "reasons": rejected.reasons})
                     continue
                 resampled += bool(reasons)
                 file_name = f"images/{name}.png"
@@ -121,28 +124,25 @@ def render_dataset(
                         "height": int(result.image.shape[0]),
                         "condition": condition,
                         "difficulty": difficulty,
-                        "theta": used,
+                        "theta": used.to_dict(),
                         "rejections": reasons,
                     }
                 )
-                x0, y0, x1, y1 = result.box
-                annotations.append(
-                    {
-                        "id": image_id,
-                        "image_id": image_id,
-                        "category_id": int(result.label) + 1,
-                        "bbox": [x0, y0, x1 - x0, y1 - y0],
-                        "area": float(result.mask.sum()) if result.mask is not None else (x1 - x0) * (y1 - y0),
-                        "iscrowd": 0,
-                        "amodal_bbox": [
-                            result.amodal_box[0],
-                            result.amodal_box[1],
-                            result.amodal_box[2] - result.amodal_box[0],
-                            result.amodal_box[3] - result.amodal_box[1],
-                        ],
-                        "visible_fraction": float(result.visible_fraction),
-                    }
-                )
+                for obj, mask in zip(result.objects, result.masks):
+                    x0, y0, x1, y1 = obj.box
+                    ax0, ay0, ax1, ay1 = obj.amodal_box
+                    annotations.append(
+                        {
+                            "id": len(annotations) + 1,
+                            "image_id": image_id,
+                            "category_id": int(obj.label) + 1,
+                            "bbox": [x0, y0, x1 - x0, y1 - y0],
+                            "area": float(mask.sum()),
+                            "iscrowd": 0,
+                            "amodal_bbox": [ax0, ay0, ax1 - ax0, ay1 - ay0],
+                            "visible_fraction": float(obj.visible_fraction),
+                        }
+                    )
             seconds = time.perf_counter() - pair_start
             echo(
                 f"{condition}/{difficulty}: {len(thetas)} images in {seconds:.2f} s"
@@ -161,27 +161,28 @@ def render_dataset(
     return coco
 
 
-def describe(theta: dict) -> str:
-    """The parameter under study in a few characters, for labels."""
-    condition = theta["condition"]
-    if theta["difficulty"] == "canonical":
+def describe(theta) -> str:
+    """What the image varies, in a few characters, for labels: the values of the parameters
+    its condition(s) draw (from the condition table, so every condition has its caption)."""
+    from foldwise.conditions import load_condition_table
+
+    if theta.difficulty == "canonical":
         return "canonical"
-    if condition == "fb":
-        return f"k {theta['focus_blur_pct']:.2f}%"
-    if condition == "mb":
-        return f"{theta['motion_blur_pct']:.2f}% {math.degrees(theta['motion_blur_angle']):.0f}deg"
-    if condition == "po":
-        angles = "/".join(f"{math.degrees(theta[k]):.0f}" for k in ("roll", "pitch", "yaw"))
-        return f"{angles} {theta['position_offset_m']:.1f}m"
-    if condition == "de":
-        return f"{theta['rulings']} rulings"
-    if condition == "eo":
-        return f"visible {theta['visible_fraction']:.2f}"
-    if condition == "sc":
-        return f"{theta['variant']} x{theta['scale']:.2f}"
-    if condition == "li":
-        return f"{theta['variant']} {theta['irradiance']:.2f}"
-    return condition
+    if theta.is_mixed:
+        codes = "+".join(c.condition for c in theta.components)
+        return codes + (" no object" if theta.instances == 0 else "")
+    table = load_condition_table()
+    values = dict(theta)
+    parts = [theta.variant] if theta.variant != "default" else []
+    for name in table.conditions[theta.condition].variants[theta.variant][theta.difficulty]:
+        value = values[name]
+        if name in ("roll", "pitch", "yaw", "rotation", "tilt", "motion_blur_angle", "light_spread", "wrinkle_depth"):
+            parts.append(f"{math.degrees(value):.0f}deg")
+        elif isinstance(value, int):
+            parts.append(str(value))
+        else:
+            parts.append(f"{value:.2f}")
+    return " ".join(parts)
 
 
 def _dashed_rectangle(image, box, colour, dash: int = 4) -> None:
@@ -198,24 +199,27 @@ def _dashed_rectangle(image, box, colour, dash: int = 4) -> None:
             cv2.line(image, p, q, colour, 1)
 
 
-def draw_boxes(image, box, amodal_box):
-    """A copy of an RGB image with the visible box (solid green) and amodal box (dashed yellow)."""
+def draw_boxes(image, objects):
+    """A copy of an RGB image with each object's visible box (solid green) and amodal box
+    (dashed yellow)."""
     import cv2
 
     canvas = image.copy()
-    _dashed_rectangle(canvas, amodal_box, (255, 220, 0))
-    x0, y0, x1, y1 = (int(round(v)) for v in box)
-    cv2.rectangle(canvas, (x0, y0), (x1 - 1, y1 - 1), (0, 255, 0), 1)
+    for obj in objects:
+        _dashed_rectangle(canvas, obj.amodal_box, (255, 220, 0))
+    for obj in objects:
+        x0, y0, x1, y1 = (int(round(v)) for v in obj.box)
+        cv2.rectangle(canvas, (x0, y0), (x1 - 1, y1 - 1), (0, 255, 0), 1)
     return canvas
 
 
 def preview_rows(table, conditions) -> list[tuple[str, str | None]]:
     """(condition, variant) per contact-sheet row: one row per variant where a condition has
-    several (scale small and large, lighting dark and bright), so each shows at every
-    difficulty; variant None for a condition with one."""
+    several (scale small and large, lighting dark and bright, lens narrow and wide), so each
+    shows at every difficulty; variant None for a condition with one (and the mixed stage)."""
     rows = []
     for code in conditions:
-        variants = list(table.conditions[code].variants)
+        variants = list(table.conditions[code].variants) if code in table.conditions else [None]
         rows.extend([(code, variant) for variant in variants] if len(variants) > 1 else [(code, None)])
     return rows
 
@@ -228,11 +232,12 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
     import numpy as np
 
     from foldwise.conditions import load_condition_table
-    from workers.render.parameters import CANONICAL, generate_parameters
+    from foldwise.sampling import generate_parameters
+    from foldwise.theta import CANONICAL, MIXED
     from workers.render.pipeline import RenderRejected, render_with_resample
 
     table = load_condition_table()
-    rows = preview_rows(table, conditions or list(table.codes))
+    rows = preview_rows(table, conditions or [*table.codes, MIXED])
     label_w, header_h, caption_h, pad = 150, 24, 16, 4
     cell_h = image_size + caption_h
     height = header_h + len(rows) * (cell_h + pad)
@@ -245,7 +250,7 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
     first_row_of = {}  # condition -> y of its first row: its variants share the canonical cell
     for row, (code, variant) in enumerate(rows):
         y = header_h + row * (cell_h + pad)
-        name = table.conditions[code].name + (f" ({variant})" if variant else "")
+        name = table.name(code) + (f" ({variant})" if variant else "")
         cv2.putText(sheet, code, (6, y + image_size // 2 - 6), font, 0.6, (0, 0, 0), 2, cv2.LINE_AA)
         cv2.putText(sheet, name, (6, y + image_size // 2 + 14), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
         for col, difficulty in enumerate(PREVIEW_COLUMNS):
@@ -269,7 +274,7 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
                 cv2.putText(sheet, "rejected", (x + 4, y + 20), font, 0.4, (200, 0, 0), 1, cv2.LINE_AA)
                 cv2.putText(sheet, rejected.reason[:24], (x + 4, y + 36), font, 0.3, (200, 0, 0), 1, cv2.LINE_AA)
                 continue
-            sheet[y:y + image_size, x:x + image_size] = draw_boxes(result.image, result.box, result.amodal_box)
+            sheet[y:y + image_size, x:x + image_size] = draw_boxes(result.image, result.objects)
             caption = describe(used) + (f" (+{len(reasons)})" if reasons else "")
             cv2.putText(sheet, caption, (x + 2, y + image_size + 12), font, 0.34, (0, 0, 0), 1, cv2.LINE_AA)
         first_row_of.setdefault(code, y)
@@ -298,7 +303,7 @@ def register(app: typer.Typer) -> None:
         backgrounds: Optional[Path] = typer.Option(None, "--backgrounds", help="folder of background images"),
         occluders: Optional[Path] = typer.Option(None, "--occluders", help="folder of occluder images"),
     ) -> None:
-        """Render images with ground-truth boxes for conditions of Table 3 (COCO JSON), or a preview sheet."""
+        """Render images with ground-truth boxes (COCO JSON: 0..n per image) for any condition or the mixed stage, or a preview sheet."""
         from foldwise.config import AssetsConfig
         from workers.render.assets import AssetError, load_assets
         from workers.render.pipeline import BACKENDS

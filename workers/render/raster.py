@@ -15,6 +15,13 @@ Three compiled passes (numba), each touching only the pixels it must:
    does, and a side facing away from the light is black, as in Cycles.
 3. Edge anti-aliasing (below).
 
+A scene with more than the paper's one white light (``Scene3D.plain`` is false: coloured or
+several lights, ambient light, a glossy layer, a normal map, a shadow caster) is shaded per
+pixel instead of per face (``_shade_lit``): the pixel's world point from its depth, its normal
+(the face's, tilted by the normal map in the face's tangent frame), each light's Lambertian
+and GGX terms, the key light's visibility past the caster's coverage map. A plain scene never
+runs it, so its bytes are those of the per-face shading.
+
 The texture is sRGB-encoded; it is decoded to linear albedo first (a lookup table), and
 downsampled in linear light (``INTER_AREA``, powers of two) to the level that matches the
 sheet's footprint in the image, which keeps minified textures from aliasing.
@@ -415,7 +422,10 @@ def render_scene(scene: Scene3D, antialias: bool = True) -> BackendOutput:
         np.greater_equal(face_image[inside], 0, out=mask[inside])
         alpha[inside] = mask[inside]
         texture = _PYRAMIDS.level(scene.texture, _footprint_px(pix, depth))
-        _shade(face_image, box, texturing, _face_radiance(scene), texture, rgb)
+        if scene.plain:
+            _shade(face_image, box, texturing, _face_radiance(scene), texture, rgb)
+        else:
+            _shade_lit(face_image, box, texturing, texture, rgb, *_lighting_arguments(scene))
         if antialias:
             _edge_alpha_kernel(face_image, mask, box, coverage, _AA_OFFSETS, alpha, rgb)
     return BackendOutput(rgb=rgb, mask=mask, alpha=alpha)
@@ -449,6 +459,217 @@ def _face_radiance_kernel(vertices, faces, camera_centre, light, scale):  # prag
         cosine = max(0.0, facing * (nx * light[0] + ny * light[1] + nz * light[2]) / norm)
         radiance[f] = scale * cosine
     return radiance
+
+
+def face_frames(vertices: np.ndarray, faces: np.ndarray, uv: np.ndarray, camera_centre: np.ndarray):
+    """Per face: unit normal of the printed side (world), +1/-1 as the camera sees that side
+    or the back, and the unit tangents along increasing u and v (the normal map's x and y)."""
+    corners = vertices[faces]
+    e1 = corners[:, 1] - corners[:, 0]
+    e2 = corners[:, 2] - corners[:, 0]
+    normal = np.cross(e1, e2)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-300)
+    facing = np.where(np.einsum("ij,ij->i", camera_centre - corners[:, 0], normal) >= 0, 1.0, -1.0)
+    t = uv[faces]
+    du1, dv1 = t[:, 1, 0] - t[:, 0, 0], t[:, 1, 1] - t[:, 0, 1]
+    du2, dv2 = t[:, 2, 0] - t[:, 0, 0], t[:, 2, 1] - t[:, 0, 1]
+    det = du1 * dv2 - du2 * dv1
+    det = np.where(np.abs(det) > 1e-300, det, 1.0)
+    tangent_u = (e1 * dv2[:, None] - e2 * dv1[:, None]) / det[:, None]
+    tangent_v = (e2 * du1[:, None] - e1 * du2[:, None]) / det[:, None]
+    tangent_u /= np.maximum(np.linalg.norm(tangent_u, axis=1, keepdims=True), 1e-300)
+    tangent_v /= np.maximum(np.linalg.norm(tangent_v, axis=1, keepdims=True), 1e-300)
+    return normal, facing, tangent_u, tangent_v
+
+
+_NO_MAP = np.zeros((0, 0, 3), np.float32)
+_NO_COVERAGE = np.zeros((0, 0), np.float32)
+
+
+def _lighting_arguments(scene: Scene3D) -> tuple:
+    """The per-pixel kernel's arguments for ``scene`` (see _shade_lit)."""
+    camera = scene.camera
+    vertices = np.asarray(scene.vertices, np.float64)
+    faces = np.asarray(scene.faces, np.int64)
+    centre = -camera.R.T @ camera.t
+    normal, facing, tangent_u, tangent_v = face_frames(vertices, faces, np.asarray(scene.uv, np.float64), centre)
+    lights = scene.light_list()
+    directions = np.array([np.asarray(light.direction, np.float64) for light in lights]).reshape(-1, 3)
+    directions /= np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-300)
+    radiance = np.array(
+        [np.asarray(light.colour, np.float64) * light.irradiance * scene.exposure for light in lights]
+    ).reshape(-1, 3)
+    normal_map = _NO_MAP if scene.normal_map is None else np.ascontiguousarray(scene.normal_map, np.float32)
+    shadow = scene.shadow
+    if shadow is None:
+        caster = np.zeros((4, 3))
+        coverage, extent = _NO_COVERAGE, np.zeros(4)
+    else:
+        u_axis, v_axis = np.asarray(shadow.u_axis, np.float64), np.asarray(shadow.v_axis, np.float64)
+        caster = np.array([shadow.origin, u_axis, v_axis, np.cross(u_axis, v_axis)], np.float64)
+        coverage = np.ascontiguousarray(shadow.coverage, np.float32)
+        extent = np.asarray(shadow.extent, np.float64)
+    return (
+        np.ascontiguousarray(np.linalg.inv(camera.K)),
+        np.ascontiguousarray(camera.R.T),
+        np.asarray(camera.t, np.float64),
+        centre,
+        normal,
+        facing,
+        tangent_u,
+        tangent_v,
+        directions,
+        radiance,
+        np.asarray(scene.ambient, np.float64),
+        float(scene.specular),
+        float(scene.roughness) ** 4,  # α² with Cycles' α = roughness²
+        normal_map,
+        caster,
+        coverage,
+        extent,
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _bilinear(image, x, y, channel):  # pragma: no cover - compiled
+    """``image[..., channel]`` at continuous texel (x, y) (texel centres at integers), edges repeated."""
+    h, w = image.shape[0], image.shape[1]
+    x = min(max(x, 0.0), w - 1.0)
+    y = min(max(y, 0.0), h - 1.0)
+    x0, y0 = int(x), int(y)
+    x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
+    fx, fy = x - x0, y - y0
+    top = image[y0, x0, channel] * (1 - fx) + image[y0, x1, channel] * fx
+    bottom = image[y1, x0, channel] * (1 - fx) + image[y1, x1, channel] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+@numba.njit(cache=True, nogil=True)
+def _bilinear_plane(image, x, y):  # pragma: no cover - compiled
+    """A 2D ``image`` at continuous texel (x, y), edges repeated."""
+    h, w = image.shape[0], image.shape[1]
+    x = min(max(x, 0.0), w - 1.0)
+    y = min(max(y, 0.0), h - 1.0)
+    x0, y0 = int(x), int(y)
+    x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
+    fx, fy = x - x0, y - y0
+    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+@numba.njit(cache=True, nogil=True)
+def _ggx(nh, nl, nv, a2):  # pragma: no cover - compiled
+    """π × the GGX BRDF (Smith masking, no Fresnel) times n·l: the glossy radiance per unit
+    irradiance·exposure, as Cycles' Glossy BSDF lit by a sun of strength π E."""
+    d = nh * nh * (a2 - 1.0) + 1.0
+    distribution = a2 / (math.pi * d * d)
+    g_l = 2.0 * nl / (nl + math.sqrt(a2 + (1.0 - a2) * nl * nl))
+    g_v = 2.0 * nv / (nv + math.sqrt(a2 + (1.0 - a2) * nv * nv))
+    return math.pi * distribution * g_l * g_v / (4.0 * nl * nv) * nl
+
+
+@numba.njit(cache=True, nogil=True)
+def _shade_lit(face_image, box, texturing, texture, rgb, k_inverse, r_transpose, t, centre, normal, facing,
+               tangent_u, tangent_v, directions, radiance, ambient, specular, a2, normal_map, caster, coverage,
+               extent):  # pragma: no cover - compiled
+    """``rgb`` of every covered pixel in ``box`` under the full shading model of scene.py
+    (several coloured lights, ambient, GGX gloss, normal map, the key light's shadow).
+
+    Per pixel, in float64: perspective-correct texel position and depth (as _shade), the world
+    point X = R^T (z K^-1 (x, y, 1) - t), the normal (the face's, tilted by the normal map in
+    its tangent frame, turned towards the camera), then the lights."""
+    th, tw = texture.shape[0], texture.shape[1]
+    with_map = normal_map.shape[0] > 0
+    with_shadow = coverage.shape[0] > 0
+    n_lights = directions.shape[0]
+    row0, row1, col0, col1 = box
+    albedo = np.zeros(3)
+    value = np.zeros(3)
+    glossy = np.zeros(3)
+    for row in range(row0, row1):
+        py = row + 0.5
+        for col in range(col0, col1):
+            face = face_image[row, col]
+            if face < 0:
+                continue
+            p = texturing[face]
+            px = col + 0.5
+            inverse_depth = p[0] * px + p[1] * py + p[2]
+            depth = 1.0 / inverse_depth
+            u = (p[3] * px + p[4] * py + p[5]) * depth
+            v = (p[6] * px + p[7] * py + p[8]) * depth
+            if not (u == u and v == v):
+                u = v = 0.0
+            tx = u * tw - 0.5
+            ty = (1.0 - v) * th - 0.5
+            for k in range(3):
+                albedo[k] = _bilinear(texture, tx, ty, k)
+            # The pixel's world point.
+            cx = depth * (k_inverse[0, 0] * px + k_inverse[0, 1] * py + k_inverse[0, 2]) - t[0]
+            cy = depth * (k_inverse[1, 0] * px + k_inverse[1, 1] * py + k_inverse[1, 2]) - t[1]
+            cz = depth * (k_inverse[2, 0] * px + k_inverse[2, 1] * py + k_inverse[2, 2]) - t[2]
+            wx = r_transpose[0, 0] * cx + r_transpose[0, 1] * cy + r_transpose[0, 2] * cz
+            wy = r_transpose[1, 0] * cx + r_transpose[1, 1] * cy + r_transpose[1, 2] * cz
+            wz = r_transpose[2, 0] * cx + r_transpose[2, 1] * cy + r_transpose[2, 2] * cz
+            # The normal, turned towards the camera.
+            nx, ny, nz = normal[face, 0], normal[face, 1], normal[face, 2]
+            if with_map:
+                mh, mw = normal_map.shape[0], normal_map.shape[1]
+                mx = u * mw - 0.5
+                my = (1.0 - v) * mh - 0.5
+                a = _bilinear(normal_map, mx, my, 0)
+                b = _bilinear(normal_map, mx, my, 1)
+                c = _bilinear(normal_map, mx, my, 2)
+                nx = a * tangent_u[face, 0] + b * tangent_v[face, 0] + c * normal[face, 0]
+                ny = a * tangent_u[face, 1] + b * tangent_v[face, 1] + c * normal[face, 1]
+                nz = a * tangent_u[face, 2] + b * tangent_v[face, 2] + c * normal[face, 2]
+                norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+                nx, ny, nz = nx / norm, ny / norm, nz / norm
+            sign = facing[face]
+            nx, ny, nz = nx * sign, ny * sign, nz * sign
+            vx, vy, vz = centre[0] - wx, centre[1] - wy, centre[2] - wz
+            norm = math.sqrt(vx * vx + vy * vy + vz * vz)
+            vx, vy, vz = vx / norm, vy / norm, vz / norm
+            nv = nx * vx + ny * vy + nz * vz
+            for k in range(3):
+                value[k] = 0.0
+                glossy[k] = 0.0
+            for j in range(n_lights):
+                lx, ly, lz = directions[j, 0], directions[j, 1], directions[j, 2]
+                nl = nx * lx + ny * ly + nz * lz
+                if nl <= 0.0:
+                    continue
+                visible = 1.0
+                if j == 0 and with_shadow:
+                    # Where the ray towards the light meets the caster's plane, if in front.
+                    qx, qy, qz = caster[0, 0] - wx, caster[0, 1] - wy, caster[0, 2] - wz
+                    along = lx * caster[3, 0] + ly * caster[3, 1] + lz * caster[3, 2]
+                    if abs(along) > 1e-12:
+                        s = (qx * caster[3, 0] + qy * caster[3, 1] + qz * caster[3, 2]) / along
+                        if s > 0.0:
+                            hx, hy, hz = wx + s * lx - caster[0, 0], wy + s * ly - caster[0, 1], wz + s * lz - caster[0, 2]
+                            cu = hx * caster[1, 0] + hy * caster[1, 1] + hz * caster[1, 2]
+                            cv = hx * caster[2, 0] + hy * caster[2, 1] + hz * caster[2, 2]
+                            if extent[0] <= cu <= extent[1] and extent[2] <= cv <= extent[3]:
+                                gx = (cu - extent[0]) / (extent[1] - extent[0]) * coverage.shape[1] - 0.5
+                                gy = (cv - extent[2]) / (extent[3] - extent[2]) * coverage.shape[0] - 0.5
+                                visible = 1.0 - _bilinear_plane(coverage, gx, gy)
+                if visible <= 0.0:
+                    continue
+                for k in range(3):
+                    value[k] += radiance[j, k] * nl * visible
+                if specular > 0.0 and nv > 1e-6:
+                    hx, hy, hz = lx + vx, ly + vy, lz + vz
+                    norm = math.sqrt(hx * hx + hy * hy + hz * hz)
+                    nh = max((nx * hx + ny * hy + nz * hz) / norm, 0.0)
+                    term = _ggx(nh, nl, nv, a2) * visible
+                    for k in range(3):
+                        glossy[k] += radiance[j, k] * term
+            for k in range(3):
+                rgb[row, col, k] = (1.0 - specular) * albedo[k] * (value[k] + ambient[k]) + specular * (
+                    glossy[k] + ambient[k]
+                )
 
 
 def silhouette(scene: Scene3D, camera: Camera | None = None) -> np.ndarray:

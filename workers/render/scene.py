@@ -15,10 +15,21 @@ Conventions (both backends must follow them, so that the same θ gives the same 
 * Lighting: one distant light of irradiance ``irradiance`` (W/m², canonical 1) shining
   along ``-light_direction``; Lambertian sheet of albedo = texture; ``exposure`` maps
   radiance to linear image values so that the canonical scene looks like the texture.
+  ``lights``, when given, replaces that one light by several coloured ones.
 * Colour: ``texture`` holds sRGB-encoded values; backends decode them to linear albedo and
   return linear ``rgb`` = albedo × irradiance × exposure × max(0, n · l), where n is the
   facet's unit normal turned towards the camera (both sides of the sheet show the texture;
   a side facing away from the light is black). The pipeline encodes to sRGB afterwards.
+* The rest of the shading model (each term absent, and costing nothing, at its default):
+  linear ``rgb`` = (1 − s) × albedo × (Σ_j E_j c_j exposure max(0, n · l_j) v_j + A)
+  + s × (Σ_j π f_GGX(n, l_j, v) E_j c_j exposure max(0, n · l_j) v_j + A), where light j has
+  irradiance E_j, linear colour c_j and visibility v_j (1, except the key light j = 0 behind
+  ``shadow``'s caster: the covered share of its soft-edged map); A is the ``ambient`` RGB
+  irradiance (a uniform sky: albedo × A on the paper); s is ``specular``, the weight of a
+  white GGX glossy layer of ``roughness`` r (α = r², Smith masking, no Fresnel: Cycles'
+  Glossy BSDF); v is the direction to the camera. ``normal_map`` (tangent space over the
+  texture: x along u, y along v, z out of the printed side) tilts n per pixel: wrinkles
+  below the scale of the mesh, which stays exact.
 """
 
 from __future__ import annotations
@@ -47,6 +58,33 @@ class Camera:
 
 
 @dataclass(frozen=True)
+class Light:
+    """A distant light: ``direction`` towards it (world, unit), irradiance (W/m²), linear RGB colour."""
+
+    direction: np.ndarray
+    irradiance: float
+    colour: tuple[float, float, float] = (1.0, 1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class ShadowCaster:
+    """A flat caster out of view between the key light and the sheet: a polygon in the plane
+    through ``origin`` spanned by the unit axes ``u_axis`` and ``v_axis`` (world), given as
+    its coverage ``coverage`` (m × n float32 in [0, 1], soft-edged: the penumbra) over the
+    rectangle ``extent`` = (u0, u1, v0, v1) of that plane, and ``polygon`` (k, 3) world
+    vertices of its outline (the Blender backend builds a mesh of it)."""
+
+    origin: np.ndarray
+    u_axis: np.ndarray
+    v_axis: np.ndarray
+    coverage: np.ndarray
+    extent: tuple[float, float, float, float]
+    polygon: np.ndarray
+    # The sun's angular diameter (rad) that makes the penumbra the coverage map's edge shows.
+    sun_angle: float = 0.0
+
+
+@dataclass(frozen=True)
 class Scene3D:
     vertices: np.ndarray  # (V, 3) float64, world coordinates of the deformed sheet
     faces: np.ndarray  # (F, 3) int, counter-clockwise seen from the textured (+normal) side
@@ -56,6 +94,30 @@ class Scene3D:
     irradiance: float = 1.0
     light_direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, -1.0]))  # towards the light
     exposure: float = 1.0
+    # Several lights instead of the one above (light 0 is the key light that ``shadow`` blocks).
+    lights: tuple[Light, ...] | None = None
+    ambient: tuple[float, float, float] = (0.0, 0.0, 0.0)  # linear RGB irradiance of a uniform sky
+    specular: float = 0.0
+    roughness: float = 0.5
+    normal_map: np.ndarray | None = None  # (h, w, 3) float32 unit normals in tangent space
+    shadow: ShadowCaster | None = None
+
+    def light_list(self) -> tuple[Light, ...]:
+        """The scene's lights: ``lights``, or the one white light of ``irradiance``."""
+        if self.lights is not None:
+            return self.lights
+        return (Light(np.asarray(self.light_direction, np.float64), float(self.irradiance)),)
+
+    @property
+    def plain(self) -> bool:
+        """One white light, no ambient, no gloss, no relief, no shadow: the paper's model."""
+        return (
+            self.lights is None
+            and not any(self.ambient)
+            and self.specular == 0
+            and self.normal_map is None
+            and self.shadow is None
+        )
 
 
 @dataclass(frozen=True)

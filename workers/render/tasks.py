@@ -71,12 +71,14 @@ def render_parameter_set(parameter_set_id: int) -> str:
             return "missing"
         row.status = RenderStatus.rendered
         row.image_path = relative
-        row.rendered_theta = rendered_theta
+        row.rendered_theta = rendered_theta.to_dict()
         row.rejections = rejections
-        row.label = int(result.label)
-        row.box = [float(v) for v in result.box]
-        row.amodal_box = [float(v) for v in result.amodal_box]
-        row.visible_fraction = float(result.visible_fraction)
+        row.objects = [obj.to_dict() for obj in result.objects]
+        first = row.objects[0] if row.objects else None
+        row.label = first["label"] if first else None
+        row.box = first["box"] if first else None
+        row.amodal_box = first["amodal_box"] if first else None
+        row.visible_fraction = first["visible_fraction"] if first else None
         row.render_seconds = seconds
         row.rendered_at = utcnow()
         row.error = None

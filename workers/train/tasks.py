@@ -63,12 +63,14 @@ def _claim(model_id: int, task_id: str) -> bool:
 
 
 def _samples(rows):
+    """Training or test samples of rendered θ rows: every target of each image (0..n)."""
     from workers.train.data import Sample
 
     samples = []
     for row in rows:
-        boxes = np.asarray([row.box], dtype=np.float32) if row.box else np.zeros((0, 4), np.float32)
-        labels = np.asarray([row.label], dtype=np.int64) if row.box else np.zeros((0,), np.int64)
+        targets = row.objects if row.objects is not None else ([{"box": row.box, "label": row.label}] if row.box else [])
+        boxes = np.asarray([t["box"] for t in targets], dtype=np.float32).reshape(-1, 4)
+        labels = np.asarray([t["label"] for t in targets], dtype=np.int64)
         samples.append(
             Sample(
                 image_path=store.resolve(row.image_path),

@@ -353,7 +353,7 @@ def test_create_from_yaml(client, database_url, content_type):
     assert response.status_code == 201, response.text
     stored = stored_experiment(database_url, response.json()["id"])
     assert stored.name == "yaml run" and stored.seed == 5
-    assert stored.config["curriculum"] == {"conditions": ["mb", "po"], "difficulties": ["hard"]}
+    assert stored.config["curriculum"] == {"conditions": ["mb", "po"], "difficulties": ["hard"], "mixed": None}
 
 
 def test_recorded_config_has_the_defaults_filled_in(client, seeded):

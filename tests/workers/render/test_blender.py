@@ -410,7 +410,7 @@ HAS_PIPELINE = importlib.util.find_spec("workers.render.pipeline") is not None
 @pytest.mark.skipif(not HAS_PIPELINE, reason="workers/render/pipeline.py has not landed yet")
 @pytest.mark.parametrize(("condition", "difficulty"), [("de", "hard"), ("po", "medium"), ("eo", "hard"), ("eo", "medium")])
 def test_render_theta_boxes_agree_between_backends(renderer, condition, difficulty):
-    from workers.render.parameters import generate_parameters  # noqa: PLC0415
+    from foldwise.sampling import generate_parameters  # noqa: PLC0415
     from workers.render.pipeline import render_theta  # noqa: PLC0415
 
     theta = generate_parameters(condition, difficulty, 1, seed=4, image_size=64)[0]

@@ -10,7 +10,7 @@ import pytest
 
 from workers.render import compositing
 from workers.render.annotation import MIN_BOX_SIDE, MIN_VISIBLE_PIXELS, tight_box
-from workers.render.parameters import generate_parameters
+from foldwise.sampling import generate_parameters
 from workers.render.pipeline import render_theta, render_with_resample
 
 SIZE = 96
@@ -18,8 +18,7 @@ SIZE = 96
 
 def canonical(seed=0, size=SIZE, **override):
     theta = generate_parameters("po", "canonical", 1, seed=seed, image_size=size)[0]
-    theta.update(override)
-    return theta
+    return theta.replace(**override) if override else theta
 
 
 def assert_valid(result, size=SIZE):
@@ -37,7 +36,7 @@ def valid_or_resampled(theta, size=SIZE):
     result, used, reasons = render_with_resample(theta)
     assert_valid(result, size)
     if reasons:
-        assert used != theta and used["resample"] == len(reasons)
+        assert used != theta and used.resample == len(reasons)
         assert all(isinstance(reason, str) and reason for reason in reasons)
     else:
         assert used is theta
@@ -84,7 +83,7 @@ def test_scale_three_crops_at_the_border():
 def test_visible_fraction_tenth():
     for seed in range(3):
         theta = generate_parameters("eo", "hard", 1, seed=seed, image_size=SIZE)[0]
-        theta["visible_fraction"] = 0.1
+        theta = theta.replace(visible_fraction=0.1)
         result, used, reasons = valid_or_resampled(theta)
         if not reasons:
             assert result.visible_fraction == pytest.approx(0.1, abs=0.03)
@@ -118,7 +117,7 @@ def test_motion_blur_hardest(angle):
     assert not reasons
     assert result.box == sharp.box  # blur spreads colours, the box stays geometric
     assert not np.array_equal(result.image, sharp.image)
-    other = render_theta({**theta, "motion_blur_angle": math.pi - angle})
+    other = render_theta(theta.replace(motion_blur_angle=math.pi - angle))
     assert other.image.tobytes() == result.image.tobytes()  # a segment at 0 and at pi is the same
 
 
@@ -173,8 +172,8 @@ def test_a_kernel_rounding_to_nothing_skips_the_stage_without_a_copy():
     theta = canonical(condition="fb", difficulty="easy", focus_blur_pct=0.39, size=128)
     result = render_theta(theta)
     assert "focus_blur" not in result.timings
-    assert result.image.tobytes() == render_theta({**theta, "focus_blur_pct": 0.0}).image.tobytes()
-    even = render_theta({**theta, "focus_blur_pct": 1.2})  # a 2-pixel kernel becomes 3
+    assert result.image.tobytes() == render_theta(theta.replace(focus_blur_pct=0.0)).image.tobytes()
+    even = render_theta(theta.replace(focus_blur_pct=1.2))  # a 2-pixel kernel becomes 3
     assert "focus_blur" in even.timings
 
 

@@ -12,7 +12,7 @@ import pytest
 from workers.render import compositing, pipeline
 from workers.render.annotation import tight_box
 from workers.render.assets import AssetError, load_assets
-from workers.render.parameters import derive_seed, generate_parameters
+from foldwise.sampling import derive_seed, generate_parameters
 from workers.render.pipeline import RenderRejected, render_theta, render_with_resample
 
 SIZE = 64
@@ -20,8 +20,7 @@ SIZE = 64
 
 def one(condition, difficulty="hard", seed=0, size=SIZE, **override):
     theta = generate_parameters(condition, difficulty, 1, seed=seed, image_size=size)[0]
-    theta.update(override)
-    return theta
+    return theta.replace(**override) if override else theta
 
 
 @pytest.mark.parametrize("condition", ["fb", "mb", "po", "de", "eo", "sc", "li"])
@@ -33,7 +32,7 @@ def test_same_theta_gives_identical_bytes_and_box(condition):
     assert first.image.tobytes() == second.image.tobytes()
     assert first.box == second.box and first.amodal_box == second.amodal_box
     assert first.visible_fraction == second.visible_fraction
-    assert first.label == used["label"]
+    assert first.label == used.label
 
 
 def test_tight_box_is_in_pixel_edges_and_none_for_an_empty_mask():
@@ -68,8 +67,8 @@ def test_box_is_the_tight_box_of_the_visible_mask(condition, difficulty):
 def test_occlusion_hits_the_sampled_visible_fraction():
     for theta in generate_parameters("eo", "medium", 6, seed=9, image_size=SIZE):
         result = render_theta(theta)
-        assert result.visible_fraction == pytest.approx(theta["visible_fraction"], abs=0.03)
-        unoccluded = render_theta({**theta, "visible_fraction": 1.0, "occluder": None}).mask
+        assert result.visible_fraction == pytest.approx(theta.visible_fraction, abs=0.03)
+        unoccluded = render_theta(theta.replace(visible_fraction=1.0, occluder=None)).mask
         assert not (result.mask & ~unoccluded).any()
         assert result.mask.sum() / unoccluded.sum() == pytest.approx(result.visible_fraction)
 
@@ -78,7 +77,7 @@ def test_background_fills_everything_outside_the_sheet():
     assets = load_assets()
     theta = one("fb", "canonical", seed=4)
     result = render_theta(theta, assets=assets)
-    background = assets.background(theta["background"], SIZE, np.random.default_rng(derive_seed(theta["seed"], 2)))
+    background = assets.background(theta.background, SIZE, np.random.default_rng(derive_seed(theta.seed, 2)))
     outside = ~cv2.dilate(result.mask.astype(np.uint8), None).astype(bool)  # beyond the soft edge
     assert np.array_equal(result.image[outside], background[outside])
     assert not np.array_equal(result.image[result.mask], background[result.mask])
@@ -133,9 +132,9 @@ def test_rejected_theta_is_resampled_deterministically_with_reasons():
         render_theta(theta)
     result, used, reasons = render_with_resample(theta)
     assert reasons and "outside the view" in reasons[0]
-    assert used["resample"] == len(reasons)
-    assert used["seed"] == derive_seed(theta["seed"], len(reasons))
-    assert used["object"] == theta["object"] and used["condition"] == "po"
+    assert used.resample == len(reasons)
+    assert used.seed == derive_seed(theta.seed, len(reasons))
+    assert used.object == theta.object and used.condition == "po"
     again, used_again, reasons_again = render_with_resample(theta)
     assert used_again == used and reasons_again == reasons
     assert again.image.tobytes() == result.image.tobytes()
@@ -149,11 +148,11 @@ def test_bad_requests_are_errors_not_rejections():
     with pytest.raises(ValueError, match="unknown backend 'povray'"):
         render_theta(theta, backend="povray")
     with pytest.raises(ValueError, match="label"):
-        render_theta({**theta, "label": (theta["label"] + 1) % 5})
+        render_theta(theta.replace(label=(theta.label + 1) % 5))
     with pytest.raises(AssetError, match="unknown object 'teapot'"):
-        render_theta({**theta, "object": "teapot"})
+        render_theta(theta.replace(object="teapot"))
     with pytest.raises(ValueError, match="occluder"):
-        render_theta({**one("eo", "easy"), "occluder": None})
+        render_theta(one("eo", "easy").replace(occluder=None))
 
 
 def test_blender_backend_is_reached_through_get_renderer(monkeypatch):
@@ -201,7 +200,7 @@ def test_user_asset_folders(tmp_path):
     assert tuple(rgb[15, 15]) == (255, 0, 0)
     theta = generate_parameters("eo", "medium", 1, seed=0, image_size=SIZE, assets=assets)[0]
     result = render_theta(theta, assets=assets)
-    assert result.visible_fraction == pytest.approx(theta["visible_fraction"], abs=0.05)
+    assert result.visible_fraction == pytest.approx(theta.visible_fraction, abs=0.05)
     assert load_assets(AssetsConfig(objects=tmp_path / "objects")) is load_assets(AssetsConfig(objects=tmp_path / "objects"))
 
 
