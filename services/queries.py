@@ -1,4 +1,9 @@
-"""Reads and writes of the experiment record shared by the CLI, the API and the report."""
+"""Reads and writes of the experiment record shared by the CLI, the API and the report.
+
+Reads that only the API serves return its schema models (:mod:`services.api.schemas`); those
+the CLI and the report share (summary, stages, history) return plain dictionaries of the same
+shape.
+"""
 
 from __future__ import annotations
 
@@ -18,6 +23,7 @@ from db.models import (
     StageStatus,
 )
 from foldwise.config import ExperimentConfig
+from services.api.schemas import EvaluationDetail, ExperimentListItem, ModelDetail, StageRef
 
 
 class NotFound(LookupError):
@@ -200,47 +206,47 @@ def summary(session: Session, experiment_id: int) -> dict[str, Any]:
     }
 
 
-def list_experiments(session: Session) -> list[dict[str, Any]]:
+def list_experiments(session: Session) -> list[ExperimentListItem]:
     return [
-        {
-            "id": e.id,
-            "name": e.name,
-            "status": e.status.value,
-            "created_at": _iso(e.created_at),
-            "finished_at": _iso(e.finished_at),
-        }
+        ExperimentListItem(
+            id=e.id,
+            name=e.name,
+            status=e.status,
+            created_at=_iso(e.created_at),
+            finished_at=_iso(e.finished_at),
+        )
         for e in session.scalars(select(Experiment).order_by(Experiment.id))
     ]
 
 
-def model_detail(session: Session, model_id: int) -> dict[str, Any]:
+def model_detail(session: Session, model_id: int) -> ModelDetail:
     model = session.get(Model, model_id)
     if model is None:
         raise NotFound(f"model {model_id} does not exist")
     stage = session.get(Stage, model.stage_id)
     evaluation = model.evaluation
-    return {
-        "id": model.id,
-        "experiment_id": model.experiment_id,
-        "stage": {"order": stage.order, "condition": stage.condition, "difficulty": stage.difficulty},
-        "k": model.increment,
-        "parent_id": model.parent_id,
-        "detector": model.detector,
-        "status": model.status.value,
-        "iterations": model.iterations,
-        "checkpoint_path": model.checkpoint_path,
-        "train_seconds": model.train_seconds,
-        "train_stats": model.train_stats,
-        "attempts": model.attempts,
-        "error": model.error,
-        "evaluation": (
-            {
-                "map": evaluation.map,
-                "map_unthresholded": evaluation.map_unthresholded,
-                "eval_seconds": evaluation.eval_seconds,
-                "details": evaluation.details,
-            }
+    return ModelDetail(
+        id=model.id,
+        experiment_id=model.experiment_id,
+        stage=StageRef(order=stage.order, condition=stage.condition, difficulty=stage.difficulty),
+        k=model.increment,
+        parent_id=model.parent_id,
+        detector=model.detector,
+        status=model.status,
+        iterations=model.iterations,
+        checkpoint_path=model.checkpoint_path,
+        train_seconds=model.train_seconds,
+        train_stats=model.train_stats,
+        attempts=model.attempts,
+        error=model.error,
+        evaluation=(
+            EvaluationDetail(
+                map=evaluation.map,
+                map_unthresholded=evaluation.map_unthresholded,
+                eval_seconds=evaluation.eval_seconds,
+                details=evaluation.details,
+            )
             if evaluation
             else None
         ),
-    }
+    )

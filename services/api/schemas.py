@@ -157,3 +157,13 @@ class QueueStatus(BaseModel):
 class BrokerDown(_Shape):
     detail: str
     broker: BrokerState | None = None
+
+
+# Error responses shared by the routes, for the OpenAPI document.
+NOT_FOUND: dict[int | str, dict[str, Any]] = {
+    404: {"model": ErrorDetail, "description": "no experiment or model with this id"}
+}
+WRITE_ERRORS: dict[int | str, dict[str, Any]] = {
+    401: {"model": ErrorDetail, "description": "missing or wrong token"},
+    403: {"model": ErrorDetail, "description": "no token is configured on the server (FOLDWISE_API_TOKEN)"},
+}

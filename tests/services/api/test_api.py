@@ -323,7 +323,10 @@ def test_responses_carry_the_query_results_unchanged(client, seeded, database_ur
         return value
 
     for path, result in expected.items():
-        assert settled(client.get(path).json()) == settled(json.loads(json.dumps(result))), path
+        plain = result.model_dump(mode="json") if hasattr(result, "model_dump") else result
+        if isinstance(plain, list):
+            plain = [item.model_dump(mode="json") if hasattr(item, "model_dump") else item for item in plain]
+        assert settled(client.get(path).json()) == settled(json.loads(json.dumps(plain))), path
 
 
 # --------------------------------------------------------------------------- creating
@@ -689,6 +692,98 @@ def test_queues_against_a_live_redis_with_a_worker(database_url, redis_url):
     assert busy["workers"] == ["render@api-test"]
     assert busy["queues"] == {"render": 3, "train": 1}
     broker.close()
+
+
+# --------------------------------------------------------------------------- dependency overrides
+
+
+class FakeBroker:
+    """Stands in for the broker probe: a Redis broker that answers with fixed depths and workers."""
+
+    skipped_reason = None
+    is_redis = True
+    display_url = "redis://fake:6379/0"
+    ping_timeout_s = 0.25
+
+    def __init__(self, workers=("render@a", "train@b"), down: bool = False) -> None:
+        self.workers, self.down = list(workers), down
+
+    def check(self):
+        return {"status": "error", "detail": "fake outage"} if self.down else {"status": "ok", "url": self.display_url}
+
+    def queue_depths(self, queues):
+        from services.api.probes import BrokerUnavailable
+
+        if self.down:
+            raise BrokerUnavailable("broker redis://fake:6379/0 is unreachable: fake outage")
+        return {"queues": {queue: 10 * (i + 1) for i, queue in enumerate(queues)}, "unacked": 2}
+
+    def ping_workers(self):
+        return self.workers
+
+
+def test_queues_reads_the_broker_it_is_given(client):
+    from services.api import deps
+
+    client.app.dependency_overrides[deps.get_broker] = FakeBroker
+    body = client.get("/queues").json()
+    assert body == {
+        "broker": {"status": "ok", "url": "redis://fake:6379/0"},
+        "queues": {"render": 10, "train": 20},
+        "unacked": 2,
+        "workers": ["render@a", "train@b"],
+        "ping_timeout_s": 0.25,
+    }
+    client.app.dependency_overrides[deps.get_broker] = lambda: FakeBroker(down=True)
+    down = client.get("/queues")
+    assert down.status_code == 503 and "fake outage" in down.json()["detail"]
+    assert client.get("/health").json()["status"] == "degraded"
+
+
+def test_health_is_503_when_the_schema_check_fails(client):
+    from services.api import deps
+
+    class Unmigrated:
+        def check(self, _session):
+            return {"status": "error", "revision": None, "detail": "run `foldwise db upgrade`"}
+
+    client.app.dependency_overrides[deps.get_schema_check] = Unmigrated
+    client.app.dependency_overrides[deps.get_broker] = FakeBroker
+    response = client.get("/health")
+    assert response.status_code == 503
+    assert response.json()["status"] == "error" and response.json()["broker"]["status"] == "ok"
+
+
+def test_the_token_comes_from_the_apps_settings(client, database_url):
+    from services.api import deps
+
+    client.app.dependency_overrides[deps.get_app_settings] = lambda: get_settings().model_copy(
+        update={"api_token": "overridden"}
+    )
+    assert client.post("/experiments", json={"name": "x"}, headers=AUTH).status_code == 401
+    created = client.post("/experiments", json={"name": "x"}, headers={"Authorization": "Bearer overridden"})
+    assert created.status_code == 201 and experiment_count(database_url) == 1
+
+
+def test_routes_use_the_session_they_are_given(client, seeded, database_url, tmp_path):
+    """Every route reads through the session dependency: another database behind it, another record."""
+    from services.api import deps
+
+    other = tmp_path / "other.db"
+    upgrade(f"sqlite:///{other}")
+
+    def other_session():
+        session = get_sessionmaker(f"sqlite:///{other}")()
+        try:
+            yield session
+        finally:
+            session.close()
+
+    assert len(client.get("/experiments").json()) == 2
+    client.app.dependency_overrides[deps.get_session] = other_session
+    assert client.get("/experiments").json() == []
+    assert client.get(f"/experiments/{seeded['experiment']}").status_code == 404
+    assert client.get(f"/models/{seeded['models'][0]}").status_code == 404
 
 
 # --------------------------------------------------------------------------- the module

@@ -1,0 +1,188 @@
+"""/experiments: list, create, read (summary, config, stages, history P) and cancel.
+
+The scheduler picks up an experiment created here on its next pass, so the API never enqueues
+work itself.
+"""
+
+import json
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
+
+from db.models import ExperimentStatus
+from foldwise.config import ConfigError, ExperimentConfig, parse_config, parse_config_text
+from services import queries
+from services.api.deps import ExperimentId, SessionDep, TokenRequired
+from services.api.schemas import (
+    NOT_FOUND,
+    WRITE_ERRORS,
+    ErrorDetail,
+    ExperimentListItem,
+    ExperimentSummary,
+    HistoryEntry,
+    StageSummary,
+)
+
+# An experiment config is a few kilobytes of YAML; anything this large is a mistake.
+MAX_CONFIG_BYTES = 1 << 20
+
+JSON_TYPES = frozenset({"application/json"})
+YAML_TYPES = frozenset({"application/yaml", "text/yaml", "application/x-yaml", "text/x-yaml"})
+ACCEPTED_TYPES = "application/json, application/yaml or text/yaml"
+
+LIVE_STATUSES = (ExperimentStatus.pending, ExperimentStatus.running)
+
+router = APIRouter(prefix="/experiments", tags=["experiments"])
+
+
+# --------------------------------------------------------------------------- the config body
+
+
+def _media_type(request: Request) -> str | None:
+    header = request.headers.get("content-type")
+    if not header:
+        return None
+    return header.split(";", 1)[0].strip().lower()
+
+
+def _reject_constant(name: str) -> None:
+    # Python's json accepts NaN and Infinity; JSON does not, and PostgreSQL's JSON columns refuse them.
+    raise ValueError(f"{name} is not a JSON number")
+
+
+async def read_config(request: Request) -> ExperimentConfig:
+    """The request body as a validated experiment config (JSON or YAML)."""
+    media_type = _media_type(request)
+    is_json = media_type in JSON_TYPES or (media_type or "").endswith("+json")
+    if not is_json and media_type not in YAML_TYPES:
+        raise HTTPException(
+            status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
+            f"unsupported content type {media_type or '(none)'}: send the experiment config as {ACCEPTED_TYPES}",
+        )
+    declared = request.headers.get("content-length")
+    if declared and declared.isdigit() and int(declared) > MAX_CONFIG_BYTES:
+        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"config larger than {MAX_CONFIG_BYTES} bytes")
+    body = await request.body()
+    if len(body) > MAX_CONFIG_BYTES:
+        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"config larger than {MAX_CONFIG_BYTES} bytes")
+    if not body.strip():
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "empty body: send an experiment config")
+    try:
+        document = body.decode("utf-8")
+    except UnicodeDecodeError as error:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"the body is not UTF-8 text: {error}") from None
+    try:
+        if is_json:
+            try:
+                data = json.loads(document, parse_constant=_reject_constant)
+            except (json.JSONDecodeError, ValueError) as error:
+                raise ConfigError(f"invalid experiment config: not JSON: {error}") from None
+            config = parse_config(data)
+        else:
+            config = parse_config_text(document)
+        return config
+    except ConfigError as error:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error)) from None
+
+
+ConfigBody = Annotated[ExperimentConfig, Depends(read_config)]
+
+# The body is read by hand (JSON or YAML), so its schema is documented by hand; the app adds
+# ExperimentConfig to the OpenAPI components (services.api.app.document_config_schema).
+CONFIG_BODY_DOC = {
+    "requestBody": {
+        "required": True,
+        "description": "An experiment config (the same document as `foldwise run CONFIG` reads).",
+        "content": {
+            "application/json": {"schema": {"$ref": "#/components/schemas/ExperimentConfig"}},
+            "application/yaml": {"schema": {"type": "string", "description": "the same config as YAML"}},
+            "text/yaml": {"schema": {"type": "string", "description": "the same config as YAML"}},
+        },
+    }
+}
+
+
+# --------------------------------------------------------------------------- routes
+
+
+@router.get("", response_model=list[ExperimentListItem])
+def list_experiments(
+    session: SessionDep,
+    status_filter: Annotated[ExperimentStatus | None, Query(alias="status")] = None,
+) -> list[ExperimentListItem]:
+    """Every experiment, oldest first; ``?status=running`` keeps one status."""
+    experiments = queries.list_experiments(session)
+    if status_filter is not None:
+        experiments = [e for e in experiments if e.status == status_filter]
+    return experiments
+
+
+@router.post(
+    "",
+    status_code=status.HTTP_201_CREATED,
+    response_model=ExperimentSummary,
+    dependencies=[TokenRequired],
+    openapi_extra=CONFIG_BODY_DOC,
+    responses={
+        **WRITE_ERRORS,
+        413: {"model": ErrorDetail, "description": "the body is larger than 1 MiB"},
+        415: {"model": ErrorDetail, "description": "not JSON or YAML"},
+        422: {"model": ErrorDetail, "description": "an invalid config; the message names the key"},
+    },
+)
+def create_experiment(request: Request, response: Response, session: SessionDep, config: ConfigBody) -> dict[str, Any]:
+    """Record a new experiment (status pending); the scheduler starts it on its next pass."""
+    experiment = queries.create_experiment(session, config)
+    session.commit()
+    response.headers["Location"] = request.scope.get("root_path", "") + request.app.url_path_for(
+        "experiment_summary", experiment_id=experiment.id
+    )
+    return queries.summary(session, experiment.id)
+
+
+@router.get("/{experiment_id}", name="experiment_summary", response_model=ExperimentSummary, responses=NOT_FOUND)
+def experiment_summary(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
+    """Status, current stage and k, counts of θ, ω and P, elapsed time, best model."""
+    return queries.summary(session, experiment_id)
+
+
+@router.get("/{experiment_id}/config", responses=NOT_FOUND)
+def experiment_config(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
+    """The experiment's config as recorded, every default filled in."""
+    return queries.get_experiment(session, experiment_id).config
+
+
+@router.post(
+    "/{experiment_id}/cancel",
+    response_model=ExperimentSummary,
+    dependencies=[TokenRequired],
+    responses={
+        **WRITE_ERRORS,
+        **NOT_FOUND,
+        409: {"model": ErrorDetail, "description": "the experiment has already ended"},
+    },
+)
+def cancel_experiment(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
+    """Cancel a pending or running experiment; 409 when it has already ended."""
+    experiment = queries.get_experiment(session, experiment_id)
+    if experiment.status not in LIVE_STATUSES:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            f"experiment {experiment_id} is already {experiment.status.value}: "
+            "only pending or running experiments can be cancelled",
+        )
+    queries.cancel_experiment(session, experiment_id)
+    session.commit()
+    return queries.summary(session, experiment_id)
+
+
+@router.get("/{experiment_id}/stages", response_model=list[StageSummary], responses=NOT_FOUND)
+def experiment_stages(experiment_id: ExperimentId, session: SessionDep) -> list[dict[str, Any]]:
+    """The curriculum's stages (c, δ) in order: status, increments, why each ended, best model."""
+    return queries.stages(session, experiment_id)
+
+
+@router.get("/{experiment_id}/history", response_model=list[HistoryEntry], responses=NOT_FOUND)
+def experiment_history(experiment_id: ExperimentId, session: SessionDep) -> list[dict[str, Any]]:
+    """P: one entry per evaluated model (c, δ, k, mAP, model id, wall time), in arrival order."""
+    return queries.history(session, experiment_id)
