@@ -49,6 +49,17 @@ class RenderConfig(_Section):
     batch_size: int = Field(default=8, ge=1, le=1000)
 
 
+class StageOverrides(_Section):
+    """Active-learning settings a mixed stage uses instead of the experiment's own."""
+
+    m: int | None = Field(default=None, ge=1)
+    t: int | None = Field(default=None, ge=1)
+    M: int | None = Field(default=None, ge=1)
+    N: int | None = Field(default=None, ge=1)
+    tau: float | None = Field(default=None, ge=0.0, le=1.0)
+    max_increments: int | None = Field(default=None, ge=1)
+
+
 class MixedStageConfig(_Section):
     """The mixed stage(s) that end a curriculum: each image draws several conditions at
     random difficulties up to the stage's (the paper's future work; foldwise.sampling)."""
@@ -61,6 +72,8 @@ class MixedStageConfig(_Section):
     draw_from: list[str] = Field(default_factory=list)
     # The share of its images that show no object at all.
     negatives: float = Field(default=0.1, ge=0.0, le=0.9)
+    # m, t, M, N, tau, max_increments for the mixed stages (unset: the experiment's).
+    active_learning: StageOverrides = StageOverrides()
 
     @model_validator(mode="after")
     def _known(self) -> "MixedStageConfig":
@@ -130,6 +143,19 @@ class ActiveLearningConfig(_Section):
     training_set: Literal["reset", "grow"] = "reset"
 
 
+class AugmentationConfig(_Section):
+    """Train-time augmentation (workers/train/augment.py): the probability of each transform
+    per image per step. Off by default: the paper trains without augmentation."""
+
+    enabled: bool = False
+    crop: float = Field(default=0.3, ge=0.0, le=1.0, description="random resized crop (35-100% of the area)")
+    photometric: float = Field(default=0.5, ge=0.0, le=1.0, description="brightness, contrast, saturation, hue")
+    grayscale: float = Field(default=0.05, ge=0.0, le=1.0)
+    blur: float = Field(default=0.1, ge=0.0, le=1.0, description="Gaussian blur, sigma 0.3-1.5 px")
+    noise: float = Field(default=0.2, ge=0.0, le=1.0, description="Gaussian noise, sigma 3% of full scale")
+    jpeg: float = Field(default=0.2, ge=0.0, le=1.0, description="JPEG at quality 20-90")
+
+
 class DetectorConfig(_Section):
     family: Literal["faster_rcnn", "fast_rcnn", "yolo"] = "faster_rcnn"
     backbone: str = "mobilenet_v3_large_fpn"
@@ -169,6 +195,7 @@ class DetectorConfig(_Section):
     # Detections returned per image, and the score below which none is returned.
     detections_per_image: int = Field(default=20, ge=1)
     box_score_threshold: float = Field(default=0.05, ge=0.0, lt=1.0)
+    augmentation: AugmentationConfig = AugmentationConfig()
 
     @field_validator("anchor_size_range")
     @classmethod
@@ -222,6 +249,16 @@ class ExperimentConfig(_Section):
         table = load_condition_table()
         codes = table.table3 if self.test_set.covers == "table3" else table.codes
         return [(c, d) for c in codes for d in table.difficulties]
+
+    def stage_active_learning(self, condition: str) -> ActiveLearningConfig:
+        """The active-learning settings of a stage of ``condition`` (a mixed stage's overrides applied)."""
+        from foldwise.theta import MIXED
+
+        mixed = self.curriculum.mixed
+        if condition != MIXED or mixed is None:
+            return self.active_learning
+        changes = mixed.active_learning.model_dump(exclude_none=True)
+        return self.active_learning.model_copy(update=changes) if changes else self.active_learning
 
     def mixed_draw(self):
         """How this experiment's mixed θ draw their conditions (foldwise.sampling.MixedDraw)."""

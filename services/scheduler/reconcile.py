@@ -195,13 +195,13 @@ def plan(s: Snapshot) -> list[Decision]:
         init = previous[-1].best_model_id if previous else None
         return decisions + [OpenStage(stage.id, init)]
 
-    al = s.config.active_learning
+    al = s.config.stage_active_learning(stage.condition)
     models = sorted((m for m in s.models if m.stage_id == stage.id), key=lambda m: m.increment)
     latest = models[-1] if models else None
     where = f"stage {stage.order} ({stage.condition}/{stage.difficulty})"
 
     def ensure_sampled(st: StageView, k: int) -> None:
-        if k <= al.max_increments and not s.counts(Split.train, st.id, k):
+        if k <= s.config.stage_active_learning(st.condition).max_increments and not s.counts(Split.train, st.id, k):
             decisions.append(SampleTraining(st.id, k))
 
     if latest is not None and latest.status == ModelStatus.failed:
@@ -390,7 +390,7 @@ def apply(
             case SampleTraining(stage_id, k):
                 stage = stages[stage_id]
                 seed = derive_seed(experiment.seed, 2, stage.order, k)
-                thetas = _sample(config, stage.condition, stage.difficulty, config.active_learning.m, seed)
+                thetas = _sample(config, stage.condition, stage.difficulty, config.stage_active_learning(stage.condition).m, seed)
                 session.add_all(
                     ParameterSet(
                         experiment_id=experiment.id,
@@ -424,7 +424,7 @@ def apply(
                     increment=k,
                     parent_id=parent_id,
                     detector=config.detector.family,
-                    iterations=config.active_learning.t,
+                    iterations=config.stage_active_learning(stages[stage_id].condition).t,
                     status=ModelStatus.pending,
                 )
                 session.add(model)

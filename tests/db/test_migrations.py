@@ -1,5 +1,6 @@
-"""Migrations: upgrade, downgrade and upgrade again; the schema matches the models."""
+"""Migrations: upgrade, downgrade and upgrade again; the schema matches the models; data moves."""
 
+import json
 import os
 import uuid
 
@@ -44,3 +45,27 @@ def test_postgresql():
         connection.execute(text(f'DROP DATABASE "{name}" WITH (FORCE)'))
         connection.close()
         admin.dispose()
+
+
+def test_rows_rendered_before_objects_per_image_get_their_one_target(tmp_path):
+    url = f"sqlite:///{tmp_path / 'old.db'}"
+    upgrade(url, revision="0001")
+    engine = create_engine(url)
+    theta = {"condition": "fb", "difficulty": "easy", "object": "coffee", "seed": 1}
+    with engine.begin() as connection:
+        connection.execute(text(
+            "INSERT INTO experiments (id, name, config, seed, status, created_at) VALUES (1, 'old', '{}', 0, 'finished', '2026-01-01')"
+        ))
+        for row_id, box in ((1, "[1.0, 2.0, 30.0, 40.0]"), (2, "null")):
+            connection.execute(text(
+                "INSERT INTO parameter_sets (id, experiment_id, key, split, \"index\", condition, difficulty, seed, theta, status, label, box, amodal_box, visible_fraction) "
+                f"VALUES ({row_id}, 1, 'test/fb/easy/{row_id}', 'test', {row_id}, 'fb', 'easy', 1, :theta, 'rendered', 1, '{box}', '{box}', 0.75)"
+            ), {"theta": json.dumps(theta)})
+    upgrade(url)
+    with engine.connect() as connection:
+        rows = dict(connection.execute(text("SELECT id, objects FROM parameter_sets ORDER BY id")).all())
+    engine.dispose()
+    assert json.loads(rows[1]) == [
+        {"object": "coffee", "label": 1, "box": [1.0, 2.0, 30.0, 40.0], "amodal_box": [1.0, 2.0, 30.0, 40.0], "visible_fraction": 0.75}
+    ]
+    assert rows[2] is None or json.loads(rows[2]) is None

@@ -67,3 +67,42 @@ def test_json_is_accepted_as_yaml():
 def test_config_round_trips_through_json():
     config = load_config(REPO_ROOT / "configs/smoke.yaml")
     assert parse_config(config.model_dump(mode="json")) == config
+
+
+def test_a_mixed_stage_ends_the_curriculum_with_its_own_settings():
+    config = load_config(REPO_ROOT / "configs/quick.yaml")
+    stages = config.stage_order()
+    assert stages[:21] == [(c, d) for c in ("fb", "mb", "po", "de", "eo", "sc", "li") for d in ("easy", "medium", "hard")]
+    assert stages[21:] == [("mixed", "hard")]
+    assert ("mixed", "hard") in config.test_pairs()
+    mixed = config.stage_active_learning("mixed")
+    assert (mixed.m, mixed.t, mixed.max_increments) == (120, 120, 6)
+    assert mixed.tau == config.active_learning.tau  # not overridden: the experiment's
+    assert config.stage_active_learning("fb") == config.active_learning
+    draw = config.mixed_draw()
+    assert draw.conditions_per_image == (2, 4) and draw.negatives == 0.1 and draw.draw_from == ()
+
+
+@pytest.mark.parametrize(
+    ("mixed", "key"),
+    [
+        ({"conditions_per_image": [3, 2]}, "conditions_per_image: needs 1 <= low <= high"),
+        ({"conditions_per_image": [1, 40]}, "only 17 to draw from"),
+        ({"draw_from": ["fb", "zz"]}, "draw_from[1]: unknown condition 'zz'"),
+        ({"difficulties": ["brutal"]}, "unknown difficulty 'brutal'"),
+        ({"negatives": 0.95}, "curriculum.mixed.negatives"),
+        ({"active_learning": {"t": 0}}, "curriculum.mixed.active_learning.t"),
+        ({"active_learning": {"q": 1}}, "curriculum.mixed.active_learning.q: unknown key"),
+    ],
+)
+def test_bad_mixed_stages_name_the_key(mixed, key):
+    with pytest.raises(ConfigError) as caught:
+        parse_config({"name": "x", "curriculum": {"mixed": mixed}})
+    assert key in str(caught.value)
+
+
+def test_covers_table3_all_and_curriculum():
+    base = {"name": "x", "curriculum": {"conditions": ["fb"], "difficulties": ["easy"], "mixed": {}}}
+    pairs = {covers: parse_config({**base, "test_set": {"covers": covers}}).test_pairs() for covers in ("table3", "all", "curriculum")}
+    assert len(pairs["table3"]) == 21 and len(pairs["all"]) == 51
+    assert pairs["curriculum"] == [("fb", "easy"), ("mixed", "hard")]

@@ -67,3 +67,38 @@ def test_smoke_run_records_everything(database, tmp_path):
     assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
     assert len(rows) == len(evaluations)
     assert float(rows[-1]["cumulative_train_seconds"]) > 0
+
+
+def test_a_mixed_stage_records_every_object_and_trains_on_images_without_one(database, tmp_path):
+    import yaml
+
+    from services.cli import _register_worker_commands, app
+
+    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
+    config["name"] = "smoke-mixed"
+    config["curriculum"] = {
+        "conditions": ["fb"],
+        "difficulties": ["easy"],
+        "mixed": {"conditions_per_image": [2, 2], "draw_from": ["mo", "cl", "or"], "negatives": 0.4},
+    }
+    path = tmp_path / "mixed.yaml"
+    path.write_text(yaml.safe_dump(config))
+    _register_worker_commands()
+    result = CliRunner().invoke(app, ["run", str(path), "--report-dir", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert "mixed" in result.output
+
+    with session_scope() as session:
+        stages = session.scalars(select(Stage).order_by(Stage.order)).all()
+        assert [(s.condition, s.difficulty) for s in stages] == [("fb", "easy"), ("mixed", "hard")]
+        mixed = session.scalars(select(ParameterSet).where(ParameterSet.condition == "mixed")).all()
+        assert mixed and all(t.status == RenderStatus.rendered for t in mixed)
+        counts = [len(t.objects) for t in mixed]
+        assert 0 in counts and max(counts) >= 2  # images without the object, and with several
+        for theta in mixed:
+            assert len(theta.theta["components"]) == 2
+            assert (theta.box is None) == (theta.objects == [])
+            if theta.objects:
+                assert theta.objects[0]["box"] == theta.box and theta.objects[0]["label"] == theta.label
+        evaluation = session.scalars(select(Evaluation).order_by(Evaluation.id.desc())).first()
+        assert "mixed/hard" in evaluation.details["breakdown"]["condition/difficulty"]

@@ -171,14 +171,16 @@ def _shading(theta: Theta, scene, mesh_size, rng_lights, rng_wrinkles, rng_shado
     from workers.render import lighting
     from workers.render.camera import sheet_rotation
 
-    lights, ambient = lighting.light_rig(theta, rng_lights)
+    lights, ambient = lighting.light_rig(theta, rng_lights) if _uses_light_rig(theta) else (None, (0.0, 0.0, 0.0))
     if theta.specular > 0 and lights is not None:
         centre = -scene.camera.R.T @ scene.camera.t
         towards = lighting.highlight_direction(scene.vertices, scene.faces, centre, rng_lights)
         if towards is not None:
             lights = (dataclasses.replace(lights[0], direction=towards),) + lights[1:]
     shared = {"lights": lights, "ambient": ambient, "specular": float(theta.specular), "roughness": float(theta.roughness)}
-    normal_map = lighting.wrinkle_normal_map(theta.wrinkles, theta.wrinkle_depth, *mesh_size, rng_wrinkles)
+    normal_map = None
+    if theta.wrinkles and theta.wrinkle_depth:
+        normal_map = lighting.wrinkle_normal_map(theta.wrinkles, theta.wrinkle_depth, *mesh_size, rng_wrinkles)
     shadow = None
     if theta.shadow > 0:
         key = scene.light_list()[0] if lights is None else lights[0]
@@ -187,11 +189,12 @@ def _shading(theta: Theta, scene, mesh_size, rng_lights, rng_wrinkles, rng_shado
     return dataclasses.replace(scene, normal_map=normal_map, shadow=shadow, **shared), shared
 
 
+def _uses_light_rig(theta: Theta) -> bool:
+    return bool(theta.light_count != 1 or theta.light_saturation or theta.light_spread or theta.ambient or theta.specular)
+
+
 def _uses_lighting(theta: Theta) -> bool:
-    return bool(
-        theta.light_count != 1 or theta.light_saturation or theta.light_spread or theta.ambient
-        or theta.specular or (theta.wrinkles and theta.wrinkle_depth) or theta.shadow
-    )  # fmt: skip
+    return _uses_light_rig(theta) or bool((theta.wrinkles and theta.wrinkle_depth) or theta.shadow)
 
 
 def _sheet_scene(placement, mesh, texture, camera, shared: dict, image_size: int, irradiance: float):

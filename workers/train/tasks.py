@@ -127,6 +127,7 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
         ).all()
         seed = derive_seed(experiment.seed, 7, stage.order, model.increment)
         relative = store.checkpoint_path(experiment.id, model.id)
+        iterations = model.iterations  # t of this stage (a mixed stage may have its own)
 
     try:
         if not train_rows:
@@ -135,7 +136,7 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
         stats = train_detector(
             _samples(train_rows),
             init=parent_path,
-            iterations=config.active_learning.t,
+            iterations=iterations,
             config=config.detector,
             classes=classes,
             out=store.resolve(relative),

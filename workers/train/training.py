@@ -32,6 +32,7 @@ from workers.train.checkpoint import (
     save_checkpoint,
     torch_threads,
 )
+from workers.train.augment import augmented, build_augmentation
 from workers.train.data import Sample, read_image_rgb, validate_box
 
 # Warm-up starts at this fraction of the learning rate (torchvision's references use 0.001).
@@ -207,6 +208,7 @@ def _train(
         parameters, lr=config.learning_rate, momentum=config.momentum, weight_decay=config.weight_decay
     )
     targets = [sample_target(sample, device) for sample in samples]
+    transform = build_augmentation(config.augmentation, (config.input_size, config.input_size))
     batches = sample_batches(len(samples), iterations, config.batch_size, seed) if iterations else np.zeros((0, 0), int)
 
     # The sampling inside the model (RPN and RoI minibatches) draws from torch's generator:
@@ -225,9 +227,12 @@ def _train(
             group["lr"] = lr
         batch = batches[step]
         buffers_before = [buffer.detach().clone() for buffer in model.buffers()]
-        loss_terms = compute_losses(
-            model, [image_tensor(images[i], device) for i in batch], [targets[i] for i in batch]
-        )
+        if transform is None:
+            batch_images, batch_targets = [image_tensor(images[i], device) for i in batch], [targets[i] for i in batch]
+        else:
+            pairs = [augmented(transform, images[i], samples[i].boxes, samples[i].labels, device) for i in batch]
+            batch_images, batch_targets = [p[0] for p in pairs], [p[1] for p in pairs]
+        loss_terms = compute_losses(model, batch_images, batch_targets)
         loss = sum(loss_terms.values())
         reason = None
         if not torch.isfinite(loss):

@@ -1,0 +1,103 @@
+"""Train-time augmentation: off by default and in the paper's config, box-aware, seeded,
+recorded in the checkpoint, and a training step actually sees augmented images."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from foldwise.config import AugmentationConfig, load_config
+from foldwise.settings import REPO_ROOT
+from workers.train import training
+from workers.train.augment import augmented, build_augmentation
+from workers.train.checkpoint import read_checkpoint
+from workers.train.training import train_detector
+
+from test_training import CLASSES, config, synthetic_samples  # noqa: E402  (tests/workers/train is on sys.path)
+
+torch.set_num_threads(1)
+CPU = torch.device("cpu")
+
+
+def _image(size=64, seed=0):
+    return np.random.default_rng(seed).integers(0, 256, (size, size, 3)).astype(np.uint8)
+
+
+def test_off_by_default_and_in_the_papers_config_on_in_quick():
+    assert build_augmentation(AugmentationConfig(), (64, 64)) is None
+    assert not load_config(REPO_ROOT / "configs/paper.yaml").detector.augmentation.enabled
+    assert load_config(REPO_ROOT / "configs/quick.yaml").detector.augmentation.enabled
+
+
+def test_boxes_follow_the_crop_and_a_box_cut_away_is_dropped_with_its_label():
+    transform = build_augmentation(AugmentationConfig(enabled=True, crop=1.0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0), (64, 64))
+    image = np.zeros((64, 64, 3), np.uint8)
+    image[10:30, 20:50] = 255  # a white box: wherever the crop puts it, the box must frame it
+    boxes = np.array([[20, 10, 50, 30]], np.float32)
+    kept = 0
+    for seed in range(40):
+        torch.manual_seed(seed)
+        out, target = augmented(transform, image, boxes, np.array([1]), CPU)
+        assert out.shape == (3, 64, 64) and out.dtype == torch.float32
+        if len(target["boxes"]) == 0:
+            continue
+        kept += 1
+        x0, y0, x1, y1 = target["boxes"][0].tolist()
+        white = out.mean(0) > 0.5
+        rows, cols = np.flatnonzero(white.any(1).numpy()), np.flatnonzero(white.any(0).numpy())
+        assert abs(cols[0] - x0) <= 1.5 and abs(cols[-1] + 1 - x1) <= 1.5
+        assert abs(rows[0] - y0) <= 1.5 and abs(rows[-1] + 1 - y1) <= 1.5
+        assert target["labels"].tolist() == [2]  # 0-based 1 -> torchvision's 1-based 2
+    assert 10 < kept <= 40
+
+
+def test_photometric_steps_change_pixels_not_boxes_and_the_seed_fixes_them():
+    transform = build_augmentation(AugmentationConfig(enabled=True, crop=0, photometric=1, blur=1, noise=1, jpeg=1), (64, 64))
+    boxes = np.array([[5, 5, 40, 40]], np.float32)
+    outputs = []
+    for seed in (3, 3, 4):
+        torch.manual_seed(seed)
+        out, target = augmented(transform, _image(), boxes, np.array([0]), CPU)
+        assert target["boxes"].tolist() == boxes.tolist()
+        outputs.append(out)
+    plain = torch.from_numpy(_image()).permute(2, 0, 1).float() / 255
+    assert not torch.allclose(outputs[0], plain, atol=0.02)
+    assert torch.equal(outputs[0], outputs[1]) and not torch.equal(outputs[0], outputs[2])
+
+
+def test_an_image_without_objects_passes_through():
+    transform = build_augmentation(AugmentationConfig(enabled=True, crop=1.0), (64, 64))
+    out, target = augmented(transform, _image(), np.zeros((0, 4), np.float32), np.zeros(0, np.int64), CPU)
+    assert out.shape == (3, 64, 64) and target["boxes"].shape == (0, 4) and len(target["labels"]) == 0
+
+
+def test_training_sees_augmented_batches_is_seeded_and_records_the_settings(tmp_path, monkeypatch):
+    samples = synthetic_samples(tmp_path / "images")
+    augment = AugmentationConfig(enabled=True, crop=0.5, photometric=1.0)
+    seen = []
+    original = training.compute_losses
+
+    def spy(model, images, targets):
+        seen.append(images[0].clone())
+        return original(model, images, targets)
+
+    monkeypatch.setattr(training, "compute_losses", spy)
+    runs = [
+        train_detector(samples, None, 2, config(augmentation=augment), CLASSES, tmp_path / f"{name}.pt", seed=5)
+        for name in ("a", "b")
+    ]
+    assert runs[0].losses == runs[1].losses
+    assert torch.equal(seen[0], seen[2])  # the same seed, the same augmented first batch
+    plain = [training.image_tensor(training.read_image_rgb(s.image_path), CPU) for s in samples]
+    assert not any(torch.equal(seen[0], p) for p in plain)
+    meta = read_checkpoint(tmp_path / "a.pt")["meta"]
+    assert meta["config"]["augmentation"] == augment.model_dump(mode="json")
+
+
+@pytest.mark.parametrize("bad", [{"crop": 1.5}, {"noise": -0.1}, {"flip": 0.5}])
+def test_bad_settings_name_the_key(bad):
+    from pydantic import ValidationError
+
+    with pytest.raises(ValidationError, match=next(iter(bad))):
+        AugmentationConfig(enabled=True, **bad)

@@ -1,0 +1,106 @@
+"""Train-time augmentation: box-aware image transforms (torchvision.transforms.v2), per step.
+
+Rendering already varies everything the scene holds (pose, light, clutter, lens, noise); these
+transforms vary the same rendered image a little further each time it is drawn into a batch,
+at no render cost: a random resized crop (objects larger and cut by the frame), photometric
+distortion (brightness, contrast, saturation, hue), greyscale, Gaussian blur, sensor noise and
+JPEG, each applied with its own probability (``DetectorConfig.augmentation``). No flip and no
+rotation: a mirrored print is not the object (foldwise detects one particular texture), and a
+rotated axis-aligned box is looser than the object's (the renderer rotates the sheet instead).
+
+Boxes follow the crop and are clipped to it; a box left thinner than ``MIN_BOX_SIDE`` pixels
+is dropped with its label (``SanitizeBoundingBoxes``). The randomness comes from torch's
+generator, which ``train_detector`` seeds: the same seed gives the same augmented batches.
+Off by default (the paper trains without augmentation); the settings are recorded in every
+checkpoint's metadata with the rest of the detector config.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+from torch import Tensor
+
+if TYPE_CHECKING:
+    from foldwise.config import AugmentationConfig
+
+MIN_BOX_SIDE = 2.0
+# The random resized crop keeps this share of the image area at least, at an aspect ratio
+# within this range (the output keeps the input's size).
+CROP_SCALE = (0.35, 1.0)
+CROP_RATIO = (3 / 4, 4 / 3)
+BLUR_SIGMA = (0.3, 1.5)
+NOISE_SIGMA = 0.03  # of full scale, on images in 0..1
+JPEG_QUALITY = (20, 90)
+
+
+def build_augmentation(config: AugmentationConfig, crop_size: tuple[int, int]):
+    """A v2 transform of (image uint8 (3, H, W), {"boxes": BoundingBoxes, "labels"}), or None
+    when augmentation is off. A crop comes out at ``crop_size`` (the detector's input size,
+    which every image is resized to anyway)."""
+    if not config.enabled:
+        return None
+    from torchvision.transforms import v2
+
+    steps = []
+    if config.crop > 0:
+        crop = v2.RandomResizedCrop(crop_size, scale=CROP_SCALE, ratio=CROP_RATIO, antialias=True)
+        steps.append(v2.RandomApply([crop], p=config.crop))
+    if config.photometric > 0:
+        steps.append(v2.RandomPhotometricDistort(p=config.photometric))
+    if config.grayscale > 0:
+        steps.append(v2.RandomGrayscale(p=config.grayscale))
+    if config.blur > 0:
+        steps.append(v2.RandomApply([v2.GaussianBlur(kernel_size=5, sigma=BLUR_SIGMA)], p=config.blur))
+    if config.jpeg > 0:
+        steps.append(v2.RandomApply([_jpeg_transform()], p=config.jpeg))
+    steps.append(v2.ToDtype(torch.float32, scale=True))
+    if config.noise > 0:
+        steps.append(v2.RandomApply([v2.GaussianNoise(sigma=NOISE_SIGMA, clip=True)], p=config.noise))
+    steps.append(v2.SanitizeBoundingBoxes(min_size=MIN_BOX_SIDE))
+    return v2.Compose(steps)
+
+
+def _jpeg_transform():
+    """JPEG at a quality drawn uniformly from JPEG_QUALITY, through OpenCV's libjpeg (the same
+    codec as the renderer's sensor stage; torchvision's own JPEG coder is deprecated)."""
+    import cv2
+    from torchvision import tv_tensors
+    from torchvision.transforms import v2
+
+    class OpenCVJpeg(v2.Transform):
+        def make_params(self, flat_inputs):
+            low, high = JPEG_QUALITY
+            return {"quality": int(torch.randint(low, high + 1, ()).item())}
+
+        def transform(self, inpt, params):
+            if not isinstance(inpt, tv_tensors.Image):
+                return inpt
+            array = inpt.permute(1, 2, 0).contiguous().numpy()
+            ok, encoded = cv2.imencode(".jpg", array[:, :, ::-1], [cv2.IMWRITE_JPEG_QUALITY, params["quality"]])
+            decoded = cv2.imdecode(encoded, cv2.IMREAD_COLOR)[:, :, ::-1]
+            return tv_tensors.wrap(torch.from_numpy(np.ascontiguousarray(decoded)).permute(2, 0, 1), like=inpt)
+
+    return OpenCVJpeg()
+
+
+def augmented(transform, image: np.ndarray, boxes: np.ndarray, labels: np.ndarray, device: torch.device) -> tuple[Tensor, dict[str, Tensor]]:
+    """One sample through ``transform``: the image as a float tensor in 0..1 and its
+    torchvision target (labels 1-based)."""
+    from torchvision import tv_tensors
+
+    height, width = image.shape[:2]
+    tensor = tv_tensors.Image(torch.from_numpy(image).permute(2, 0, 1).contiguous())
+    target = {
+        "boxes": tv_tensors.BoundingBoxes(
+            torch.as_tensor(boxes, dtype=torch.float32).reshape(-1, 4), format="XYXY", canvas_size=(height, width)
+        ),
+        "labels": torch.as_tensor(labels, dtype=torch.int64).reshape(-1) + 1,
+    }
+    out_image, out_target = transform(tensor, target)
+    return (
+        out_image.as_subclass(Tensor).to(device),
+        {"boxes": out_target["boxes"].as_subclass(Tensor).to(device), "labels": out_target["labels"].to(device)},
+    )
