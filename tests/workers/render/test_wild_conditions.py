@@ -297,3 +297,25 @@ def test_extremes_that_must_hold_an_object_do():
         for seed in range(4):
             result, _, reasons = valid_or_resampled(one(condition, "hard", seed=seed))
             assert result.objects, (condition, seed, reasons)
+
+
+@pytest.mark.parametrize("condition", ["po", "de", "sc"])
+def test_per_pixel_shading_equals_per_face_shading_under_the_papers_light(condition):
+    import dataclasses
+
+    from workers.render.assets import load_assets
+    from workers.render.camera import build_scene
+    from workers.render.scene import Light
+
+    theta = one(condition, "hard", seed=5)
+    texture = load_assets().texture(theta.object)
+    mesh, _ = pipeline._sheet_mesh(theta.rulings, theta.smooth_steps, pipeline._rng(theta, pipeline._SHEET), texture)
+    scene = build_scene(
+        mesh.vertices, mesh.faces, mesh.uv, texture, image_size=SIZE, roll=theta.roll, pitch=theta.pitch,
+        yaw=theta.yaw, scale=theta.scale, offset_m=theta.position_offset_m, offset_angle=theta.position_offset_angle,
+    )  # fmt: skip
+    per_face = raster.render_scene(scene)
+    per_pixel = raster.render_scene(dataclasses.replace(scene, lights=(Light(scene.light_direction, scene.irradiance),)))
+    assert not dataclasses.replace(scene, lights=(Light(scene.light_direction, 1.0),)).plain
+    assert np.array_equal(per_face.mask, per_pixel.mask)
+    assert np.abs(per_face.rgb - per_pixel.rgb)[per_face.mask].max() < 1e-4
