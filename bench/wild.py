@@ -1,0 +1,710 @@
+"""Out-of-domain benchmark: does the detector foldwise trains find the object in images foldwise did not render?
+
+Trains with a config (default ``configs/quick.yaml``, as ``make run`` does) or takes a
+checkpoint, then scores the model, under the paper's protocol (score ≥ 0.8, IoU 0.5) and
+unthresholded, on two sets:
+
+* **in-domain**: foldwise's own renders, every (condition, difficulty) of the config's
+  curriculum plus its mixed stage, drawn by ``foldwise.sampling`` and rendered by the config's
+  backend (the standard test set's recipe, with a seed of its own);
+* **out-of-domain**: a scene this file builds in Blender (Cycles) that no training path uses.
+  Nothing of foldwise's θ, camera, sheet model, lighting, compositing or imaging code is
+  called: the sheet lies on a textured ground in a 3D world and is bent by a cylindrical curl
+  of its own (not foldwise's ruling model); a principled BSDF with a glossy coat; a sun of
+  random colour, height and softness casting real shadows, a sky or coloured ambient world
+  light, sometimes a point light; a camera anywhere on the upper hemisphere with a focal length
+  from 8° to 100° of field of view (beyond the training range at both ends), the sheet filling
+  from a tenth to more than the whole frame, partly outside it; primitives and sheets of
+  other photographs as clutter, beside the target, over it, and casting shadows on it; a
+  second target; Blender's own tone mapping (Standard or AgX) and exposure; sensor noise and
+  JPEG at random quality; 10% images without the object; 4:3 frames. Boxes are the visible
+  extent of each target, read from an object-index render (one sample, no pixel filter).
+
+The set is written as a COCO folder (``--ood-dir``) and reused when its recipe is unchanged.
+It is a proxy for photographs, made by independent code; it is not the held-out set that
+scores foldwise's landings, and nothing in foldwise is tuned to it.
+
+    python bench/wild.py                                  # train configs/quick.yaml, then score
+    python bench/wild.py --model var/.../model.pt         # score a checkpoint
+    python bench/wild.py --model M.pt --n-ood 300 --out bench/results/wild.json
+
+JSON out: both mAPs, their ratio (the goal is ≥ 0.8), the out-of-domain breakdown by scene
+kind (negatives, small / medium / large / frame-filling sheets, occluded, several targets),
+the time each part took and the machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:  # run as a script from anywhere
+    sys.path.insert(0, str(ROOT))
+
+RECIPE_VERSION = 1
+# Photographs for clutter sheets: none of them is one of the five default object textures.
+CLUTTER_PHOTOS = ("stereo_motorcycle", "immunohistochemistry", "retina", "colorwheel", "coins", "page", "camera", "moon")
+GROUND_PHOTOS = ("brick", "grass", "gravel", "hubble_deep_field", "moon")
+
+
+@dataclass(frozen=True)
+class OodRecipe:
+    """Everything that decides the out-of-domain set's bytes (its hash names the cache)."""
+
+    n: int = 200
+    width: int = 320
+    height: int = 240
+    samples: int = 24
+    seed: int = 2026
+    negatives: float = 0.1
+    classes: tuple[str, ...] = ()
+
+    def key(self) -> str:
+        payload = json.dumps({"version": RECIPE_VERSION, **asdict(self)}, sort_keys=True)
+        return hashlib.sha256(payload.encode()).hexdigest()[:16]
+
+
+# --------------------------------------------------------------------------- geometry
+
+
+def curled_sheet(width: float, height: float, rng: np.random.Generator, cells: int = 24):
+    """A flat sheet (z = 0, centred) with a cylindrical curl: isometric, unlike foldwise's rulings.
+
+    The sheet is flat up to a line across it (random direction and offset), then wraps around
+    a cylinder of radius ``r`` tangent there: arc length along the sheet is kept, so the curl
+    is developable. Returns vertices (N, 3), quad faces and UVs.
+    """
+    xs = np.linspace(-width / 2, width / 2, cells + 1)
+    ys = np.linspace(-height / 2, height / 2, cells + 1)
+    grid_x, grid_y = np.meshgrid(xs, ys)
+    points = np.stack([grid_x.ravel(), grid_y.ravel()], axis=1)
+    angle = rng.uniform(0, 2 * math.pi)
+    direction = np.array([math.cos(angle), math.sin(angle)])
+    along = points @ direction
+    start = rng.uniform(-0.4, 0.3) * (abs(direction[0]) * width + abs(direction[1]) * height)
+    radius = rng.uniform(0.12, 0.8) * max(width, height)
+    if rng.random() < 0.2:  # a flat sheet now and then
+        radius = 1e9
+    beyond = np.maximum(along - start, 0.0)
+    theta = beyond / radius
+    lifted_along = np.where(along > start, start + radius * np.sin(theta), along)
+    z = np.where(along > start, radius * (1 - np.cos(theta)), 0.0)
+    xy = points + np.outer(lifted_along - along, direction)
+    vertices = np.column_stack([xy, z])
+    faces = []
+    for row in range(cells):
+        for col in range(cells):
+            a = row * (cells + 1) + col
+            faces.append((a, a + 1, a + cells + 2, a + cells + 1))
+    uvs = np.column_stack([(grid_x.ravel() + width / 2) / width, (grid_y.ravel() + height / 2) / height])
+    return vertices, faces, uvs
+
+
+def look_at(location: np.ndarray, target: np.ndarray, roll: float) -> np.ndarray:
+    """Blender camera rotation matrix (camera looks down −z, y up) from a location and a target."""
+    forward = target - location
+    forward = forward / np.linalg.norm(forward)
+    up_hint = np.array([0.0, 0.0, 1.0]) if abs(forward[2]) < 0.99 else np.array([0.0, 1.0, 0.0])
+    right = np.cross(forward, up_hint)
+    right /= np.linalg.norm(right)
+    up = np.cross(right, forward)
+    c, s = math.cos(roll), math.sin(roll)
+    right, up = c * right + s * up, -s * right + c * up
+    return np.column_stack([right, up, -forward])
+
+
+# --------------------------------------------------------------------------- the Blender scene
+
+
+class OodScene:
+    """One bpy scene, rebuilt per image from a seed: its own objects, materials and lights."""
+
+    def __init__(self, textures: dict[str, np.ndarray], recipe: OodRecipe):
+        from workers.render.blender import _import_bpy  # the import check only; no foldwise scene is used
+
+        self.bpy = _import_bpy()
+        self.recipe = recipe
+        self.textures = textures
+        self.tmp = Path(tempfile.mkdtemp(prefix="foldwise-wild-"))
+        self._images: dict[str, object] = {}
+        self.scene = None
+
+    # -- datablocks
+    def _image(self, name: str, pixels: np.ndarray):
+        if name in self._images:
+            return self._images[name]
+        height, width = pixels.shape[:2]
+        image = self.bpy.data.images.new(f"wild-{name}", width, height, alpha=True)
+        # The colour space first: changing it regenerates a generated image (to black).
+        image.colorspace_settings.name = "sRGB"
+        rgba = np.ones((height, width, 4), dtype=np.float32)
+        rgba[..., :3] = pixels[..., :3] / 255.0
+        image.pixels.foreach_set(rgba[::-1].ravel())
+        image.update()
+        self._images[name] = image
+        return image
+
+    def _material(self, name: str, rng, image=None, colour=None, procedural: str | None = None, gloss: bool = True):
+        bpy = self.bpy
+        material = bpy.data.materials.new(name)
+        if material.node_tree is None:
+            material.use_nodes = True
+        nodes, links = material.node_tree.nodes, material.node_tree.links
+        nodes.clear()
+        bsdf = nodes.new("ShaderNodeBsdfPrincipled")
+        bsdf.inputs["Roughness"].default_value = float(rng.uniform(0.15, 0.8) if gloss else rng.uniform(0.6, 1.0))
+        if "Coat Weight" in bsdf.inputs and gloss and rng.random() < 0.4:
+            bsdf.inputs["Coat Weight"].default_value = float(rng.uniform(0.2, 1.0))
+            bsdf.inputs["Coat Roughness"].default_value = float(rng.uniform(0.02, 0.2))
+        output = nodes.new("ShaderNodeOutputMaterial")
+        if image is not None:
+            texture = nodes.new("ShaderNodeTexImage")
+            texture.image = image
+            texture.extension = "EXTEND"
+            links.new(texture.outputs["Color"], bsdf.inputs["Base Color"])
+        elif procedural is not None:
+            kind = {
+                "noise": "ShaderNodeTexNoise",
+                "voronoi": "ShaderNodeTexVoronoi",
+                "wave": "ShaderNodeTexWave",
+                "checker": "ShaderNodeTexChecker",
+                "brick": "ShaderNodeTexBrick",
+                "magic": "ShaderNodeTexMagic",
+            }[procedural]
+            texture = nodes.new(kind)
+            if "Scale" in texture.inputs:
+                texture.inputs["Scale"].default_value = float(rng.uniform(2, 30))
+            ramp = nodes.new("ShaderNodeValToRGB")
+            elements = ramp.color_ramp.elements
+            for element in elements:
+                element.color = (*rng.uniform(0, 1, 3), 1.0)
+            elements[0].position, elements[1].position = sorted(rng.uniform(0, 1, 2))
+            source = texture.outputs["Fac"] if "Fac" in texture.outputs else texture.outputs[0]
+            links.new(source, ramp.inputs["Fac"])
+            links.new(ramp.outputs["Color"], bsdf.inputs["Base Color"])
+        else:
+            bsdf.inputs["Base Color"].default_value = (*(colour if colour is not None else rng.uniform(0, 1, 3)), 1.0)
+        links.new(bsdf.outputs["BSDF"], output.inputs["Surface"])
+        return material
+
+    def _mesh_object(self, name: str, vertices, faces, uvs=None, material=None):
+        bpy = self.bpy
+        mesh = bpy.data.meshes.new(name)
+        mesh.from_pydata([tuple(v) for v in vertices], [], [tuple(f) for f in faces])
+        if uvs is not None:
+            layer = mesh.uv_layers.new(name="UVMap")
+            loop_uvs = np.array([uvs[loop.vertex_index] for loop in mesh.loops], dtype=np.float32)
+            layer.data.foreach_set("uv", loop_uvs.ravel())
+        mesh.update()
+        for polygon in mesh.polygons:
+            polygon.use_smooth = True
+        obj = bpy.data.objects.new(name, mesh)
+        if material is not None:
+            mesh.materials.append(material)
+        self.scene.collection.objects.link(obj)
+        return obj
+
+    def _primitive(self, name: str, kind: str, size: float, material):
+        import bmesh
+
+        bm = bmesh.new()
+        if kind == "cube":
+            bmesh.ops.create_cube(bm, size=size)
+        elif kind == "sphere":
+            bmesh.ops.create_uvsphere(bm, u_segments=24, v_segments=12, radius=size / 2)
+        elif kind == "cylinder":
+            bmesh.ops.create_cone(bm, cap_ends=True, segments=24, radius1=size / 3, radius2=size / 3, depth=size)
+        else:  # cone
+            bmesh.ops.create_cone(bm, cap_ends=True, segments=24, radius1=size / 2, radius2=0.0, depth=size)
+        mesh = self.bpy.data.meshes.new(name)
+        bm.to_mesh(mesh)
+        bm.free()
+        mesh.materials.append(material)
+        obj = self.bpy.data.objects.new(name, mesh)
+        self.scene.collection.objects.link(obj)
+        return obj
+
+    def _reset(self) -> None:
+        bpy = self.bpy
+        if self.scene is not None:
+            bpy.data.scenes.remove(self.scene)
+        for collection in (bpy.data.objects, bpy.data.meshes, bpy.data.materials, bpy.data.lights, bpy.data.cameras, bpy.data.worlds):
+            for block in list(collection):
+                if block.name.startswith("wild") and block.users == 0:
+                    collection.remove(block)
+        self.scene = bpy.data.scenes.new("wild")
+
+    # -- one image
+    def build(self, seed: int, negative: bool):
+        """Set up the scene for one image; returns the target objects and their class names."""
+        bpy = self.bpy
+        rng = np.random.default_rng(seed)
+        self._reset()
+        scene = self.scene
+        recipe = self.recipe
+        render = scene.render
+        render.engine = "CYCLES"
+        render.resolution_x, render.resolution_y = recipe.width, recipe.height
+        render.resolution_percentage = 100
+        render.use_file_extension = False
+        render.threads_mode = "AUTO"
+        cycles = scene.cycles
+        cycles.seed = int(seed % (2**31))
+        cycles.use_denoising = False
+        cycles.use_adaptive_sampling = False
+        cycles.max_bounces = 4
+        view = scene.view_settings
+        view.view_transform = str(rng.choice(["Standard", "AgX"]))
+        view.exposure = float(rng.uniform(-0.8, 0.8))
+
+        # World: a sky-like gradient or a flat colour, as ambient light of random strength.
+        world = bpy.data.worlds.new("wild-world")
+        if world.node_tree is None:
+            world.use_nodes = True
+        background = world.node_tree.nodes.get("Background") or world.node_tree.nodes.new("ShaderNodeBackground")
+        tint = rng.uniform(0.4, 1.0, 3)
+        background.inputs["Color"].default_value = (*tint, 1.0)
+        background.inputs["Strength"].default_value = float(rng.uniform(0.05, 1.2))
+        scene.world = world
+
+        # Ground: a photograph or a procedural texture.
+        ground_size = 40.0
+        if rng.random() < 0.4:
+            name = str(rng.choice(GROUND_PHOTOS))
+            ground_material = self._material("wild-ground", rng, image=self._image(name, self.textures[name]), gloss=False)
+        else:
+            kind = str(rng.choice(["noise", "voronoi", "wave", "checker", "brick", "magic"]))
+            ground_material = self._material("wild-ground", rng, procedural=kind, gloss=rng.random() < 0.3)
+        tiles = rng.uniform(4, 20)
+        half = ground_size / 2
+        self._mesh_object(
+            "wild-ground",
+            [(-half, -half, -0.002), (half, -half, -0.002), (half, half, -0.002), (-half, half, -0.002)],
+            [(0, 1, 2, 3)],
+            uvs=np.array([[0, 0], [tiles, 0], [tiles, tiles], [0, tiles]]),
+            material=ground_material,
+        )
+
+        # Targets: one sheet, sometimes a second; none in a negative image.
+        classes = [name for name in recipe.classes]
+        n_targets = 0 if negative else (2 if rng.random() < 0.2 else 1)
+        targets = []
+        placed: list[tuple[float, float, float]] = []
+        for index in range(n_targets):
+            name = str(rng.choice(classes))
+            texture = self.textures[name]
+            aspect = texture.shape[1] / texture.shape[0]
+            width = 1.0 if aspect >= 1 else aspect
+            height = width / aspect
+            vertices, faces, uvs = curled_sheet(width, height, rng)
+            material = self._material(f"wild-target-{index}", rng, image=self._image(name, texture))
+            obj = self._mesh_object(f"wild-target-{index}", vertices, faces, uvs, material)
+            offset = (0.0, 0.0) if index == 0 else tuple(rng.uniform(-1.4, 1.4, 2))
+            obj.location = (*offset, 0.0)
+            obj.rotation_euler = (0.0, 0.0, float(rng.uniform(0, 2 * math.pi)))
+            if rng.random() < 0.25:  # leaning on something: tilted out of the ground plane
+                obj.rotation_euler = (float(rng.uniform(-0.9, 0.9)), float(rng.uniform(-0.9, 0.9)), obj.rotation_euler[2])
+                obj.location = (*offset, 0.35)
+            obj.pass_index = index + 1
+            targets.append((obj, name))
+            placed.append((*offset, max(width, height)))
+
+        # Clutter: sheets of other photographs, and primitives, beside and over the target.
+        for index in range(int(rng.integers(0, 4))):
+            photo = str(rng.choice(CLUTTER_PHOTOS))
+            texture = self.textures[photo]
+            aspect = texture.shape[1] / texture.shape[0]
+            side = rng.uniform(0.4, 1.0)
+            vertices, faces, uvs = curled_sheet(side * min(aspect, 1.5), side, rng, cells=12)
+            material = self._material(f"wild-clutter-sheet-{index}", rng, image=self._image(photo, texture))
+            obj = self._mesh_object(f"wild-clutter-sheet-{index}", vertices, faces, uvs, material)
+            obj.location = (*rng.uniform(-2.0, 2.0, 2), -0.001)
+            if np.hypot(*obj.location[:2]) < 0.9:  # keep clutter sheets from covering the target
+                obj.location = (obj.location[0] + 1.5, obj.location[1], -0.001)
+            obj.rotation_euler = (0.0, 0.0, float(rng.uniform(0, 2 * math.pi)))
+        for index in range(int(rng.integers(0, 7))):
+            size = float(rng.uniform(0.08, 0.45))
+            material = self._material(f"wild-clutter-{index}", rng)
+            obj = self._primitive(f"wild-clutter-{index}", str(rng.choice(["cube", "sphere", "cylinder", "cone"])), size, material)
+            over_target = rng.random() < 0.3 and placed
+            x, y = rng.uniform(-0.45, 0.45, 2) if over_target else rng.uniform(-2.2, 2.2, 2)
+            obj.location = (float(x), float(y), size / 2 + (rng.uniform(0.05, 0.6) if over_target else 0.0))
+            obj.rotation_euler = tuple(float(v) for v in rng.uniform(0, math.pi, 3))
+
+        # Lights: a sun of random colour and height (real shadows), sometimes a point light.
+        sun_data = bpy.data.lights.new("wild-sun", "SUN")
+        sun_data.energy = float(rng.uniform(1.0, 6.0))
+        sun_data.angle = float(rng.uniform(0.0, 0.3))
+        sun_data.color = tuple(rng.uniform(0.6, 1.0, 3))
+        sun = bpy.data.objects.new("wild-sun", sun_data)
+        sun.rotation_euler = (float(rng.uniform(0, 1.3)), 0.0, float(rng.uniform(0, 2 * math.pi)))
+        scene.collection.objects.link(sun)
+        if rng.random() < 0.35:
+            point_data = bpy.data.lights.new("wild-point", "POINT")
+            point_data.energy = float(rng.uniform(50, 400))
+            point_data.color = tuple(rng.uniform(0.5, 1.0, 3))
+            point = bpy.data.objects.new("wild-point", point_data)
+            point.location = (*rng.uniform(-2, 2, 2), float(rng.uniform(0.8, 3)))
+            scene.collection.objects.link(point)
+
+        # Camera: anywhere on the upper hemisphere, field of view 8-100°, the sheet filling
+        # 0.1-1.6 of the frame's width (log-uniform), aimed off-centre.
+        camera_data = bpy.data.cameras.new("wild-camera")
+        camera_data.sensor_fit = "HORIZONTAL"
+        camera_data.sensor_width = 36.0
+        fov = math.radians(float(np.exp(rng.uniform(math.log(8), math.log(100)))))
+        camera_data.angle = fov
+        camera_data.clip_start = 0.005
+        camera_data.clip_end = 500.0
+        fill = float(np.exp(rng.uniform(math.log(0.1), math.log(1.6))))
+        distance = 1.0 / (fill * 2 * math.tan(fov / 2))
+        elevation = float(rng.uniform(math.radians(25), math.radians(90)))
+        azimuth = float(rng.uniform(0, 2 * math.pi))
+        aim = np.array([*rng.uniform(-0.25, 0.25, 2), 0.0])
+        location = aim + distance * np.array(
+            [math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)]
+        )
+        camera = bpy.data.objects.new("wild-camera", camera_data)
+        camera.matrix_world = _matrix(look_at(location, aim, float(rng.uniform(-math.pi, math.pi))), location)
+        scene.collection.objects.link(camera)
+        scene.camera = camera
+        post = {
+            "noise_sigma": float(rng.uniform(0, 8)) if rng.random() < 0.5 else 0.0,
+            "jpeg_quality": int(rng.integers(25, 95)) if rng.random() < 0.7 else None,
+        }
+        return targets, {"fill": fill, "fov_deg": math.degrees(fov), "elevation_deg": math.degrees(elevation), **post}
+
+    def _render_to(self, path: Path, file_format: str, samples: int) -> None:
+        scene = self.scene
+        scene.cycles.samples = samples
+        scene.render.filepath = str(path)
+        settings = scene.render.image_settings
+        settings.file_format = file_format
+        if file_format == "OPEN_EXR":
+            settings.color_mode = "RGBA"
+            settings.color_depth = "32"
+        else:
+            settings.color_mode = "RGB"
+            settings.color_depth = "8"
+        from workers.render.blender import _quiet_fds
+
+        with _quiet_fds():
+            self.bpy.ops.render.render(write_still=True, scene=scene.name)
+
+    def _index_render(self) -> np.ndarray:
+        """Object index per pixel: an emission override of each object's pass index, one sample."""
+        bpy = self.bpy
+        scene = self.scene
+        material = bpy.data.materials.get("wild-index") or _index_material(bpy)
+        layer = scene.view_layers[0]
+        saved = (scene.cycles.filter_width, scene.render.film_transparent, scene.view_settings.view_transform, scene.view_settings.exposure)
+        layer.material_override = material
+        scene.cycles.filter_width = 0.01
+        scene.render.film_transparent = True
+        scene.view_settings.view_transform = "Standard"
+        scene.view_settings.exposure = 0.0
+        path = self.tmp / "index.exr"
+        self._render_to(path, "OPEN_EXR", 1)
+        layer.material_override = None
+        scene.cycles.filter_width, scene.render.film_transparent, scene.view_settings.view_transform, scene.view_settings.exposure = saved
+        image = bpy.data.images.load(str(path), check_existing=False)
+        try:
+            width, height = image.size
+            pixels = np.empty(width * height * image.channels, dtype=np.float32)
+            image.pixels.foreach_get(pixels)
+        finally:
+            bpy.data.images.remove(image)
+        # Blender rows run bottom to top; red holds the index.
+        return np.rint(pixels.reshape(height, width, -1)[::-1, :, 0]).astype(np.int32)
+
+    def render(self, seed: int, negative: bool):
+        """Render one image: (uint8 RGB, [(class, box, visible_fraction)], description) or None to redraw."""
+        import cv2
+
+        targets, info = self.build(seed, negative)
+        visible = self._index_render()
+        # Unoccluded extent of each target: hide everything else and render the index again.
+        hidden = [obj for obj in self.scene.objects if obj.type == "MESH" and obj.pass_index == 0]
+        for obj in hidden:
+            obj.hide_render = True
+        alone = self._index_render()
+        for obj in hidden:
+            obj.hide_render = False
+        objects = []
+        for obj, name in targets:
+            mask = visible == obj.pass_index
+            full = int((alone == obj.pass_index).sum())
+            if full < 64:
+                return None  # the target is (almost) out of view: redraw
+            fraction = float(mask.sum()) / full
+            if fraction < 0.3:
+                return None  # too little left to be a fair target: redraw
+            ys, xs = np.nonzero(mask)
+            objects.append((name, [float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)], fraction))
+        path = self.tmp / "image.png"
+        self._render_to(path, "PNG", self.recipe.samples)
+        image = cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        rng = np.random.default_rng(seed + 1)
+        if info["noise_sigma"] > 0:
+            image = np.clip(image + rng.normal(0, info["noise_sigma"], image.shape), 0, 255).astype(np.uint8)
+        if info["jpeg_quality"] is not None:
+            ok, encoded = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, info["jpeg_quality"]])
+            image = cv2.cvtColor(cv2.imdecode(encoded, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        return image, objects, info
+
+
+def _matrix(rotation: np.ndarray, location: np.ndarray):
+    from mathutils import Matrix
+
+    matrix = np.eye(4)
+    matrix[:3, :3] = rotation
+    matrix[:3, 3] = location
+    return Matrix(matrix.tolist())
+
+
+def _index_material(bpy):
+    material = bpy.data.materials.new("wild-index")
+    if material.node_tree is None:
+        material.use_nodes = True
+    nodes, links = material.node_tree.nodes, material.node_tree.links
+    nodes.clear()
+    info = nodes.new("ShaderNodeObjectInfo")
+    emission = nodes.new("ShaderNodeEmission")
+    emission.inputs["Strength"].default_value = 1.0
+    output = nodes.new("ShaderNodeOutputMaterial")
+    links.new(info.outputs["Object Index"], emission.inputs["Color"])
+    links.new(emission.outputs["Emission"], output.inputs["Surface"])
+    material.use_fake_user = True
+    return material
+
+
+def _scene_kind(objects, fill: float, negative: bool) -> str:
+    if negative:
+        return "negative"
+    if len(objects) > 1:
+        return "several"
+    if objects[0][2] < 0.8:
+        return "occluded"
+    return "small" if fill < 0.25 else "medium" if fill < 0.6 else "large" if fill < 1.0 else "frame-filling"
+
+
+def load_textures(classes) -> dict[str, np.ndarray]:
+    """The object textures foldwise uses (same files), and the clutter/ground photographs."""
+    import skimage.data
+
+    from workers.render.assets import _to_uint8_rgb, load_assets
+
+    catalog = load_assets()
+    textures = {name: catalog.texture(name) for name in classes}
+    for name in set(CLUTTER_PHOTOS) | set(GROUND_PHOTOS):
+        image = getattr(skimage.data, name)()
+        if isinstance(image, tuple):  # stereo_motorcycle: (left, right, disparity)
+            image = image[1]
+        textures[name] = _to_uint8_rgb(np.asarray(image), f"skimage.data.{name}")
+    return textures
+
+
+def make_ood_set(out: Path, recipe: OodRecipe, echo=print) -> Path:
+    """Render the out-of-domain set into ``out`` (COCO folder) unless the same recipe is there."""
+    import cv2
+
+    out = Path(out)
+    manifest = out / "annotations.json"
+    if manifest.is_file() and json.loads(manifest.read_text()).get("info", {}).get("recipe") == recipe.key():
+        echo(f"out-of-domain set: reusing {out} (recipe {recipe.key()})")
+        return out
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    scene = OodScene(load_textures(recipe.classes), recipe)
+    rng = np.random.default_rng(recipe.seed)
+    images, annotations = [], []
+    started = time.perf_counter()
+    redraws = 0
+    for index in range(recipe.n):
+        negative = bool(rng.random() < recipe.negatives)
+        seed = int(rng.integers(0, 2**62))
+        for attempt in range(20):
+            result = scene.render(seed + attempt, negative)
+            if result is not None:
+                break
+            redraws += 1
+        else:
+            raise RuntimeError(f"out-of-domain image {index}: no valid scene in 20 draws")
+        image, objects, info = result
+        file_name = f"images/wild_{index:05d}.jpg"
+        cv2.imwrite(str(out / file_name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 97])
+        kind = _scene_kind(objects, info["fill"], negative)
+        images.append(
+            {"id": index + 1, "file_name": file_name, "width": recipe.width, "height": recipe.height,
+             "condition": "wild", "difficulty": kind, "scene": info}
+        )
+        for name, box, fraction in objects:
+            x0, y0, x1, y1 = box
+            annotations.append(
+                {"id": len(annotations) + 1, "image_id": index + 1, "category_id": recipe.classes.index(name) + 1,
+                 "bbox": [x0, y0, x1 - x0, y1 - y0], "area": (x1 - x0) * (y1 - y0), "iscrowd": 0,
+                 "visible_fraction": fraction}
+            )
+        if (index + 1) % 25 == 0:
+            echo(f"out-of-domain: {index + 1}/{recipe.n} images, {time.perf_counter() - started:.0f} s")
+    coco = {
+        "info": {"description": "foldwise out-of-domain benchmark set (bench/wild.py)", "recipe": recipe.key(),
+                 "recipe_fields": asdict(recipe), "redraws": redraws, "seconds": time.perf_counter() - started},
+        "images": images,
+        "annotations": annotations,
+        "categories": [{"id": i + 1, "name": name} for i, name in enumerate(recipe.classes)],
+    }
+    manifest.write_text(json.dumps(coco, indent=1))
+    echo(f"out-of-domain: wrote {recipe.n} images to {out} in {time.perf_counter() - started:.0f} s ({redraws} redraws)")
+    return out
+
+
+# --------------------------------------------------------------------------- training and scoring
+
+
+def train_with_config(config_path: Path, data_dir: Path, echo=print) -> tuple[Path, dict]:
+    """Run ``foldwise run CONFIG`` in a data directory of its own; return the final model's checkpoint."""
+    env = {**os.environ, "FOLDWISE_DATA_DIR": str(data_dir), "FOLDWISE_DATABASE_URL": ""}
+    env.pop("FOLDWISE_DATABASE_URL")
+    started = time.perf_counter()
+    completed = subprocess.run(
+        [sys.executable, "-m", "services.cli", "run", str(config_path)], cwd=ROOT, env=env, capture_output=True, text=True
+    )
+    seconds = time.perf_counter() - started
+    if completed.returncode != 0:
+        raise RuntimeError(f"foldwise run {config_path} failed ({completed.returncode}):\n{completed.stdout[-3000:]}{completed.stderr[-3000:]}")
+    echo(f"trained {config_path} in {seconds:.0f} s")
+    import sqlite3
+
+    with sqlite3.connect(data_dir / "foldwise.db") as connection:
+        row = connection.execute(
+            "SELECT m.checkpoint_path FROM experiments e JOIN models m ON m.id = e.final_model_id ORDER BY e.id DESC LIMIT 1"
+        ).fetchone()
+    if row is None or not row[0]:
+        raise RuntimeError(f"{config_path}: the experiment finished without a final model")
+    checkpoint = Path(row[0])
+    if not checkpoint.is_absolute():
+        checkpoint = data_dir / checkpoint
+    return checkpoint, {"config": str(config_path), "seconds": seconds}
+
+
+def make_in_domain_set(config, out: Path, n_per_pair: int, seed: int, echo=print) -> Path:
+    """foldwise's own renders of the config's curriculum (every stage, mixed included)."""
+    from workers.render.assets import load_assets
+    from workers.render.cli import render_dataset
+
+    manifest = out / "annotations.json"
+    key = hashlib.sha256(json.dumps([config.model_dump(mode="json"), n_per_pair, seed], sort_keys=True).encode()).hexdigest()[:16]
+    if manifest.is_file() and json.loads(manifest.read_text()).get("info", {}).get("recipe") == key:
+        echo(f"in-domain set: reusing {out}")
+        return out
+    stages = config.stage_order()
+    conditions = sorted({condition for condition, _ in stages if condition != "canonical"}, key=[c for c, _ in stages].index)
+    difficulties = list(config.curriculum.difficulties)
+    assets = load_assets(config.assets)
+    coco = render_dataset(out, conditions, difficulties, n_per_pair, seed, config.render.image_size, config.render.backend,
+                          assets, echo=lambda *_: None)
+    coco["info"]["recipe"] = key
+    manifest.write_text(json.dumps(coco, indent=1))
+    echo(f"in-domain set: {len(coco['images'])} images ({', '.join(conditions)} × {', '.join(difficulties)})")
+    return out
+
+
+def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: float) -> dict:
+    from workers.train.checkpoint import load_detector
+    from workers.train.data import load_coco_dataset
+    from workers.train.evaluation import evaluate_detector
+
+    samples, classes = load_coco_dataset(data)
+    detector = load_detector(checkpoint, device="cpu")
+    started = time.perf_counter()
+    result = evaluate_detector(detector, samples, classes, score_threshold=score_threshold, iou_threshold=iou_threshold, coco=False)
+    payload = result.to_dict()
+    by_kind = {
+        name: {"map": group.get("map"), "map_unthresholded": group.get("map_unthresholded"), "images": group.get("num_images")}
+        for name, group in payload.get("breakdown", {}).get("difficulty", {}).items()
+    }
+    return {
+        "images": len(samples),
+        "map": payload["map"],
+        "map_unthresholded": payload["map_unthresholded"],
+        "per_class": {name: entry.get("ap") for name, entry in payload["per_class"].items()},
+        "by_kind": by_kind,
+        "seconds": time.perf_counter() - started,
+    }
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--config", type=Path, default=ROOT / "configs/quick.yaml")
+    parser.add_argument("--model", type=Path, help="score this checkpoint instead of training")
+    parser.add_argument("--n-ood", type=int, default=200, help="out-of-domain images")
+    parser.add_argument("--ood-size", default="320x240", help="WIDTHxHEIGHT of out-of-domain images")
+    parser.add_argument("--ood-samples", type=int, default=24, help="Cycles samples per out-of-domain image")
+    parser.add_argument("--ood-seed", type=int, default=2026)
+    parser.add_argument("--ood-dir", type=Path, default=ROOT / "var/bench/wild-ood")
+    parser.add_argument("--n-in-domain", type=int, default=6, help="in-domain images per (condition, difficulty)")
+    parser.add_argument("--in-domain-dir", type=Path, default=None)
+    parser.add_argument("--train-dir", type=Path, default=None, help="data directory for the training run")
+    parser.add_argument("--threshold", type=float, default=0.8)
+    parser.add_argument("--iou", type=float, default=0.5)
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args(argv)
+
+    from foldwise.config import load_config
+
+    def echo(line: str) -> None:
+        print(line, file=sys.stderr, flush=True)
+
+    config = load_config(args.config)
+    from workers.render.assets import load_assets
+
+    classes = tuple(load_assets(config.assets).classes)
+    width, height = (int(v) for v in args.ood_size.lower().split("x"))
+    recipe = OodRecipe(n=args.n_ood, width=width, height=height, samples=args.ood_samples, seed=args.ood_seed, classes=classes)
+
+    report: dict = {"config": str(args.config), "protocol": {"score_threshold": args.threshold, "iou_threshold": args.iou}}
+    started = time.perf_counter()
+    ood_dir = make_ood_set(args.ood_dir, recipe, echo)
+    report["ood_set"] = {"dir": str(ood_dir), "recipe": asdict(recipe), "seconds": time.perf_counter() - started}
+
+    if args.model is None:
+        train_dir = args.train_dir or Path(tempfile.mkdtemp(prefix="foldwise-wild-train-"))
+        checkpoint, training = train_with_config(args.config, train_dir, echo)
+        report["training"] = training
+    else:
+        checkpoint = args.model
+    report["model"] = str(checkpoint)
+
+    in_domain_dir = args.in_domain_dir or ROOT / f"var/bench/wild-in-domain-{config.name}"
+    make_in_domain_set(config, in_domain_dir, args.n_in_domain, seed=config.seed + 7919, echo=echo)
+    report["in_domain"] = score(checkpoint, in_domain_dir, args.threshold, args.iou)
+    report["out_of_domain"] = score(checkpoint, ood_dir, args.threshold, args.iou)
+    in_map, ood_map = report["in_domain"]["map"], report["out_of_domain"]["map"]
+    report["ratio"] = None if not in_map else ood_map / in_map
+    report["goal"] = {"ratio_at_least": 0.8, "met": report["ratio"] is not None and report["ratio"] >= 0.8}
+    from bench.render import cpu_model
+
+    report["machine"] = {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version()}
+    text = json.dumps(report, indent=2, default=float)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(text)
+    print(text)
+    return report
+
+
+if __name__ == "__main__":
+    main()
