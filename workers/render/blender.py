@@ -12,13 +12,20 @@ Conventions match ``scene.py`` and the raster backend:
   the principal point gives ``shift_x``/``shift_y`` (both in units of the image width, as
   Blender measures shift along the fitted side). OpenCV ``R, t`` (x right, y down, z
   forward) become Blender's camera frame (x right, y up, looking down −z) by flipping y, z.
-* Radiometry: Cycles' diffuse BSDF returns ``albedo / π × E cos θ``, so the sun strength is
+* Radiometry: Cycles' diffuse BSDF returns ``albedo / π × E cos θ``, so a sun's strength is
   ``π × irradiance × exposure`` and the linear value is ``albedo × irradiance × cos θ ×
-  exposure``, the model ``scene.py`` documents. Direct light only (no bounces), no world
-  light, a sun of zero angular size casting no shadows (the model has no visibility term).
-  Both sides of the sheet show the texture; a side faces the light or stays black (the
-  raster backend lights both sides by ``|n · l|``; they differ only on facets seen from one
-  side and lit from the other, which a light along the optical axis never makes visible).
+  exposure``, the model ``scene.py`` documents. Direct light only (no bounces). The paper's
+  scene (``Scene3D.plain``) is one white sun of zero angular size casting no shadows and no
+  world light. The rest of the model maps one to one: each of ``Scene3D.lights`` is a sun of
+  its colour; ``ambient`` is a uniform world of that radiance; ``specular`` mixes a white GGX
+  glossy BSDF (roughness as given: α = roughness², the raster kernel's a2 = roughness⁴) into
+  the diffuse one; ``normal_map`` feeds a tangent-space Normal Map node on the UVs;
+  ``shadow`` is a mesh of the caster's polygon, invisible to every ray but shadow rays, and
+  only the key light (light 0) casts shadows, through a sun of the caster's angular size (the
+  sheet itself casts none, as in the raster model). Both sides of the sheet show the texture;
+  a side faces the light or stays black (the raster backend lights both sides by ``|n · l|``;
+  they differ only on facets seen from one side and lit from the other, which a light along
+  the optical axis never makes visible).
 * Output: the render is written as a 32-bit float OpenEXR (no view transform reaches float
   files) and read back. ``alpha`` is the film coverage (transparent film, Cycles' 1.5 px
   Blackman-Harris pixel filter), ``mask`` is ``alpha > 0.5`` and ``rgb`` the object's linear
@@ -246,6 +253,7 @@ class BlenderRenderer:
             self._update_texture(np.asarray(scene.texture))
             self._update_camera(scene.camera, np.asarray(scene.vertices, dtype=np.float64))
             self._update_light(scene)
+            self._update_material(scene)
             rgba = self._render_rgba()
             self.stats["renders"] += 1
         alpha = np.ascontiguousarray(np.clip(rgba[..., 3], 0.0, 1.0), dtype=np.float32)
@@ -352,12 +360,55 @@ class BlenderRenderer:
         image_node.extension = "EXTEND"
         diffuse = nodes.new("ShaderNodeBsdfDiffuse")
         diffuse.inputs["Roughness"].default_value = 0.0  # Lambert
+        # Gloss: (1 − specular) × diffuse + specular × white GGX (Cycles' α = roughness², as
+        # the raster kernel's a2 = roughness⁴). At specular 0 the mix folds to the diffuse
+        # closure alone: the paper's scenes render as they did before gloss existed.
+        glossy = nodes.new("ShaderNodeBsdfGlossy")
+        glossy.distribution = "GGX"
+        glossy.inputs["Color"].default_value = (1.0, 1.0, 1.0, 1.0)
+        mix = nodes.new("ShaderNodeMixShader")
+        mix.inputs["Fac"].default_value = 0.0
         output = nodes.new("ShaderNodeOutputMaterial")
         output.target = "CYCLES"
         links.new(image_node.outputs["Color"], diffuse.inputs["Color"])
-        links.new(diffuse.outputs["BSDF"], output.inputs["Surface"])
+        links.new(diffuse.outputs["BSDF"], mix.inputs[1])
+        links.new(glossy.outputs["BSDF"], mix.inputs[2])
+        links.new(mix.outputs["Shader"], output.inputs["Surface"])
+        # Wrinkles: a tangent-space normal map over the UVs, linked only while a scene has one.
+        self._normal_image = bpy.data.images.new(_NAME + "-normals", 1, 1, alpha=False, float_buffer=True)
+        self._normal_image.colorspace_settings.name = "Non-Color"
+        normal_texture = nodes.new("ShaderNodeTexImage")
+        normal_texture.image = self._normal_image
+        normal_texture.interpolation = "Linear"
+        normal_texture.extension = "EXTEND"
+        normal_map = nodes.new("ShaderNodeNormalMap")
+        normal_map.space = "TANGENT"
+        normal_map.uv_map = "UVMap"
+        links.new(normal_texture.outputs["Color"], normal_map.inputs["Color"])
         mesh.materials.append(material)
         self._material = material
+        self._nodes = {"diffuse": diffuse, "glossy": glossy, "mix": mix, "normal_map": normal_map}
+        self._normal_key: bytes | None = None
+
+        # Ambient light: a uniform world of the scene's ambient radiance (a diffuse surface
+        # under it receives albedo × ambient, the raster model); no world when there is none.
+        self._world = bpy.data.worlds.new(_NAME + "-sky")
+        if self._world.node_tree is None:
+            self._world.use_nodes = True
+        self._world_background = next(n for n in self._world.node_tree.nodes if n.type == "BACKGROUND")
+        self._world_background.inputs["Strength"].default_value = 1.0
+
+        # The shadow caster: seen by nobody, it only blocks the key light. The sheet casts no
+        # shadow of its own (the raster model has no self-shadowing).
+        self._sheet.visible_shadow = False
+        caster_mesh = bpy.data.meshes.new(_NAME + "-caster")
+        self._caster = bpy.data.objects.new(_NAME + "-caster", caster_mesh)
+        for ray in ("visible_camera", "visible_diffuse", "visible_glossy", "visible_transmission", "visible_volume_scatter"):
+            setattr(self._caster, ray, False)
+        self._caster.hide_render = True
+        scene.collection.objects.link(self._caster)
+        self._caster_key: bytes | None = None
+        self._suns = [self._sun]
 
     def _enable_gpu(self) -> None:
         bpy = self._bpy
@@ -449,11 +500,76 @@ class BlenderRenderer:
     def _update_light(self, scene: Scene3D) -> None:
         import mathutils  # noqa: PLC0415
 
-        self._sun.data.energy = float(math.pi * scene.irradiance * scene.exposure)
-        towards_light = mathutils.Vector(np.asarray(scene.light_direction, dtype=np.float64).tolist()).normalized()
-        # A sun shines along its local −z: point its +z at the light.
-        self._sun.rotation_mode = "QUATERNION"
-        self._sun.rotation_quaternion = towards_light.to_track_quat("Z", "Y")
+        lights = scene.light_list()
+        while len(self._suns) < len(lights):
+            data = self._bpy.data.lights.new(f"{_NAME}-sun-{len(self._suns)}", "SUN")
+            data.angle = 0.0
+            data.use_shadow = False
+            sun = self._bpy.data.objects.new(data.name, data)
+            self._scene.collection.objects.link(sun)
+            self._suns.append(sun)
+        for sun, light in zip(self._suns, lights):
+            sun.hide_render = False
+            sun.data.energy = float(math.pi * light.irradiance * scene.exposure)
+            sun.data.color = tuple(float(c) for c in light.colour)
+            towards_light = mathutils.Vector(np.asarray(light.direction, dtype=np.float64).tolist()).normalized()
+            # A sun shines along its local −z: point its +z at the light.
+            sun.rotation_mode = "QUATERNION"
+            sun.rotation_quaternion = towards_light.to_track_quat("Z", "Y")
+        for sun in self._suns[len(lights):]:
+            sun.hide_render = True
+        # Only the key light (light 0) is blocked, and only by the caster.
+        key = self._suns[0].data
+        key.use_shadow = scene.shadow is not None
+        key.angle = float(scene.shadow.sun_angle) if scene.shadow is not None else 0.0
+        self._update_caster(scene)
+        if any(scene.ambient):
+            self._world_background.inputs["Color"].default_value = (*(float(c) for c in scene.ambient), 1.0)
+            self._scene.world = self._world
+        else:
+            self._scene.world = None
+
+    def _update_caster(self, scene: Scene3D) -> None:
+        if scene.shadow is None:
+            self._caster.hide_render = True
+            return
+        polygon = np.ascontiguousarray(scene.shadow.polygon, dtype=np.float64)
+        key = polygon.tobytes()
+        if key != self._caster_key:
+            mesh = self._caster.data
+            mesh.clear_geometry()
+            fan = [(0, i, i + 1) for i in range(1, len(polygon) - 1)]
+            mesh.from_pydata([tuple(v) for v in polygon.tolist()], [], fan)
+            mesh.update()
+            self._caster_key = key
+        self._caster.hide_render = False
+
+    def _update_material(self, scene: Scene3D) -> None:
+        nodes = self._nodes
+        nodes["mix"].inputs["Fac"].default_value = float(scene.specular)
+        nodes["glossy"].inputs["Roughness"].default_value = float(scene.roughness)
+        links = self._material.node_tree.links
+        normal_input_links = [link for link in links if link.from_node == nodes["normal_map"]]
+        if scene.normal_map is None:
+            for link in normal_input_links:
+                links.remove(link)
+            return
+        normals = np.asarray(scene.normal_map, dtype=np.float32)
+        key = normals.tobytes() + bytes(str(normals.shape), "ascii")
+        if key != self._normal_key:
+            height, width = normals.shape[:2]
+            image = self._normal_image
+            if tuple(image.size) != (width, height):
+                image.scale(width, height)
+            rgba = np.ones((height, width, 4), dtype=np.float32)
+            # Tangent-space normals are stored as (n + 1) / 2; rows bottom to top, as the texture.
+            rgba[..., :3] = (normals[::-1] + 1.0) / 2.0
+            image.pixels.foreach_set(rgba.ravel())
+            image.update()
+            self._normal_key = key
+        if not normal_input_links:
+            links.new(nodes["normal_map"].outputs["Normal"], nodes["diffuse"].inputs["Normal"])
+            links.new(nodes["normal_map"].outputs["Normal"], nodes["glossy"].inputs["Normal"])
 
     def _render_rgba(self) -> np.ndarray:
         bpy = self._bpy

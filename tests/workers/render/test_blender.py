@@ -421,3 +421,37 @@ def test_render_theta_boxes_agree_between_backends(renderer, condition, difficul
     np.testing.assert_allclose(cycles.box, raster.box, atol=1.0)
     # Same texture, light and background: the images differ by anti-aliasing and filtering only.
     assert np.abs(cycles.image.astype(np.int16) - raster.image.astype(np.int16)).mean() < 4.0
+
+
+@pytest.mark.skipif(not HAS_PIPELINE, reason="workers/render/pipeline.py has not landed yet")
+# Mean |effect difference| / mean |effect| allowed: the wrinkles' relief is finer than a
+# pixel's filter footprint, which Cycles' 1.5 px filter blurs and the raster kernel does not
+# (measured: 0.31-0.34 for wr, 0.03-0.11 for the others over seeds 5-7).
+@pytest.mark.parametrize(("condition", "tolerance"), [("lc", 0.15), ("sh", 0.15), ("sp", 0.15), ("wr", 0.45)])
+def test_lights_shadows_gloss_and_wrinkles_match_the_raster_backend(renderer, condition, tolerance):
+    """The rest of the shading model (coloured lights and ambient, the caster's shadow, GGX
+    gloss, the wrinkles' normal map) is rendered by Cycles, not dropped. Each backend's effect
+    is its image minus the same θ with the condition's parameters at their canonical values
+    (which cancels the backends' different texture filtering); on the sheet's interior the
+    two effects agree (a backend that ignored the effect would show none)."""
+    from foldwise.conditions import load_condition_table  # noqa: PLC0415
+    from foldwise.sampling import generate_parameters  # noqa: PLC0415
+    from workers.render.pipeline import render_theta  # noqa: PLC0415
+
+    table = load_condition_table()
+    theta = generate_parameters(condition, "hard", 1, seed=5, image_size=64)[0]
+    parameters = {name for variant in table.conditions[condition].variants.values() for level in variant.values() for name in level}
+    plain = theta.replace(**{name: table.canonical[name] for name in parameters})
+    renderer.configure(samples=64)
+    try:
+        cycles = [render_theta(t, backend="blender", samples=64) for t in (theta, plain)]
+    finally:
+        renderer.configure(samples=SAMPLES)
+    raster = [render_theta(t, backend="raster") for t in (theta, plain)]
+    both = interior(cycles[0].mask) & interior(raster[0].mask) & interior(cycles[1].mask) & interior(raster[1].mask)
+    assert both.sum() > 300
+    effect_cycles = (cycles[0].image.astype(np.float64) - cycles[1].image)[both].ravel()
+    effect_raster = (raster[0].image.astype(np.float64) - raster[1].image)[both].ravel()
+    assert np.abs(effect_raster).mean() > 4.0  # the condition does something at hard
+    assert np.corrcoef(effect_cycles, effect_raster)[0, 1] > 0.9
+    assert np.abs(effect_cycles - effect_raster).mean() < tolerance * np.abs(effect_raster).mean()
