@@ -224,6 +224,20 @@ def preview_rows(table, conditions) -> list[tuple[str, str | None]]:
     return rows
 
 
+def _wrap(text: str, font, scale: float, width: int) -> list[str]:
+    """``text`` in lines no wider than ``width`` pixels (words kept whole), for the label column."""
+    import cv2
+
+    lines: list[str] = []
+    for word in text.split():
+        candidate = f"{lines[-1]} {word}" if lines else word
+        if lines and cv2.getTextSize(candidate, font, scale, 1)[0][0] <= width:
+            lines[-1] = candidate
+        else:
+            lines.append(word)
+    return lines
+
+
 def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, conditions=None, samples: int = 16):
     """Contact sheet: one row per condition (per variant where it has several), columns
     canonical, easy, medium, hard; boxes drawn. The rows of one condition's variants show the
@@ -252,7 +266,8 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
         y = header_h + row * (cell_h + pad)
         name = table.name(code) + (f" ({variant})" if variant else "")
         cv2.putText(sheet, code, (6, y + image_size // 2 - 6), font, 0.6, (0, 0, 0), 2, cv2.LINE_AA)
-        cv2.putText(sheet, name, (6, y + image_size // 2 + 14), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+        for line_index, line in enumerate(_wrap(name, font, 0.42, label_w - 10)):
+            cv2.putText(sheet, line, (6, y + image_size // 2 + 14 + 16 * line_index), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
         for col, difficulty in enumerate(PREVIEW_COLUMNS):
             x = label_w + col * (image_size + pad)
             if difficulty == CANONICAL and code in first_row_of:  # the same θ: copy, do not render again
