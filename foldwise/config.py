@@ -58,6 +58,7 @@ class StageOverrides(_Section):
     N: int | None = Field(default=None, ge=1)
     tau: float | None = Field(default=None, ge=0.0, le=1.0)
     max_increments: int | None = Field(default=None, ge=1)
+    training_set: Literal["reset", "grow"] | None = None
 
 
 class MixedStageConfig(_Section):

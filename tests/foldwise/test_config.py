@@ -106,3 +106,11 @@ def test_covers_table3_all_and_curriculum():
     pairs = {covers: parse_config({**base, "test_set": {"covers": covers}}).test_pairs() for covers in ("table3", "all", "curriculum")}
     assert len(pairs["table3"]) == 21 and len(pairs["all"]) == 51
     assert pairs["curriculum"] == [("fb", "easy"), ("mixed", "hard")]
+
+
+def test_a_mixed_stage_may_grow_its_training_set_while_the_others_reset():
+    config = parse_config({"name": "g", "curriculum": {"mixed": {"active_learning": {"training_set": "grow"}}}})
+    assert config.stage_active_learning("mixed").training_set == "grow"
+    assert config.stage_active_learning("fb").training_set == "reset"
+    with pytest.raises(ConfigError, match="training_set"):
+        parse_config({"name": "g", "curriculum": {"mixed": {"active_learning": {"training_set": "keep"}}}})

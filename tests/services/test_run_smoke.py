@@ -79,7 +79,12 @@ def test_a_mixed_stage_records_every_object_and_trains_on_images_without_one(dat
     config["curriculum"] = {
         "conditions": ["fb"],
         "difficulties": ["easy"],
-        "mixed": {"conditions_per_image": [2, 2], "draw_from": ["mo", "cl", "or"], "negatives": 0.4},
+        "mixed": {
+            "conditions_per_image": [2, 2],
+            "draw_from": ["mo", "cl", "or"],
+            "negatives": 0.4,
+            "active_learning": {"max_increments": 2, "tau": 0.0, "training_set": "grow"},
+        },
     }
     path = tmp_path / "mixed.yaml"
     path.write_text(yaml.safe_dump(config))
@@ -102,3 +107,11 @@ def test_a_mixed_stage_records_every_object_and_trains_on_images_without_one(dat
                 assert theta.objects[0]["box"] == theta.box and theta.objects[0]["label"] == theta.label
         evaluation = session.scalars(select(Evaluation).order_by(Evaluation.id.desc())).first()
         assert "mixed/hard" in evaluation.details["breakdown"]["condition/difficulty"]
+        # The mixed stage grows its training set (its own setting); the fb stage resets it.
+        m = config["active_learning"]["m"]
+        sizes = {
+            (model.stage_id, model.increment): model.train_stats["training_images"]
+            for model in session.scalars(select(Model)).all()
+        }
+        assert sizes[(stages[1].id, 1)] == m and sizes[(stages[1].id, 2)] == 2 * m
+        assert all(size == m for (stage_id, _), size in sizes.items() if stage_id == stages[0].id)

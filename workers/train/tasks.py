@@ -103,7 +103,7 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
             parent_path = store.resolve(parent.checkpoint_path)
         increments = (
             [model.increment]
-            if config.active_learning.training_set == "reset"
+            if config.stage_active_learning(stage.condition).training_set == "reset"
             else list(range(1, model.increment + 1))
         )
         train_rows = session.scalars(
@@ -175,7 +175,8 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
         model = session.get(Model, model_id)
         model.checkpoint_path = relative
         model.train_seconds = train_seconds
-        model.train_stats = stats.to_dict()
+        # How many images the increment trained on: m, or every increment's so far with "grow".
+        model.train_stats = {**stats.to_dict(), "training_images": len(train_rows)}
         model.trained_at = utcnow()
         model.status = ModelStatus.evaluated
         evaluation = session.scalar(select(Evaluation).where(Evaluation.model_id == model_id))
