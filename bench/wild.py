@@ -60,6 +60,10 @@ RECIPE_VERSION = 2
 # is chelsea: a detector that finds those would be right, so they are not clutter).
 CLUTTER_PHOTOS = ("immunohistochemistry", "retina", "colorwheel", "coins", "page", "camera", "moon")
 GROUND_PHOTOS = ("brick", "grass", "gravel", "hubble_deep_field", "moon")
+# What makes a scene wild, each factor on its own: with one turned off, that part of the scene
+# takes a plain value (see OodScene.build), so a run per factor tells which one the detector
+# misses most.
+FACTORS = ("camera", "scale", "curl", "light", "material", "ground", "clutter", "post")
 
 
 @dataclass(frozen=True)
@@ -73,16 +77,25 @@ class OodRecipe:
     seed: int = 2026
     negatives: float = 0.1
     classes: tuple[str, ...] = ()
+    factors: tuple[str, ...] = FACTORS
+
+    def __post_init__(self) -> None:
+        unknown = sorted(set(self.factors) - set(FACTORS))
+        if unknown:
+            raise ValueError(f"unknown factor(s) {unknown}; known: {', '.join(FACTORS)}")
 
     def key(self) -> str:
-        payload = json.dumps({"version": RECIPE_VERSION, **asdict(self)}, sort_keys=True)
+        fields = asdict(self)
+        if self.factors == FACTORS:  # the full wild set keeps the key it had before factors existed
+            del fields["factors"]
+        payload = json.dumps({"version": RECIPE_VERSION, **fields}, sort_keys=True)
         return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
 
 # --------------------------------------------------------------------------- geometry
 
 
-def curled_sheet(width: float, height: float, rng: np.random.Generator, cells: int = 24):
+def curled_sheet(width: float, height: float, rng: np.random.Generator, cells: int = 24, flat: bool = False):
     """A flat sheet (z = 0, centred) with a cylindrical curl: isometric, unlike foldwise's rulings.
 
     The sheet is flat up to a line across it (random direction and offset), then wraps around
@@ -98,7 +111,7 @@ def curled_sheet(width: float, height: float, rng: np.random.Generator, cells: i
     along = points @ direction
     start = rng.uniform(-0.4, 0.3) * (abs(direction[0]) * width + abs(direction[1]) * height)
     radius = rng.uniform(0.12, 0.8) * max(width, height)
-    if rng.random() < 0.2:  # a flat sheet now and then
+    if rng.random() < 0.2 or flat:  # a flat sheet now and then
         radius = 1e9
     beyond = np.maximum(along - start, 0.0)
     theta = beyond / radius
@@ -251,12 +264,19 @@ class OodScene:
 
     # -- one image
     def build(self, seed: int, negative: bool):
-        """Set up the scene for one image; returns the target objects and their class names."""
+        """Set up the scene for one image; returns the target objects and their class names.
+
+        A factor left out of ``recipe.factors`` takes its plain value: camera straight above
+        with a 40° lens and no roll (camera), the sheet at half the frame's width (scale), a
+        flat sheet lying on the ground (curl), a white sun from above, a grey sky, Standard
+        tone mapping (light), a matte sheet (material), a photograph for ground (ground), no
+        clutter and one target (clutter), no noise or JPEG (post)."""
         bpy = self.bpy
         rng = np.random.default_rng(seed)
         self._reset()
         scene = self.scene
         recipe = self.recipe
+        wild = set(recipe.factors)
         render = scene.render
         render.engine = "CYCLES"
         render.resolution_x, render.resolution_y = recipe.width, recipe.height
@@ -269,22 +289,22 @@ class OodScene:
         cycles.use_adaptive_sampling = False
         cycles.max_bounces = 4
         view = scene.view_settings
-        view.view_transform = str(rng.choice(["Standard", "AgX"]))
-        view.exposure = float(rng.uniform(-0.8, 0.8))
+        view.view_transform = str(rng.choice(["Standard", "AgX"])) if "light" in wild else "Standard"
+        view.exposure = float(rng.uniform(-0.8, 0.8)) if "light" in wild else 0.0
 
         # World: a sky-like gradient or a flat colour, as ambient light of random strength.
         world = bpy.data.worlds.new("wild-world")
         if world.node_tree is None:
             world.use_nodes = True
         background = world.node_tree.nodes.get("Background") or world.node_tree.nodes.new("ShaderNodeBackground")
-        tint = rng.uniform(0.4, 1.0, 3)
+        tint = rng.uniform(0.4, 1.0, 3) if "light" in wild else np.ones(3)
         background.inputs["Color"].default_value = (*tint, 1.0)
-        background.inputs["Strength"].default_value = float(rng.uniform(0.05, 1.2))
+        background.inputs["Strength"].default_value = float(rng.uniform(0.05, 1.2)) if "light" in wild else 0.3
         scene.world = world
 
         # Ground: a photograph or a procedural texture.
         ground_size = 40.0
-        if rng.random() < 0.4:
+        if rng.random() < 0.4 or "ground" not in wild:
             name = str(rng.choice(GROUND_PHOTOS))
             ground_material = self._material("wild-ground", rng, image=self._image(name, self.textures[name]), gloss=False)
         else:
@@ -302,7 +322,7 @@ class OodScene:
 
         # Targets: one sheet, sometimes a second; none in a negative image.
         classes = [name for name in recipe.classes]
-        n_targets = 0 if negative else (2 if rng.random() < 0.2 else 1)
+        n_targets = 0 if negative else (2 if rng.random() < 0.2 and "clutter" in wild else 1)
         targets = []
         placed: list[tuple[float, float, float]] = []
         for index in range(n_targets):
@@ -311,13 +331,13 @@ class OodScene:
             aspect = texture.shape[1] / texture.shape[0]
             width = 1.0 if aspect >= 1 else aspect
             height = width / aspect
-            vertices, faces, uvs = curled_sheet(width, height, rng)
-            material = self._material(f"wild-target-{index}", rng, image=self._image(name, texture))
+            vertices, faces, uvs = curled_sheet(width, height, rng, flat="curl" not in wild)
+            material = self._material(f"wild-target-{index}", rng, image=self._image(name, texture), gloss="material" in wild)
             obj = self._mesh_object(f"wild-target-{index}", vertices, faces, uvs, material)
             offset = (0.0, 0.0) if index == 0 else tuple(rng.uniform(-1.4, 1.4, 2))
             obj.location = (*offset, 0.0)
-            obj.rotation_euler = (0.0, 0.0, float(rng.uniform(0, 2 * math.pi)))
-            if rng.random() < 0.25:  # leaning on something: tilted out of the ground plane
+            obj.rotation_euler = (0.0, 0.0, float(rng.uniform(0, 2 * math.pi)) if "camera" in wild else 0.0)
+            if rng.random() < 0.25 and "curl" in wild:  # leaning on something: tilted out of the ground plane
                 obj.rotation_euler = (float(rng.uniform(-0.9, 0.9)), float(rng.uniform(-0.9, 0.9)), obj.rotation_euler[2])
                 obj.location = (*offset, 0.35)
             obj.pass_index = index + 1
@@ -325,7 +345,7 @@ class OodScene:
             placed.append((*offset, max(width, height)))
 
         # Clutter: sheets of other photographs, and primitives, beside and over the target.
-        for index in range(int(rng.integers(0, 4))):
+        for index in range(int(rng.integers(0, 4)) if "clutter" in wild else 0):
             photo = str(rng.choice(CLUTTER_PHOTOS))
             texture = self.textures[photo]
             aspect = texture.shape[1] / texture.shape[0]
@@ -337,7 +357,7 @@ class OodScene:
             if np.hypot(*obj.location[:2]) < 0.9:  # keep clutter sheets from covering the target
                 obj.location = (obj.location[0] + 1.5, obj.location[1], -0.001)
             obj.rotation_euler = (0.0, 0.0, float(rng.uniform(0, 2 * math.pi)))
-        for index in range(int(rng.integers(0, 7))):
+        for index in range(int(rng.integers(0, 7)) if "clutter" in wild else 0):
             size = float(rng.uniform(0.08, 0.45))
             material = self._material(f"wild-clutter-{index}", rng)
             obj = self._primitive(f"wild-clutter-{index}", str(rng.choice(["cube", "sphere", "cylinder", "cone"])), size, material)
@@ -348,13 +368,16 @@ class OodScene:
 
         # Lights: a sun of random colour and height (real shadows), sometimes a point light.
         sun_data = bpy.data.lights.new("wild-sun", "SUN")
-        sun_data.energy = float(rng.uniform(1.0, 6.0))
-        sun_data.angle = float(rng.uniform(0.0, 0.3))
-        sun_data.color = tuple(rng.uniform(0.6, 1.0, 3))
         sun = bpy.data.objects.new("wild-sun", sun_data)
-        sun.rotation_euler = (float(rng.uniform(0, 1.3)), 0.0, float(rng.uniform(0, 2 * math.pi)))
+        if "light" in wild:
+            sun_data.energy = float(rng.uniform(1.0, 6.0))
+            sun_data.angle = float(rng.uniform(0.0, 0.3))
+            sun_data.color = tuple(rng.uniform(0.6, 1.0, 3))
+            sun.rotation_euler = (float(rng.uniform(0, 1.3)), 0.0, float(rng.uniform(0, 2 * math.pi)))
+        else:
+            sun_data.energy, sun_data.angle = math.pi, 0.0
         scene.collection.objects.link(sun)
-        if rng.random() < 0.35:
+        if rng.random() < 0.35 and "light" in wild:
             point_data = bpy.data.lights.new("wild-point", "POINT")
             point_data.energy = float(rng.uniform(50, 400))
             point_data.color = tuple(rng.uniform(0.5, 1.0, 3))
@@ -367,25 +390,27 @@ class OodScene:
         camera_data = bpy.data.cameras.new("wild-camera")
         camera_data.sensor_fit = "HORIZONTAL"
         camera_data.sensor_width = 36.0
-        fov = math.radians(float(np.exp(rng.uniform(math.log(8), math.log(100)))))
+        camera_wild = "camera" in wild
+        fov = math.radians(float(np.exp(rng.uniform(math.log(8), math.log(100)))) if camera_wild else 40.0)
         camera_data.angle = fov
         camera_data.clip_start = 0.005
         camera_data.clip_end = 500.0
-        fill = float(np.exp(rng.uniform(math.log(0.1), math.log(1.6))))
+        fill = float(np.exp(rng.uniform(math.log(0.1), math.log(1.6)))) if "scale" in wild else 0.5
         distance = 1.0 / (fill * 2 * math.tan(fov / 2))
-        elevation = float(rng.uniform(math.radians(25), math.radians(90)))
-        azimuth = float(rng.uniform(0, 2 * math.pi))
-        aim = np.array([*rng.uniform(-0.25, 0.25, 2), 0.0])
+        elevation = float(rng.uniform(math.radians(25), math.radians(90))) if camera_wild else math.pi / 2
+        azimuth = float(rng.uniform(0, 2 * math.pi)) if camera_wild else -math.pi / 2
+        aim = np.array([*rng.uniform(-0.25, 0.25, 2), 0.0]) if camera_wild else np.zeros(3)
         location = aim + distance * np.array(
             [math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth), math.sin(elevation)]
         )
         camera = bpy.data.objects.new("wild-camera", camera_data)
-        camera.matrix_world = _matrix(look_at(location, aim, float(rng.uniform(-math.pi, math.pi))), location)
+        roll = float(rng.uniform(-math.pi, math.pi)) if camera_wild else 0.0
+        camera.matrix_world = _matrix(look_at(location, aim, roll), location)
         scene.collection.objects.link(camera)
         scene.camera = camera
         post = {
-            "noise_sigma": float(rng.uniform(0, 8)) if rng.random() < 0.5 else 0.0,
-            "jpeg_quality": int(rng.integers(25, 95)) if rng.random() < 0.7 else None,
+            "noise_sigma": float(rng.uniform(0, 8)) if rng.random() < 0.5 and "post" in wild else 0.0,
+            "jpeg_quality": int(rng.integers(25, 95)) if rng.random() < 0.7 and "post" in wild else None,
         }
         return targets, {"fill": fill, "fov_deg": math.degrees(fov), "elevation_deg": math.degrees(elevation), **post}
 
@@ -654,7 +679,11 @@ def main(argv=None) -> dict:
     parser.add_argument("--ood-size", default="320x240", help="WIDTHxHEIGHT of out-of-domain images")
     parser.add_argument("--ood-samples", type=int, default=24, help="Cycles samples per out-of-domain image")
     parser.add_argument("--ood-seed", type=int, default=2026)
-    parser.add_argument("--ood-dir", type=Path, default=ROOT / "var/bench/wild-ood")
+    parser.add_argument("--ood-dir", type=Path, default=None, help="default: var/bench/wild-ood[-FACTORS]")
+    parser.add_argument(
+        "--factors", default="all",
+        help=f"which parts of the scene are wild: all, none, or a comma list of {','.join(FACTORS)} (the rest plain)",
+    )
     parser.add_argument("--n-in-domain", type=int, default=6, help="in-domain images per (condition, difficulty)")
     parser.add_argument("--in-domain-dir", type=Path, default=None)
     parser.add_argument("--train-dir", type=Path, default=None, help="data directory for the training run")
@@ -673,7 +702,13 @@ def main(argv=None) -> dict:
 
     classes = tuple(load_assets(config.assets).classes)
     width, height = (int(v) for v in args.ood_size.lower().split("x"))
-    recipe = OodRecipe(n=args.n_ood, width=width, height=height, samples=args.ood_samples, seed=args.ood_seed, classes=classes)
+    factors = FACTORS if args.factors == "all" else () if args.factors == "none" else tuple(args.factors.split(","))
+    recipe = OodRecipe(
+        n=args.n_ood, width=width, height=height, samples=args.ood_samples, seed=args.ood_seed, classes=classes, factors=factors
+    )
+    if args.ood_dir is None:
+        suffix = "" if factors == FACTORS else "-" + ("-".join(factors) or "plain")
+        args.ood_dir = ROOT / f"var/bench/wild-ood{suffix}"
 
     report: dict = {"config": str(args.config), "protocol": {"score_threshold": args.threshold, "iou_threshold": args.iou}}
     started = time.perf_counter()

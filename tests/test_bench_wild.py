@@ -100,3 +100,19 @@ def test_the_benchmark_trains_scores_both_sets_and_reports_the_ratio(tmp_path):
     assert report["ratio"] == (None if not in_map else ood_map / in_map)
     assert report["goal"]["ratio_at_least"] == 0.8
     assert report["machine"]["cpu"]
+
+
+def test_a_plain_scene_is_a_flat_sheet_seen_from_above_at_half_the_frame():
+    """With every factor off the scene is plain: a flat, unrotated sheet straight below a 40°
+    camera filling half the frame's width, and nothing else in view."""
+    recipe = wild.OodRecipe(n=1, width=160, height=120, samples=1, seed=0, classes=("coffee",), factors=())
+    scene = wild.OodScene(wild.load_textures(recipe.classes), recipe)
+    image, objects, info = scene.render(3, negative=False)
+    assert info["fill"] == 0.5 and info["fov_deg"] == pytest.approx(40.0) and info["elevation_deg"] == pytest.approx(90.0)
+    assert len(objects) == 1
+    x0, y0, x1, y1 = objects[0][1]
+    assert x1 - x0 == pytest.approx(0.5 * 160, abs=2)  # coffee is wider than tall: its width is the long side
+    assert objects[0][2] == 1.0
+    assert [o.name for o in scene.scene.objects if o.type == "MESH"] == ["wild-ground", "wild-target-0"]
+    with pytest.raises(ValueError, match="unknown factor"):
+        wild.OodRecipe(factors=("weather",))
