@@ -14,6 +14,10 @@ from typing import Annotated, Any, NoReturn, Optional
 
 import typer
 
+from foldwise.progress import CommandProgress, command_console
+
+# Off a terminal, a progress line at most this often (a line per step would flood a log).
+PROGRESS_INTERVAL_S = 5.0
 
 class Family(str, Enum):
     faster_rcnn = "faster_rcnn"
@@ -125,9 +129,11 @@ def train(
         f"{len(samples)} images of {len(classes)} classes for {iterations} iterations"
     )
     try:
-        stats = train_detector(
-            samples, init=init, iterations=iterations, config=detector_config, classes=classes, out=out, seed=seed
-        )
+        with CommandProgress(command_console(), "training", total=iterations, unit="iterations", interval_s=PROGRESS_INTERVAL_S) as bar:
+            stats = train_detector(
+                samples, init=init, iterations=iterations, config=detector_config, classes=classes, out=out, seed=seed,
+                on_step=lambda done: bar.update(done),
+            )  # fmt: skip
     except Exception as error:
         _fail(f"training failed: {type(error).__name__}: {error}")
     throughput = stats.images_seen / stats.seconds if stats.seconds > 0 else float("nan")
@@ -199,23 +205,23 @@ def evaluate(
     """Score a checkpoint on a dataset: VOC mAP (paper protocol and unthresholded), COCO metrics."""
     import time
 
-    from rich.console import Console
-
     samples, classes = _load_samples(data)
     _set_threads(threads)
     detector = _load_model(model, device)
 
     from workers.train.evaluation import evaluate_detector
 
+    console = command_console()
     started = time.perf_counter()
     try:
-        result = evaluate_detector(
-            detector, samples, classes, score_threshold=score_threshold, iou_threshold=iou_threshold, batch_size=batch_size
-        )
+        with CommandProgress(console, "evaluating", total=len(samples), unit="images", interval_s=PROGRESS_INTERVAL_S) as bar:
+            result = evaluate_detector(
+                detector, samples, classes, score_threshold=score_threshold, iou_threshold=iou_threshold,
+                batch_size=batch_size, on_batch=lambda done: bar.update(done),
+            )  # fmt: skip
     except ValueError as error:
         _fail(str(error))
     seconds = time.perf_counter() - started
-    console = Console()
     for table in _result_tables(result):
         console.print(table)
     console.print(

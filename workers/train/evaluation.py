@@ -30,7 +30,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -487,6 +487,7 @@ def evaluate_detector(
     iou_threshold: float = 0.5,
     batch_size: int = 16,
     coco: bool = True,
+    on_batch: Callable[[int], None] | None = None,
 ) -> EvaluationResult:
     """Run ``detect_object`` on the samples' images and score it against their boxes.
 
@@ -505,7 +506,9 @@ def evaluate_detector(
             f"the dataset has classes the detector was not trained on: {unknown} (detector classes: {model_classes})"
         )
     to_model = np.array([model_classes.index(name) for name in classes], dtype=np.int64)
-    predictions = detect_object(detector, [sample.image_path for sample in samples], batch_size=batch_size)
+    predictions = detect_object(
+        detector, [sample.image_path for sample in samples], batch_size=batch_size, on_batch=on_batch
+    )
     ground_truth = [
         {"boxes": sample.boxes, "labels": to_model[np.asarray(sample.labels, dtype=np.int64)]} for sample in samples
     ]
