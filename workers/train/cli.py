@@ -1,4 +1,4 @@
-"""``foldwise train``, ``foldwise evaluate``, ``foldwise detect``: the train worker's commands.
+"""``foldwise train``, ``evaluate``, ``detect``, ``export``: the train worker's commands.
 
 Each command imports torch, OpenCV and the detectors inside its body, so that registering them
 on the root ``foldwise`` app (``services/cli.py``) keeps ``foldwise --help`` light.
@@ -323,7 +323,40 @@ def detect(
         typer.echo(f"{path} -> {target}: {len(kept)} detection(s){': ' + ', '.join(kept) if kept else ''}")
 
 
+# --------------------------------------------------------------------------- export
+
+
+def export(
+    model: Annotated[Path, typer.Option("--model", help="Checkpoint written by `foldwise train` or an experiment.")],
+    out: Annotated[Path, typer.Option("--out", help="File to write, e.g. model.onnx.")],
+    export_format: Annotated[str, typer.Option("--format", help="Export format: onnx.")] = "onnx",
+    image_size: Annotated[
+        Optional[str],
+        typer.Option("--image-size", help="HxW (or N) the yolo family is exported at (at most its input size; default that)."),
+    ] = None,
+) -> None:
+    """Export a detector to run without foldwise (ONNX: faster_rcnn any size, yolo one size; not fast_rcnn)."""
+    from workers.train.export import FORMATS, ExportError, export_onnx
+
+    if export_format not in FORMATS:
+        _fail(f"unknown export format {export_format!r}; known: {', '.join(FORMATS)}")
+    size = None
+    if image_size is not None:
+        parts = image_size.lower().split("x")
+        if len(parts) not in (1, 2) or not all(part.isdigit() for part in parts):
+            _fail(f"--image-size {image_size!r}: expected N or HxW, e.g. 128 or 96x128")
+        size = (int(parts[0]), int(parts[-1]))
+    detector = _load_model(model, "cpu")
+    try:
+        written = export_onnx(detector, out, image_size=size)
+    except ExportError as error:
+        _fail(str(error))
+    classes = ", ".join(detector.classes)
+    typer.echo(f"wrote {written} ({written.stat().st_size / 1e6:.1f} MB): {detector.meta['family']}, classes {classes}")
+
+
 def register(app: typer.Typer) -> None:
     app.command("train")(train)
     app.command("evaluate")(evaluate)
     app.command("detect")(detect)
+    app.command("export")(export)
