@@ -156,14 +156,17 @@ def api(
 
 @app.command()
 def worker(
-    role: str = typer.Argument(..., metavar="render|train"),
+    role: str = typer.Argument(..., metavar="render|train|detect"),
     concurrency: int = typer.Option(1, help="processes of this worker"),
     loglevel: str = typer.Option("info"),
 ) -> None:
-    """Start a Celery worker on the role's queue (a thin wrapper over `celery worker -Q ROLE`)."""
-    from workers.app import RENDER_QUEUE, TRAIN_QUEUE
+    """Start a Celery worker on the role's queue (a thin wrapper over `celery worker -Q ROLE`).
 
-    queues = {"render": RENDER_QUEUE, "train": TRAIN_QUEUE}
+    `detect` answers POST /models/{id}/detect; it needs the train extra (torch), like `train`.
+    """
+    from workers.app import DETECT_QUEUE, RENDER_QUEUE, TRAIN_QUEUE
+
+    queues = {"render": RENDER_QUEUE, "train": TRAIN_QUEUE, "detect": DETECT_QUEUE}
     if role not in queues:
         _fail(f"unknown worker role {role!r}; expected one of: {', '.join(queues)}")
     argv = [

@@ -30,7 +30,7 @@ VENV_BIN = Path(sys.executable).parent
 
 INFRASTRUCTURE = ("redis", "postgres")
 ONE_SHOT = ("migrate",)
-LONG_RUNNING = ("api", "scheduler", "render-worker", "train-worker")
+LONG_RUNNING = ("api", "scheduler", "render-worker", "train-worker", "detect-worker")
 # Services compose starts only when their profile is asked for (`--profile NAME`).
 PROFILED = {"flower": ["monitoring"], "train-worker-gpu": ["gpu"]}
 # What each service runs, hence which extras of pyproject the image must carry.
@@ -43,6 +43,7 @@ EXTRAS_NEEDED = {
     "render-worker": {"render"},
     "train-worker": {"train"},
     "train-worker-gpu": {"train"},
+    "detect-worker": {"train"},
 }
 
 

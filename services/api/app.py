@@ -18,9 +18,9 @@ from foldwise.config import ExperimentConfig
 from foldwise.settings import Settings, get_settings
 from services import queries
 from services.api.probes import BrokerProbe, SchemaCheck
-from services.api.routes import experiments, health, models, queues
+from services.api.routes import detect, experiments, health, models, queues
 
-ROUTERS = (health.router, experiments.router, models.router, queues.router)
+ROUTERS = (health.router, experiments.router, models.router, detect.router, queues.router)
 
 
 def document_config_schema(app: FastAPI) -> None:
