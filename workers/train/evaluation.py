@@ -478,6 +478,39 @@ def coco_metrics(*, predictions_flat: _Flat, ground_truth_flat: _Flat, num_image
 # --------------------------------------------------------------------------- a detector on a dataset
 
 
+def detection_samples(
+    image_ids: Sequence[int],
+    predictions: Sequence[Mapping[str, np.ndarray]],
+    groups: Sequence[Mapping[str, str]],
+    images: int = 6,
+    per_image: int = 5,
+    min_score: float = 0.05,
+) -> list[dict[str, Any]]:
+    """A few test images' detections to show beside the scores (the dashboard): the first image
+    of each (condition, difficulty) group, up to ``images``, each with its ``per_image`` best
+    detections scoring at least ``min_score``; boxes rounded to 0.1 px."""
+    chosen: dict[tuple[str, str], int] = {}
+    for index, group in enumerate(groups):
+        key = (group["condition"], group["difficulty"])
+        if key not in chosen and len(chosen) < images:
+            chosen[key] = index
+    samples = []
+    for (condition, difficulty), index in chosen.items():
+        found = predictions[index]
+        keep = np.flatnonzero(np.asarray(found["scores"]) >= min_score)[:per_image]
+        samples.append(
+            {
+                "image_id": int(image_ids[index]),
+                "condition": condition,
+                "difficulty": difficulty,
+                "boxes": [[round(float(v), 1) for v in found["boxes"][i]] for i in keep],
+                "scores": [round(float(found["scores"][i]), 4) for i in keep],
+                "labels": [int(found["labels"][i]) for i in keep],
+            }
+        )
+    return samples
+
+
 def evaluate_detector(
     detector: Any,
     samples: Sequence[Any],
