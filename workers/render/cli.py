@@ -337,7 +337,8 @@ def register(app: typer.Typer) -> None:
         difficulties = resolve_difficulties(difficulty)
         console = command_console()
         # Off a terminal: a progress line at most every 5 s, beside the line per (c, δ).
-        with CommandProgress(console, "rendering", total=len(codes) * len(difficulties) * n, unit="images", interval_s=5.0) as bar:
+        total = len(codes) * len(difficulties) * n
+        with CommandProgress(console, "rendering", total, "images", interval_s=5.0) as bar:
             coco = render_dataset(
                 out, codes, difficulties, n, seed, image_size, backend, assets,
                 max_resamples=max_resamples, samples=samples,

@@ -129,7 +129,8 @@ def train(
         f"{len(samples)} images of {len(classes)} classes for {iterations} iterations"
     )
     try:
-        with CommandProgress(command_console(), "training", total=iterations, unit="iterations", interval_s=PROGRESS_INTERVAL_S) as bar:
+        progress = CommandProgress(command_console(), "training", iterations, "iterations", PROGRESS_INTERVAL_S)
+        with progress as bar:
             stats = train_detector(
                 samples, init=init, iterations=iterations, config=detector_config, classes=classes, out=out, seed=seed,
                 on_step=lambda done: bar.update(done),
@@ -214,7 +215,7 @@ def evaluate(
     console = command_console()
     started = time.perf_counter()
     try:
-        with CommandProgress(console, "evaluating", total=len(samples), unit="images", interval_s=PROGRESS_INTERVAL_S) as bar:
+        with CommandProgress(console, "evaluating", len(samples), "images", PROGRESS_INTERVAL_S) as bar:
             result = evaluate_detector(
                 detector, samples, classes, score_threshold=score_threshold, iou_threshold=iou_threshold,
                 batch_size=batch_size, on_batch=lambda done: bar.update(done),

@@ -53,7 +53,12 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
         "image": {"width": int(width), "height": int(height)},
         "classes": classes,
         "detections": [
-            {"box": [round(float(v), 2) for v in box], "class": classes[int(label)], "label": int(label), "score": float(score)}
+            {
+                "box": [round(float(v), 2) for v in box],
+                "class": classes[int(label)],
+                "label": int(label),
+                "score": float(score),
+            }
             for box, score, label in zip(found["boxes"][keep], found["scores"][keep], found["labels"][keep])
         ],
         "seconds": time.perf_counter() - started,
