@@ -165,3 +165,69 @@ def test_the_detect_route_loads_no_torch():
     result = subprocess.run([sys.executable, "-c", code], cwd=REPO, env=env, capture_output=True, text=True, timeout=60)
     assert result.returncode == 0, result.stderr
     assert result.stdout.strip() == "['post']"
+
+
+def test_a_jpeg_works_too(served, trained):
+    import cv2
+
+    picture = cv2.imread(str(trained["samples"][1].image_path))
+    ok, jpeg = cv2.imencode(".jpg", picture, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    response = served["client"].post(
+        f"/models/{served['ready']}/detect", content=jpeg.tobytes(), headers={**AUTH, "Content-Type": "image/jpeg"}
+    )
+    assert response.status_code == 200, response.text
+    best = response.json()["detections"][0]
+    assert best["label"] == int(trained["samples"][1].labels[0])
+    assert box_iou(best["box"], trained["samples"][1].boxes[0]) >= 0.7
+
+
+@pytest.fixture
+def redis_url():
+    import socket
+    import time
+
+    server = shutil.which("redis-server")
+    if server is None:
+        pytest.skip("redis-server is not installed: the no-worker test needs a broker of its own")
+    import redis
+
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    process = subprocess.Popen(
+        [server, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+    )  # fmt: skip
+    client = redis.Redis(port=port)
+    try:
+        for _ in range(200):
+            try:
+                client.ping()
+                break
+            except redis.ConnectionError:
+                time.sleep(0.025)
+        else:
+            pytest.skip("redis-server did not start")
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        client.close()
+        process.terminate()
+        process.wait(timeout=10)
+
+
+def test_no_detect_worker_is_a_504_that_says_what_to_start(served, trained, redis_url, monkeypatch):
+    import workers.app
+    from foldwise.settings import get_settings
+    from services.api.routes import detect
+
+    distributed = workers.app.create_app(get_settings().model_copy(update={"broker_url": redis_url, "eager": False}))
+    monkeypatch.setattr(workers.app, "app", distributed)
+    monkeypatch.setattr(detect, "REPLY_TIMEOUT_S", 1.0)
+    image = Path(trained["samples"][0].image_path).read_bytes()
+    response = served["client"].post(
+        f"/models/{served['ready']}/detect", content=image, headers={**AUTH, "Content-Type": "image/png"}
+    )
+    assert response.status_code == 504
+    assert "no detect worker answered within 1 s" in response.json()["detail"]
+    assert "foldwise worker detect" in response.json()["detail"]
+    distributed.close()
