@@ -13,13 +13,14 @@ import sys
 from pathlib import Path
 
 import typer
-from rich.console import Console
 from rich.table import Table
+
+from foldwise.progress import CommandProgress, command_console
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help="foldwise: teach a detector one deformable object.")
 db_app = typer.Typer(no_args_is_help=True, help="Database migrations.")
 app.add_typer(db_app, name="db")
-console = Console()
+console = command_console()
 
 
 def _fail(message: str, code: int = 2) -> None:
@@ -42,8 +43,6 @@ def run(
     report_dir: Path | None = typer.Option(None, "--report-dir", help="where to write the PNG/CSV report"),
 ) -> None:
     """Run an experiment end to end in this process (SQLite by default, eager Celery)."""
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
     from db.session import session_scope
     from foldwise.settings import get_settings
     from services import queries
@@ -60,14 +59,8 @@ def run(
     )
     experiment_id = start_experiment(config)
     stage_count = len(config.stage_order())
-    with Progress(
-        TextColumn("[progress.description]{task.description}"),
-        BarColumn(),
-        TextColumn("{task.completed}/{task.total} stages"),
-        TimeElapsedColumn(),
-        console=console,
-    ) as progress:
-        task = progress.add_task("starting", total=stage_count)
+    # A line per increment when the output is not a terminal (make run | tee log).
+    with CommandProgress(console, "starting", total=stage_count, unit="stages") as progress:
 
         def on_step(_experiment_id: int, _decisions) -> None:
             with session_scope() as session:
@@ -80,7 +73,7 @@ def run(
             )
             if best is not None:
                 description += f"  best mAP {best:.3f}"
-            progress.update(task, completed=done, description=description)
+            progress.update(done, description=description)
 
         try:
             status = run_to_completion(experiment_id, on_step)
@@ -163,14 +156,17 @@ def api(
 
 @app.command()
 def worker(
-    role: str = typer.Argument(..., metavar="render|train"),
+    role: str = typer.Argument(..., metavar="render|train|detect"),
     concurrency: int = typer.Option(1, help="processes of this worker"),
     loglevel: str = typer.Option("info"),
 ) -> None:
-    """Start a Celery worker on the role's queue (a thin wrapper over `celery worker -Q ROLE`)."""
-    from workers.app import RENDER_QUEUE, TRAIN_QUEUE
+    """Start a Celery worker on the role's queue (a thin wrapper over `celery worker -Q ROLE`).
 
-    queues = {"render": RENDER_QUEUE, "train": TRAIN_QUEUE}
+    `detect` answers POST /models/{id}/detect; it needs the train extra (torch), like `train`.
+    """
+    from workers.app import DETECT_QUEUE, RENDER_QUEUE, TRAIN_QUEUE
+
+    queues = {"render": RENDER_QUEUE, "train": TRAIN_QUEUE, "detect": DETECT_QUEUE}
     if role not in queues:
         _fail(f"unknown worker role {role!r}; expected one of: {', '.join(queues)}")
     argv = [

@@ -30,7 +30,9 @@ VENV_BIN = Path(sys.executable).parent
 
 INFRASTRUCTURE = ("redis", "postgres")
 ONE_SHOT = ("migrate",)
-LONG_RUNNING = ("api", "scheduler", "render-worker", "train-worker")
+LONG_RUNNING = ("api", "scheduler", "render-worker", "train-worker", "detect-worker")
+# Services compose starts only when their profile is asked for (`--profile NAME`).
+PROFILED = {"flower": ["monitoring"], "train-worker-gpu": ["gpu"]}
 # What each service runs, hence which extras of pyproject the image must carry.
 EXTRAS_NEEDED = {
     "migrate": set(),
@@ -40,6 +42,8 @@ EXTRAS_NEEDED = {
     "scheduler": {"render"},
     "render-worker": {"render"},
     "train-worker": {"train"},
+    "train-worker-gpu": {"train"},
+    "detect-worker": {"train"},
 }
 
 
@@ -238,8 +242,8 @@ def compose() -> dict[str, Any]:
 
 
 def test_every_role_of_the_design_is_a_service(compose):
-    assert set(compose["services"]) == {*INFRASTRUCTURE, *ONE_SHOT, *LONG_RUNNING, "flower"}
-    assert set(foldwise_services(compose)) == {*ONE_SHOT, *LONG_RUNNING, "flower"}
+    assert set(compose["services"]) == {*INFRASTRUCTURE, *ONE_SHOT, *LONG_RUNNING, *PROFILED}
+    assert set(foldwise_services(compose)) == {*ONE_SHOT, *LONG_RUNNING, *PROFILED}
 
 
 @pytest.mark.parametrize("name", INFRASTRUCTURE)
@@ -250,7 +254,7 @@ def test_redis_and_postgres_report_their_health(compose, name):
     assert compose["services"][name]["restart"] in ("always", "unless-stopped")
 
 
-@pytest.mark.parametrize("name", LONG_RUNNING)
+@pytest.mark.parametrize("name", [*LONG_RUNNING, "train-worker-gpu"])
 def test_long_running_services_wait_for_healthy_infrastructure_and_the_migration(compose, name):
     service = compose["services"][name]
     assert service["depends_on"] == {
@@ -330,24 +334,19 @@ def test_api_is_published_on_8000_by_default_and_listens_where_it_is_published(c
     assert "/health" in " ".join(api["healthcheck"]["test"])
 
 
-def test_flower_is_only_in_the_monitoring_profile(compose):
-    assert compose["services"]["flower"]["profiles"] == ["monitoring"]
-    assert all("profiles" not in s for name, s in compose["services"].items() if name != "flower")
+def test_flower_and_the_gpu_worker_are_only_in_their_profiles(compose):
+    profiles = {name: s["profiles"] for name, s in compose["services"].items() if "profiles" in s}
+    assert profiles == PROFILED
 
 
-def test_train_worker_gpu_block_is_valid_once_uncommented():
-    lines = COMPOSE_FILE.read_text().splitlines()
-    start = next(i for i, line in enumerate(lines) if line.strip() == "train-worker:")
-    end = next(i for i in range(start + 1, len(lines)) if lines[i].strip() and not lines[i].startswith("    "))
-    block = [i for i in range(start, end) if re.match(r"^    # ?(deploy:|  )", lines[i])]
-    assert block, "train-worker has no commented deploy block"
-    enabled = list(lines)
-    for i in block:
-        enabled[i] = re.sub(r"^(    )# ?", r"\1", lines[i])
-    train = load_compose_text("\n".join(enabled))["services"]["train-worker"]
-    (device,) = train["deploy"]["resources"]["reservations"]["devices"]
-    assert device["driver"] == "nvidia" and device["capabilities"] == ["gpu"]
-    assert "deploy" not in load_compose({})["services"]["train-worker"]
+def test_the_gpu_train_worker_reserves_one_nvidia_device_and_runs_the_train_worker(compose):
+    gpu, cpu = compose["services"]["train-worker-gpu"], compose["services"]["train-worker"]
+    (device,) = gpu["deploy"]["resources"]["reservations"]["devices"]
+    assert device == {"driver": "nvidia", "count": 1, "capabilities": ["gpu"]}
+    # the same role, image and store as the CPU train worker; only the device differs
+    assert service_command(gpu) == service_command(cpu)
+    assert gpu["image"] == cpu["image"] and volume_mounts(gpu) == volume_mounts(cpu)
+    assert "deploy" not in cpu, "the default stack must start on a machine without a GPU"
 
 
 def test_every_service_command_is_a_real_cli_command(compose):

@@ -1,4 +1,7 @@
-"""The Celery app: two queues, ``render`` and ``train``, and the settings that make them reliable.
+"""The Celery app: queues ``render``, ``train`` and ``detect``, and the settings that make them reliable.
+
+``detect`` serves ``POST /models/{id}/detect``: a train-role worker (``foldwise worker detect``)
+answers it, so the API never loads torch; it is the one task whose result travels back.
 
 Task modules import bpy or torch only inside the task body, so either worker role can load
 this app (and the scheduler can send tasks) without the other role's libraries.
@@ -15,16 +18,29 @@ RENDER_QUEUE = "render"
 TRAIN_QUEUE = "train"
 RENDER_TASK = "foldwise.render_batch"
 TRAIN_TASK = "foldwise.train_increment"
+DETECT_QUEUE = "detect"
+DETECT_TASK = "foldwise.detect"
+
+
+def result_backend_url(broker_url: str) -> str:
+    """Where detect replies travel: the Redis broker itself, else RabbitMQ's reply queues (rpc)."""
+    return broker_url if broker_url.startswith(("redis://", "rediss://")) else "rpc://"
 
 
 def configure(app: Celery, settings: Settings) -> None:
     app.conf.update(
         broker_url=settings.broker_url,
-        # Results live in the database, not in the broker.
+        # Results live in the database, not in the broker; only the detect task (which sets
+        # ignore_result=False) replies through the backend, to the API request waiting for it.
         task_ignore_result=True,
-        result_backend=None,
-        task_queues=(Queue(RENDER_QUEUE), Queue(TRAIN_QUEUE)),
-        task_routes={RENDER_TASK: {"queue": RENDER_QUEUE}, TRAIN_TASK: {"queue": TRAIN_QUEUE}},
+        result_backend=result_backend_url(settings.broker_url),
+        result_expires=600,
+        task_queues=(Queue(RENDER_QUEUE), Queue(TRAIN_QUEUE), Queue(DETECT_QUEUE)),
+        task_routes={
+            RENDER_TASK: {"queue": RENDER_QUEUE},
+            TRAIN_TASK: {"queue": TRAIN_QUEUE},
+            DETECT_TASK: {"queue": DETECT_QUEUE},
+        },
         task_default_queue=RENDER_QUEUE,
         # A typo in a route must fail loudly, not create a queue no worker listens to.
         task_create_missing_queues=False,
@@ -50,7 +66,7 @@ def configure(app: Celery, settings: Settings) -> None:
 
 
 def create_app(settings: Settings | None = None) -> Celery:
-    app = Celery("foldwise", include=["workers.render.tasks", "workers.train.tasks"])
+    app = Celery("foldwise", include=["workers.render.tasks", "workers.train.tasks", "workers.train.serving"])
     configure(app, settings or get_settings())
     return app
 

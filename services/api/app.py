@@ -18,9 +18,11 @@ from foldwise.config import ExperimentConfig
 from foldwise.settings import Settings, get_settings
 from services import queries
 from services.api.probes import BrokerProbe, SchemaCheck
-from services.api.routes import experiments, health, models, queues
+from services.api.routes import artifacts, dashboard, detect, experiments, health, models, queues
 
-ROUTERS = (health.router, experiments.router, models.router, queues.router)
+ROUTERS = (
+    health.router, experiments.router, models.router, detect.router, artifacts.router, queues.router, dashboard.router,
+)  # fmt: skip
 
 
 def document_config_schema(app: FastAPI) -> None:

@@ -218,7 +218,7 @@ class Stack:
     @staticmethod
     def worker_name(process: ServiceProcess) -> str:
         """The Celery node name `foldwise worker ROLE` gives itself: ROLE-<its pid>@<host>."""
-        role = "render" if process.name.startswith("render-worker") else "train"
+        role = next(r for r in ("render", "train", "detect") if process.name.startswith(f"{r}-worker"))
         return f"{role}-{process.pid}@{socket.gethostname()}"
 
     def worker_replies(self, method: str, timeout_s: float = 1.0, expected: int | None = None) -> dict[str, Any]:
@@ -427,7 +427,7 @@ def celery_control(broker):
 
 @pytest.fixture(scope="session")
 def stack(database_url, broker, celery_control, tmp_path_factory) -> Iterator[Stack]:
-    """migrate, then api, scheduler, 2 × render-worker, train-worker, all from compose.yaml."""
+    """migrate, then api, scheduler, 2 × render-worker, train-worker, detect-worker, all from compose.yaml."""
     token = secrets.token_urlsafe(16)
     # What a user's .env would say: the token, and a fast scheduler for a test.
     compose = load_compose({"FOLDWISE_API_TOKEN": token, "FOLDWISE_SCHEDULER_POLL_S": "0.2"})
@@ -455,6 +455,7 @@ def stack(database_url, broker, celery_control, tmp_path_factory) -> Iterator[St
         if migrated.returncode != 0:
             stack.fail(f"migrate exited {migrated.returncode}")
         stack.start("train-worker")
+        stack.start("detect-worker")
         stack.start("render-worker", replica=1)
         stack.start("render-worker", replica=2)
         stack.start("scheduler")

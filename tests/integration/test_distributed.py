@@ -18,7 +18,7 @@ import pytest
 from sqlalchemy import create_engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
-from db.models import Evaluation, Model, ParameterSet, RenderStatus, Stage, StageStatus
+from db.models import Evaluation, Model, ParameterSet, RenderStatus, Split, Stage, StageStatus
 from foldwise import store
 from workers.app import RENDER_TASK, TRAIN_TASK
 
@@ -108,7 +108,8 @@ def test_experiment_posted_to_the_api_runs_through_the_workers(stack, api, recor
 
     render_workers = stack.replicas("render-worker")
     train_workers = stack.replicas("train-worker")
-    stats = stack.worker_replies("stats", timeout_s=5.0, expected=len(render_workers) + len(train_workers))
+    every_worker = len(render_workers) + len(train_workers) + len(stack.replicas("detect-worker"))
+    stats = stack.worker_replies("stats", timeout_s=5.0, expected=every_worker)
     for process in render_workers:
         totals = stats.get(stack.worker_name(process), {}).get("total", {})
         assert totals.get(RENDER_TASK, 0) >= 1, f"{process.name} rendered nothing: {totals}"
@@ -122,6 +123,22 @@ def test_experiment_posted_to_the_api_runs_through_the_workers(stack, api, recor
     queues = api.get("/queues")
     assert queues.status_code == 200, queues.text
     assert {stack.worker_name(p) for p in render_workers + train_workers} <= set(queues.json()["workers"])
+
+    # POST /models/{id}/detect: over the detect queue to detect-worker, and the reply back.
+    final = summary(api, experiment_id)["final_model_id"]
+    with records() as session:
+        test_image = session.scalars(
+            select(ParameterSet.image_path).where(ParameterSet.experiment_id == experiment_id, ParameterSet.split == Split.test)
+        ).first()
+    image = (stack.data_dir / test_image).read_bytes()
+    headers = {**stack.auth_headers, "Content-Type": "image/png"}
+    found = api.post(f"/models/{final}/detect?threshold=0", content=image, headers=headers)
+    assert found.status_code == 200, found.text
+    assert found.json()["image"] == {"width": 64, "height": 64} and found.json()["classes"] == summary(api, experiment_id)["classes"]
+    garbage = api.post(f"/models/{final}/detect", content=image[:8] + b"\0" * 64, headers=headers)
+    assert garbage.status_code == 422 and "not an image OpenCV can decode" in garbage.json()["detail"]
+    (detect_worker,) = stack.replicas("detect-worker")
+    assert "foldwise.detect" in detect_worker.log()
 
 
 def test_experiment_finishes_exactly_once_after_the_scheduler_is_killed(stack, api, records):

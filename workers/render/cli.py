@@ -87,8 +87,12 @@ def render_dataset(
     max_resamples: int = 20,
     samples: int = 16,
     echo=print,
+    on_image=None,
 ) -> dict:
-    """Render n images per (condition, difficulty) into ``out``: images/ + annotations.json (COCO)."""
+    """Render n images per (condition, difficulty) into ``out``: images/ + annotations.json (COCO).
+
+    ``on_image(images_done)`` is called after every image, rendered or failed (progress display).
+    """
     from foldwise.sampling import generate_parameters
     from workers.render.pipeline import RenderRejected, render_with_resample
 
@@ -96,6 +100,7 @@ def render_dataset(
     (out / "images").mkdir(parents=True, exist_ok=True)
     images, annotations, failures = [], [], []
     started = time.perf_counter()
+    done = 0
     for condition in conditions:
         for difficulty in difficulties:
             thetas = generate_parameters(
@@ -104,6 +109,9 @@ def render_dataset(
             pair_start = time.perf_counter()
             resampled = 0
             for index, theta in enumerate(thetas):
+                if on_image is not None and done:
+                    on_image(done)
+                done += 1
                 name = f"{condition}_{difficulty}_{index:05d}"
                 try:
                     result, used, reasons = render_with_resample(
@@ -148,6 +156,8 @@ def render_dataset(
                 f"{condition}/{difficulty}: {len(thetas)} images in {seconds:.2f} s"
                 + (f", {resampled} resampled" if resampled else "")
             )
+    if on_image is not None:
+        on_image(done)
     coco = {
         "info": {"description": "foldwise rendered dataset", "backend": backend, "seed": seed, "image_size": image_size},
         "images": images,
@@ -337,19 +347,19 @@ def register(app: typer.Typer) -> None:
             render_preview(out, image_size, seed, backend, assets, conditions=codes, samples=samples)
             typer.echo(f"wrote {out}")
             return
-        coco = render_dataset(
-            out,
-            codes,
-            resolve_difficulties(difficulty),
-            n,
-            seed,
-            image_size,
-            backend,
-            assets,
-            max_resamples=max_resamples,
-            samples=samples,
-            echo=typer.echo,
-        )
+        from foldwise.progress import CommandProgress, command_console
+
+        difficulties = resolve_difficulties(difficulty)
+        console = command_console()
+        # Off a terminal: a progress line at most every 5 s, beside the line per (c, δ).
+        total = len(codes) * len(difficulties) * n
+        with CommandProgress(console, "rendering", total, "images", interval_s=5.0) as bar:
+            coco = render_dataset(
+                out, codes, difficulties, n, seed, image_size, backend, assets,
+                max_resamples=max_resamples, samples=samples,
+                echo=lambda line: console.print(line, markup=False, highlight=False),
+                on_image=lambda images_done: bar.update(images_done),
+            )  # fmt: skip
         if coco.get("failures"):
             for failure in coco["failures"]:
                 typer.echo(f"failed: {failure['name']}: {failure['reasons'][-1]}", err=True)

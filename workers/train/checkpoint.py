@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -190,13 +190,17 @@ def _image_array(image: np.ndarray | str | Path, index: int) -> tuple[np.ndarray
 
 
 def detect_object(
-    detector: Detector, images: Sequence[np.ndarray | str | Path], batch_size: int = 8
+    detector: Detector,
+    images: Sequence[np.ndarray | str | Path],
+    batch_size: int = 8,
+    on_batch: Callable[[int], None] | None = None,
 ) -> list[dict[str, np.ndarray]]:
     """Detections per image: ``boxes`` (n, 4) float32 xyxy in that image's pixels, ``scores``
     (n,) float32, ``labels`` (n,) int64 0-based class indices, best score first.
 
     Images are RGB uint8 arrays or paths (read with OpenCV); any size (the model resizes to
     its input size and maps boxes back). Runs with the detector config's ``num_threads``.
+    ``on_batch(images_done)`` is called after every batch (progress display).
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be at least 1, got {batch_size}")
@@ -223,4 +227,6 @@ def detect_object(
                         "labels": output["labels"].detach().cpu().numpy().astype(np.int64) - 1,
                     }
                 )
+            if on_batch is not None:
+                on_batch(len(results))
     return results

@@ -1,4 +1,4 @@
-"""``foldwise train``, ``foldwise evaluate``, ``foldwise detect``: the train worker's commands.
+"""``foldwise train``, ``evaluate``, ``detect``, ``export``: the train worker's commands.
 
 Each command imports torch, OpenCV and the detectors inside its body, so that registering them
 on the root ``foldwise`` app (``services/cli.py``) keeps ``foldwise --help`` light.
@@ -14,6 +14,10 @@ from typing import Annotated, Any, NoReturn, Optional
 
 import typer
 
+from foldwise.progress import CommandProgress, command_console
+
+# Off a terminal, a progress line at most this often (a line per step would flood a log).
+PROGRESS_INTERVAL_S = 5.0
 
 class Family(str, Enum):
     faster_rcnn = "faster_rcnn"
@@ -125,9 +129,12 @@ def train(
         f"{len(samples)} images of {len(classes)} classes for {iterations} iterations"
     )
     try:
-        stats = train_detector(
-            samples, init=init, iterations=iterations, config=detector_config, classes=classes, out=out, seed=seed
-        )
+        progress = CommandProgress(command_console(), "training", iterations, "iterations", PROGRESS_INTERVAL_S)
+        with progress as bar:
+            stats = train_detector(
+                samples, init=init, iterations=iterations, config=detector_config, classes=classes, out=out, seed=seed,
+                on_step=lambda done: bar.update(done),
+            )  # fmt: skip
     except Exception as error:
         _fail(f"training failed: {type(error).__name__}: {error}")
     throughput = stats.images_seen / stats.seconds if stats.seconds > 0 else float("nan")
@@ -199,23 +206,23 @@ def evaluate(
     """Score a checkpoint on a dataset: VOC mAP (paper protocol and unthresholded), COCO metrics."""
     import time
 
-    from rich.console import Console
-
     samples, classes = _load_samples(data)
     _set_threads(threads)
     detector = _load_model(model, device)
 
     from workers.train.evaluation import evaluate_detector
 
+    console = command_console()
     started = time.perf_counter()
     try:
-        result = evaluate_detector(
-            detector, samples, classes, score_threshold=score_threshold, iou_threshold=iou_threshold, batch_size=batch_size
-        )
+        with CommandProgress(console, "evaluating", len(samples), "images", PROGRESS_INTERVAL_S) as bar:
+            result = evaluate_detector(
+                detector, samples, classes, score_threshold=score_threshold, iou_threshold=iou_threshold,
+                batch_size=batch_size, on_batch=lambda done: bar.update(done),
+            )  # fmt: skip
     except ValueError as error:
         _fail(str(error))
     seconds = time.perf_counter() - started
-    console = Console()
     for table in _result_tables(result):
         console.print(table)
     console.print(
@@ -317,7 +324,40 @@ def detect(
         typer.echo(f"{path} -> {target}: {len(kept)} detection(s){': ' + ', '.join(kept) if kept else ''}")
 
 
+# --------------------------------------------------------------------------- export
+
+
+def export(
+    model: Annotated[Path, typer.Option("--model", help="Checkpoint written by `foldwise train` or an experiment.")],
+    out: Annotated[Path, typer.Option("--out", help="File to write, e.g. model.onnx.")],
+    export_format: Annotated[str, typer.Option("--format", help="Export format: onnx.")] = "onnx",
+    image_size: Annotated[
+        Optional[str],
+        typer.Option("--image-size", help="HxW (or N) the yolo family is exported at (at most its input size; default that)."),
+    ] = None,
+) -> None:
+    """Export a detector to run without foldwise (ONNX: faster_rcnn any size, yolo one size; not fast_rcnn)."""
+    from workers.train.export import FORMATS, ExportError, export_onnx
+
+    if export_format not in FORMATS:
+        _fail(f"unknown export format {export_format!r}; known: {', '.join(FORMATS)}")
+    size = None
+    if image_size is not None:
+        parts = image_size.lower().split("x")
+        if len(parts) not in (1, 2) or not all(part.isdigit() for part in parts):
+            _fail(f"--image-size {image_size!r}: expected N or HxW, e.g. 128 or 96x128")
+        size = (int(parts[0]), int(parts[-1]))
+    detector = _load_model(model, "cpu")
+    try:
+        written = export_onnx(detector, out, image_size=size)
+    except ExportError as error:
+        _fail(str(error))
+    classes = ", ".join(detector.classes)
+    typer.echo(f"wrote {written} ({written.stat().st_size / 1e6:.1f} MB): {detector.meta['family']}, classes {classes}")
+
+
 def register(app: typer.Typer) -> None:
     app.command("train")(train)
     app.command("evaluate")(evaluate)
     app.command("detect")(detect)
+    app.command("export")(export)

@@ -30,7 +30,7 @@ from __future__ import annotations
 import contextlib
 import io
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -478,6 +478,39 @@ def coco_metrics(*, predictions_flat: _Flat, ground_truth_flat: _Flat, num_image
 # --------------------------------------------------------------------------- a detector on a dataset
 
 
+def detection_samples(
+    image_ids: Sequence[int],
+    predictions: Sequence[Mapping[str, np.ndarray]],
+    groups: Sequence[Mapping[str, str]],
+    images: int = 6,
+    per_image: int = 5,
+    min_score: float = 0.05,
+) -> list[dict[str, Any]]:
+    """A few test images' detections to show beside the scores (the dashboard): the first image
+    of each (condition, difficulty) group, up to ``images``, each with its ``per_image`` best
+    detections scoring at least ``min_score``; boxes rounded to 0.1 px."""
+    chosen: dict[tuple[str, str], int] = {}
+    for index, group in enumerate(groups):
+        key = (group["condition"], group["difficulty"])
+        if key not in chosen and len(chosen) < images:
+            chosen[key] = index
+    samples = []
+    for (condition, difficulty), index in chosen.items():
+        found = predictions[index]
+        keep = np.flatnonzero(np.asarray(found["scores"]) >= min_score)[:per_image]
+        samples.append(
+            {
+                "image_id": int(image_ids[index]),
+                "condition": condition,
+                "difficulty": difficulty,
+                "boxes": [[round(float(v), 1) for v in found["boxes"][i]] for i in keep],
+                "scores": [round(float(found["scores"][i]), 4) for i in keep],
+                "labels": [int(found["labels"][i]) for i in keep],
+            }
+        )
+    return samples
+
+
 def evaluate_detector(
     detector: Any,
     samples: Sequence[Any],
@@ -487,6 +520,7 @@ def evaluate_detector(
     iou_threshold: float = 0.5,
     batch_size: int = 16,
     coco: bool = True,
+    on_batch: Callable[[int], None] | None = None,
 ) -> EvaluationResult:
     """Run ``detect_object`` on the samples' images and score it against their boxes.
 
@@ -505,7 +539,9 @@ def evaluate_detector(
             f"the dataset has classes the detector was not trained on: {unknown} (detector classes: {model_classes})"
         )
     to_model = np.array([model_classes.index(name) for name in classes], dtype=np.int64)
-    predictions = detect_object(detector, [sample.image_path for sample in samples], batch_size=batch_size)
+    predictions = detect_object(
+        detector, [sample.image_path for sample in samples], batch_size=batch_size, on_batch=on_batch
+    )
     ground_truth = [
         {"boxes": sample.boxes, "labels": to_model[np.asarray(sample.labels, dtype=np.int64)]} for sample in samples
     ]

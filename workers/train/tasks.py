@@ -85,7 +85,7 @@ def _samples(rows):
 
 def run_increment(model_id: int, task_id: str = "direct") -> str:
     from workers.train.checkpoint import detect_object, load_detector
-    from workers.train.evaluation import evaluate_predictions
+    from workers.train.evaluation import detection_samples, evaluate_predictions
     from workers.train.training import train_detector
 
     if not _claim(model_id, task_id):
@@ -125,6 +125,7 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
             )
             .order_by(ParameterSet.id)
         ).all()
+        test_ids = [row.id for row in test_rows]
         seed = derive_seed(experiment.seed, 7, stage.order, model.increment)
         relative = store.checkpoint_path(experiment.id, model.id)
         iterations = model.iterations  # t of this stage (a mixed stage may have its own)
@@ -185,7 +186,13 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
             session.add(evaluation)
         evaluation.map = finite_or_none(result.map)
         evaluation.map_unthresholded = finite_or_none(result.map_unthresholded)
-        evaluation.details = result.to_dict()
+        # With a few test images' detections, for the dashboard (θ ids: GET /experiments/{id}/images/{θ}).
+        evaluation.details = {
+            **result.to_dict(),
+            "test_detections": detection_samples(
+                test_ids, predictions, [{"condition": s.condition, "difficulty": s.difficulty} for s in test_samples]
+            ),
+        }
         evaluation.eval_seconds = eval_seconds
     return "evaluated"
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -168,15 +168,17 @@ def train_detector(
     classes: list[str],
     out: str | Path,
     seed: int = 0,
+    on_step: Callable[[int], None] | None = None,
 ) -> TrainStats:
     """Train ``iterations`` steps from ω_in (``init``; None: fresh weights per
     ``config.pretrained``) on ``samples`` and write the checkpoint ω to ``out``.
 
-    ``init`` may equal ``out`` (ω_in is read before ω is written).
+    ``init`` may equal ``out`` (ω_in is read before ω is written). ``on_step(steps_done)`` is
+    called after every step (progress display).
     """
     _validate(samples, iterations, classes, config)
     with torch_threads(config.num_threads):
-        return _train(samples, init, iterations, config, list(classes), Path(out), seed)
+        return _train(samples, init, iterations, config, list(classes), Path(out), seed, on_step)
 
 
 def _train(
@@ -187,6 +189,7 @@ def _train(
     classes: list[str],
     out: Path,
     seed: int,
+    on_step: Callable[[int], None] | None = None,
 ) -> TrainStats:
     started = time.perf_counter()
     device = resolve_device(config.device)
@@ -222,6 +225,8 @@ def _train(
     lr_scale = 1.0
     clip = config.grad_clip_norm if config.grad_clip_norm > 0 else float("inf")
     for step in range(iterations):
+        if on_step is not None and step:
+            on_step(step)
         lr = learning_rate_at(step, iterations, config) * lr_scale
         for group in optimizer.param_groups:
             group["lr"] = lr
@@ -270,6 +275,8 @@ def _train(
         optimizer.step()
         losses.append(float(loss.detach()))
 
+    if on_step is not None and iterations:
+        on_step(iterations)
     finite = [value for value in losses if math.isfinite(value)]
     final_loss = float(np.mean(finite[-FINAL_LOSS_WINDOW:])) if finite else float("nan")
     meta = {

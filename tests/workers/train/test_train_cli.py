@@ -203,6 +203,8 @@ def test_train_writes_checkpoint_and_reports_throughput_and_loss(trained, family
     assert path.is_file() and path.stat().st_size > 0
     assert "1 iterations" in output
     assert "images/s" in output
+    # Not a terminal: the progress bar is a plain line, no control codes
+    assert "training: 1/1 iterations (100%)" in output and "\x1b" not in output
     loss = float(output.split("final loss ")[1].split()[0])
     assert math.isfinite(loss)
 
@@ -228,6 +230,7 @@ def test_evaluate_prints_tables_and_writes_json(trained, dataset, tmp_path):
     assert result.exit_code == 0, result.output
     for text in ("Per class", "Per condition", "Per difficulty", "mAP (paper protocol", "mAP (unthresholded)", *CLASSES):
         assert text in result.output
+    assert "evaluating: 6/6 images (100%)" in result.output and "\x1b" not in result.output
     payload = json.loads(target.read_text())
     assert payload["num_images"] == 6 and payload["num_ground_truth"] == 6
     assert payload["classes"] == CLASSES

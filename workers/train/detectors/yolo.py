@@ -239,7 +239,9 @@ def letterbox(image: Tensor, input_size: int, canvas_size: int | None = None) ->
     per-axis scale ``(sx, sy)`` = resized / original size, so that ``x_in = x * sx`` exactly.
     """
     canvas_size = canvas_size or input_size
-    _, height, width = image.shape
+    # Plain ints also under ONNX export, whose tracer hands out sizes as tensors (the export
+    # is then for this image size: workers/train/export.py).
+    height, width = int(image.shape[-2]), int(image.shape[-1])
     scale = input_size / max(height, width)
     new_w = max(1, min(input_size, round(width * scale)))
     new_h = max(1, min(input_size, round(height * scale)))

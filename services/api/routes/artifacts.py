@@ -1,0 +1,76 @@
+"""What an experiment produced, for reading and download: rendered images with their boxes,
+COCO documents, the report, checkpoints. Read-only and open, like the other reads."""
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Path, Query
+from fastapi.responses import FileResponse, JSONResponse
+
+from db.models import Split
+from foldwise import store
+from services import artifacts
+from services.api.deps import MAX_ID, ExperimentId, ModelId, SessionDep
+from services.api.schemas import NOT_FOUND
+
+router = APIRouter(tags=["artifacts"])
+
+ImageId = Annotated[int, Path(ge=1, le=MAX_ID, description="image (θ) id")]
+
+
+@router.get("/experiments/{experiment_id}/images", responses=NOT_FOUND)
+def experiment_images(
+    experiment_id: ExperimentId,
+    session: SessionDep,
+    split: Split = Split.train,
+    stage: Annotated[int | None, Query(ge=0, description="stage order (train split)")] = None,
+    k: Annotated[int | None, Query(ge=1, description="increment (train split)")] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+) -> dict[str, Any]:
+    """Rendered images and their boxes: by default the newest increment's training images."""
+    return artifacts.images(session, experiment_id, split, stage=stage, k=k, limit=limit)
+
+
+@router.get(
+    "/experiments/{experiment_id}/images/{image_id}.png",
+    response_class=FileResponse,
+    responses={**NOT_FOUND, 200: {"content": {"image/png": {}}}},
+)
+def experiment_image(experiment_id: ExperimentId, image_id: ImageId, session: SessionDep) -> FileResponse:
+    """One rendered image (PNG)."""
+    path = artifacts.image_file(session, experiment_id, image_id)
+    # Rendered once, never rewritten: browsers may keep it.
+    return FileResponse(path, media_type="image/png", headers={"Cache-Control": "public, max-age=86400"})
+
+
+@router.get("/experiments/{experiment_id}/coco", responses=NOT_FOUND)
+def experiment_coco(experiment_id: ExperimentId, session: SessionDep, split: Split = Split.test) -> JSONResponse:
+    """A split's rendered images and boxes as a COCO document (download)."""
+    document = artifacts.coco_document(session, experiment_id, split)
+    filename = f"experiment-{experiment_id}-{split.value}-coco.json"
+    return JSONResponse(document, headers={"Content-Disposition": f'attachment; filename="{filename}"'})
+
+
+@router.get(
+    "/experiments/{experiment_id}/report.{extension}",
+    response_class=FileResponse,
+    responses={**NOT_FOUND, 200: {"content": {"image/png": {}, "text/csv": {}}}},
+)
+def experiment_report(experiment_id: ExperimentId, extension: Annotated[str, Path(pattern="^(png|csv)$")]) -> FileResponse:
+    """The report of ``foldwise report`` (error against time), written afresh from the record."""
+    from services.report import write_report
+
+    files = write_report(experiment_id, store.resolve(store.report_dir(experiment_id)))
+    path = files.png if extension == "png" else files.csv
+    media_type = "image/png" if extension == "png" else "text/csv"
+    return FileResponse(path, media_type=media_type, filename=path.name)
+
+
+@router.get(
+    "/models/{model_id}/checkpoint",
+    response_class=FileResponse,
+    responses={**NOT_FOUND, 200: {"content": {"application/octet-stream": {}}}},
+)
+def model_checkpoint(model_id: ModelId, session: SessionDep) -> FileResponse:
+    """ω's checkpoint file (``foldwise evaluate/detect/export --model`` read it)."""
+    path = artifacts.checkpoint_file(session, model_id)
+    return FileResponse(path, media_type="application/octet-stream", filename=f"model-{model_id}.pt")

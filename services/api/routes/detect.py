@@ -1,0 +1,138 @@
+"""POST /models/{id}/detect: a trained ω run on one uploaded image.
+
+The API imports no torch: the image goes to a ``foldwise worker detect`` over the ``detect``
+queue (:mod:`workers.train.serving`) and this request waits for the reply. With eager Celery
+(embedded mode, tests) the task runs in this process instead.
+"""
+
+import base64
+from typing import Annotated, Any
+
+from fastapi import APIRouter, HTTPException, Query, Request, status
+from pydantic import BaseModel, Field
+
+from db.models import Model, ModelStatus
+from services.api.deps import ModelId, SessionDep, TokenRequired
+from services.api.schemas import NOT_FOUND, WRITE_ERRORS, ErrorDetail
+
+# A rendered or photographed picture of one sheet is well under this.
+MAX_IMAGE_BYTES = 8 << 20
+# How long a request waits for a detect worker before answering 504.
+REPLY_TIMEOUT_S = 30.0
+IMAGE_TYPES = frozenset({"image/png", "image/jpeg", "application/octet-stream"})
+# What the first bytes of a PNG and a JPEG are; anything else is refused before a worker sees it.
+SIGNATURES = (b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff")
+
+router = APIRouter(prefix="/models", tags=["models"])
+
+
+class Detection(BaseModel):
+    box: list[float] = Field(description="x0, y0, x1, y1 in the image's pixels")
+    class_name: str = Field(alias="class", description="the object class")
+    label: int = Field(description="index of the class in `classes`")
+    score: float
+
+
+class ImageSize(BaseModel):
+    width: int
+    height: int
+
+
+class DetectResult(BaseModel):
+    model_id: int
+    image: ImageSize
+    classes: list[str]
+    detections: list[Detection] = Field(description="best score first, at or above `threshold`")
+    threshold: float
+    seconds: float = Field(description="time the worker took (decoding included)")
+
+
+def _send(checkpoint: str, image: bytes, threshold: float) -> dict[str, Any]:
+    from celery.exceptions import TimeoutError as CeleryTimeout
+
+    from workers.app import DETECT_QUEUE, DETECT_TASK, app
+
+    args = [checkpoint, base64.b64encode(image).decode("ascii"), threshold]
+    if app.conf.task_always_eager:
+        # send_task ignores task_always_eager: run the registered task in this process.
+        import workers.train.serving  # noqa: F401  (registers the task)
+
+        return app.tasks[DETECT_TASK].apply(args=args, throw=True).get()
+    reply = app.send_task(DETECT_TASK, args=args, queue=DETECT_QUEUE, expires=REPLY_TIMEOUT_S)
+    try:
+        return reply.get(timeout=REPLY_TIMEOUT_S)
+    except CeleryTimeout:
+        raise HTTPException(
+            status.HTTP_504_GATEWAY_TIMEOUT,
+            f"no detect worker answered within {REPLY_TIMEOUT_S:g} s: start one with `foldwise worker detect`",
+        ) from None
+    finally:
+        reply.forget()
+
+
+@router.post(
+    "/{model_id}/detect",
+    response_model=DetectResult,
+    response_model_by_alias=True,
+    dependencies=[TokenRequired],
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "description": "The image file itself (PNG or JPEG), at most 8 MiB.",
+            "content": {t: {"schema": {"type": "string", "format": "binary"}} for t in ("image/png", "image/jpeg")},
+        }
+    },
+    responses={
+        **WRITE_ERRORS,
+        **NOT_FOUND,
+        409: {"model": ErrorDetail, "description": "the model has no checkpoint (not trained, or failed)"},
+        413: {"model": ErrorDetail, "description": "the image is larger than 8 MiB"},
+        415: {"model": ErrorDetail, "description": "not image/png, image/jpeg or application/octet-stream"},
+        422: {"model": ErrorDetail, "description": "the body is not a PNG or JPEG image that decodes"},
+        504: {"model": ErrorDetail, "description": "no detect worker answered in time"},
+    },
+)
+async def detect(
+    model_id: ModelId,
+    request: Request,
+    session: SessionDep,
+    threshold: Annotated[float, Query(ge=0.0, le=1.0, description="keep detections scoring at least this")] = 0.5,
+) -> dict[str, Any]:
+    """Run ω ``model_id`` on the image in the body; boxes, classes and scores as JSON."""
+    media_type = (request.headers.get("content-type") or "").split(";", 1)[0].strip().lower()
+    if media_type not in IMAGE_TYPES:
+        raise HTTPException(
+            status.HTTP_415_UNSUPPORTED_MEDIA_TYPE,
+            f"unsupported content type {media_type or '(none)'}: send the image as image/png or image/jpeg",
+        )
+    declared = request.headers.get("content-length")
+    if declared and declared.isdigit() and int(declared) > MAX_IMAGE_BYTES:
+        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"image larger than {MAX_IMAGE_BYTES} bytes")
+    image = bytearray()
+    async for chunk in request.stream():
+        image += chunk
+        if len(image) > MAX_IMAGE_BYTES:
+            raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"image larger than {MAX_IMAGE_BYTES} bytes")
+    if not image:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "empty body: send a PNG or JPEG image")
+    if not bytes(image[:8]).startswith(SIGNATURES):
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the body is not a PNG or JPEG image")
+
+    model = session.get(Model, model_id)
+    if model is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"model {model_id} does not exist")
+    if model.status != ModelStatus.evaluated or not model.checkpoint_path:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            f"model {model_id} is {model.status.value}: only a trained and evaluated model can detect",
+        )
+    checkpoint = model.checkpoint_path
+    session.close()  # the reply may take a while; hold no connection meanwhile
+
+    from starlette.concurrency import run_in_threadpool
+
+    reply = await run_in_threadpool(_send, checkpoint, bytes(image), threshold)
+    if "error" in reply:
+        code = status.HTTP_409_CONFLICT if reply.get("missing") else status.HTTP_422_UNPROCESSABLE_CONTENT
+        raise HTTPException(code, reply["error"])
+    return {"model_id": model_id, "threshold": threshold, **reply}

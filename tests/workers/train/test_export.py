@@ -1,0 +1,154 @@
+"""`foldwise export --format onnx`: the exported graph, run by onnxruntime on rendered images,
+finds what the torch detector finds.
+
+Tolerance: boxes within 0.01 px and scores within 1e-4 of torch's, the same count and labels
+(the graph runs the same operations in float32; measured difference 0.0 for faster_rcnn).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from workers.train.cli import register
+
+BOX_TOLERANCE_PX = 0.01
+SCORE_TOLERANCE = 1e-4
+runner = CliRunner()
+
+
+def make_app() -> typer.Typer:
+    app = typer.Typer()
+    register(app)
+    return app
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """Six 64-px renders of the real pipeline (two difficulties of focus blur)."""
+    from workers.render.assets import load_assets
+    from workers.render.cli import render_dataset
+
+    out = tmp_path_factory.mktemp("rendered")
+    render_dataset(out, ["fb"], ["easy", "hard"], 3, seed=3, image_size=64, backend="raster", assets=load_assets(), echo=lambda _: None)
+    return out
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory, rendered):
+    """family -> (checkpoint, ONNX file): two training iterations each on the renders."""
+    import yaml
+
+    from foldwise.settings import REPO_ROOT
+
+    folder = tmp_path_factory.mktemp("exported")
+    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
+    # Two iterations leave yolo's scores below its default cut (0.05): keep its boxes to compare.
+    config["detector"]["box_score_threshold"] = 0.001
+    (folder / "config.yaml").write_text(yaml.safe_dump(config))
+    files = {}
+    for family in ("faster_rcnn", "yolo", "fast_rcnn"):
+        checkpoint = folder / f"{family}.pt"
+        trained = runner.invoke(
+            make_app(),
+            ["train", "--detector", family, "--data", str(rendered), "--iterations", "2", "--input-size", "64",
+             "--batch-size", "2", "--seed", "2", "--threads", "1", "--config", str(folder / "config.yaml"),
+             "--out", str(checkpoint)],
+        )  # fmt: skip
+        assert trained.exit_code == 0, trained.output
+        onnx_file = folder / f"{family}.onnx"
+        result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--format", "onnx", "--out", str(onnx_file)])
+        files[family] = (checkpoint, onnx_file, result)
+    return files
+
+
+def rendered_images(folder):
+    from workers.train.data import read_image_rgb
+
+    return [read_image_rgb(path) for path in sorted((folder / "images").glob("*.png"))]
+
+
+def assert_same_detections(onnx_found, torch_found):
+    """Same count, and every torch detection has an ONNX one of its label, box and score.
+
+    Order is not compared: scores equal to within float rounding (an untrained detector has
+    many) may sort either way. Detections tied with the last one kept may be swapped at the
+    detection cap, so those are left out of the matching.
+    """
+    assert len(onnx_found["boxes"]) == len(torch_found["boxes"]) > 0
+    lowest = torch_found["scores"].min()
+    for box, score, label in zip(torch_found["boxes"], torch_found["scores"], torch_found["labels"]):
+        if score <= lowest + SCORE_TOLERANCE:
+            continue
+        match = (
+            (onnx_found["labels"] == label)
+            & (np.abs(onnx_found["boxes"] - box).max(axis=1) <= BOX_TOLERANCE_PX)
+            & (np.abs(onnx_found["scores"] - score) <= SCORE_TOLERANCE)
+        )
+        assert match.any(), f"torch's detection {box} {score:.4f} class {label} is not in the ONNX output"
+
+
+@pytest.mark.parametrize("family", ["faster_rcnn", "yolo"])
+def test_exported_detector_matches_torch_on_rendered_images(exported, rendered, family):
+    import cv2
+
+    from workers.train.checkpoint import detect_object, load_detector
+    from workers.train.export import OnnxDetector
+
+    checkpoint, onnx_file, result = exported[family]
+    assert result.exit_code == 0, result.output
+    assert f"wrote {onnx_file}" in result.output
+    detector = load_detector(checkpoint, device="cpu")
+    model = OnnxDetector.load(onnx_file)
+    assert model.family == family and model.classes == detector.classes
+    images = rendered_images(rendered)
+    assert len(images) == 6
+    for image, expected in zip(images, detect_object(detector, images)):
+        assert_same_detections(model.detect(image), expected)
+
+    larger = cv2.resize(images[0], (96, 80))
+    if family == "faster_rcnn":  # any size: torchvision's resize is in the graph
+        assert model.image_size is None
+        assert_same_detections(model.detect(larger), detect_object(detector, [larger])[0])
+    else:  # traced at one size: another is refused, not silently wrong
+        assert model.image_size == (64, 64)
+        with pytest.raises(ValueError, match="takes 64x64 images, got 80x96"):
+            model.detect(larger)
+
+
+def test_fast_rcnn_cannot_export_and_says_why(exported):
+    _, onnx_file, result = exported["fast_rcnn"]
+    assert result.exit_code == 1
+    assert "fast_rcnn detector cannot be exported" in result.output and "Edge Boxes" in result.output
+    assert not onnx_file.exists()
+
+
+def test_export_refuses_an_unknown_format_or_size(exported, tmp_path):
+    checkpoint = exported["yolo"][0]
+    result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--format", "tflite", "--out", str(tmp_path / "m")])
+    assert result.exit_code == 1 and "unknown export format 'tflite'" in result.output
+    result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--image-size", "big", "--out", str(tmp_path / "m")])
+    assert result.exit_code == 1 and "expected N or HxW" in result.output
+    missing = runner.invoke(make_app(), ["export", "--model", str(tmp_path / "none.pt"), "--out", str(tmp_path / "m")])
+    assert missing.exit_code == 1 and "does not exist" in missing.output
+
+
+def test_yolo_exported_at_another_size_runs_there_and_not_above_its_input_size(exported, rendered, tmp_path):
+    import cv2
+
+    from workers.train.checkpoint import detect_object, load_detector
+    from workers.train.export import OnnxDetector
+
+    checkpoint = exported["yolo"][0]
+    target = tmp_path / "yolo-40x48.onnx"
+    result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--image-size", "40x48", "--out", str(target)])
+    assert result.exit_code == 0, result.output
+    image = cv2.resize(rendered_images(rendered)[1], (48, 40))
+    model = OnnxDetector.load(target)
+    assert model.image_size == (40, 48)
+    assert_same_detections(model.detect(image), detect_object(load_detector(checkpoint, device="cpu"), [image])[0])
+
+    larger = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--image-size", "96", "--out", str(target)])
+    assert larger.exit_code == 1 and "up to its input size 64 (got 96x96)" in larger.output

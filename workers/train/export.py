@@ -1,0 +1,168 @@
+"""A trained detector ω as an ONNX file that runs without foldwise or torch (onnxruntime).
+
+The exported graph, for every family that can export::
+
+    input   image   float32 (3, H, W), RGB in 0..1
+    outputs boxes   float32 (n, 4) xyxy in the input image's pixels, best score first
+            scores  float32 (n,)
+            labels  int64 (n,), 1-based: class name = classes[label - 1]
+
+and the file's metadata (``metadata_props``) names the family, the classes (JSON) and the
+input size (``image_height``/``image_width``: 0 when the graph takes any size).
+
+Which families export, and how:
+
+* ``faster_rcnn``: traced (torch's TorchScript exporter, opset 17) with the image height and
+  width dynamic: torchvision's resize, anchors, RoIAlign and NMS all have ONNX forms.
+* ``yolo``: traced at one image size (``image_size``, default the detector's input size, at
+  most that): its letterbox computes the resized size in Python (``round``), which a trace
+  records as a constant, so the graph is right for that size only (:class:`OnnxDetector`
+  refuses others); and shrinking an image uses antialiased resampling, which has no ONNX
+  operator, so a larger size cannot export.
+* ``fast_rcnn`` cannot export: its proposals come from OpenCV's Edge Boxes (``cv2.ximgproc``),
+  outside torch. A trace records the example image's proposals as constants, so the graph
+  would score those same regions on every image (measured: boxes ~90 px off on a second image).
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+FORMATS = ("onnx",)
+OPSET = 17
+# family -> whether the graph takes any image size
+EXPORTABLE = {"faster_rcnn": True, "yolo": False}
+NOT_EXPORTABLE = {
+    "fast_rcnn": (
+        "its proposals come from OpenCV's Edge Boxes (cv2.ximgproc), outside torch: a traced graph "
+        "would hold the example image's proposals as constants"
+    ),
+}
+
+
+class ExportError(ValueError):
+    """A detector or a request that cannot be exported; the message says why."""
+
+
+def export_onnx(detector: Any, out: str | Path, image_size: tuple[int, int] | None = None) -> Path:
+    """Write ``detector`` (a :class:`workers.train.checkpoint.Detector`) to ``out`` as ONNX.
+
+    ``image_size`` (height, width) is the size a fixed-size family (yolo) is exported at;
+    default the detector's input size. Families that take any size ignore it.
+    """
+    import onnx
+    import torch
+    from torch import nn
+
+    from workers.train.checkpoint import torch_threads
+
+    family = detector.meta["family"]
+    if family in NOT_EXPORTABLE:
+        raise ExportError(f"the {family} detector cannot be exported to ONNX: {NOT_EXPORTABLE[family]}")
+    if family not in EXPORTABLE:
+        raise ExportError(f"detector family {family!r} has no ONNX export; exportable: {', '.join(EXPORTABLE)}")
+    any_size = EXPORTABLE[family]
+    input_size = int(detector.meta["input_size"])
+    height, width = image_size or (input_size, input_size)
+    if min(height, width) < 16:
+        raise ExportError(f"image size {height}x{width} is too small to export at (at least 16x16)")
+    if not any_size and max(height, width) > input_size:
+        # Shrinking needs antialiased resampling, which has no ONNX operator (opset 17).
+        raise ExportError(
+            f"the {family} detector exports at image sizes up to its input size {input_size} "
+            f"(got {height}x{width}): shrinking uses antialiased resampling, which ONNX lacks"
+        )
+
+    class SingleImage(nn.Module):
+        """One image in, three tensors out: the torchvision interface without lists and dicts."""
+
+        def __init__(self, model: nn.Module) -> None:
+            super().__init__()
+            self.model = model
+
+        def forward(self, image):
+            (found,) = self.model([image])
+            return found["boxes"], found["scores"], found["labels"]
+
+    wrapper = SingleImage(detector.model.cpu()).eval()
+    # An image with texture, so no step of the trace meets an empty set (e.g. no box kept).
+    example = torch.from_numpy(np.random.default_rng(0).random((3, height, width), dtype=np.float32))
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    threads = int(detector.meta.get("config", {}).get("num_threads", 0))
+    with torch_threads(threads), torch.no_grad(), warnings.catch_warnings():
+        # The tracer warns at every Python-side shape computation; which ones matter is the
+        # family's business (above), and the round-trip test checks the result.
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            wrapper,
+            (example,),
+            str(out),
+            dynamo=False,
+            opset_version=OPSET,
+            input_names=["image"],
+            output_names=["boxes", "scores", "labels"],
+            dynamic_axes={"image": {1: "height", 2: "width"}} if any_size else None,
+        )
+    graph = onnx.load(str(out))
+    metadata = {
+        "foldwise.family": family,
+        "foldwise.backbone": str(detector.meta.get("backbone", "")),
+        "foldwise.classes": json.dumps(list(detector.meta["classes"])),
+        "foldwise.image_height": "0" if any_size else str(height),
+        "foldwise.image_width": "0" if any_size else str(width),
+    }
+    onnx.helper.set_model_props(graph, metadata)
+    onnx.save(graph, str(out))
+    return out
+
+
+@dataclass
+class OnnxDetector:
+    """An exported detector run with onnxruntime (no torch): ``detect(image_rgb_uint8)``."""
+
+    session: Any
+    family: str
+    classes: list[str]
+    image_size: tuple[int, int] | None  # (height, width) the graph needs; None: any
+
+    @classmethod
+    def load(cls, path: str | Path) -> OnnxDetector:
+        import onnxruntime
+
+        options = onnxruntime.SessionOptions()
+        options.log_severity_level = 3  # errors only: the graph's shape hints are not news
+        session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
+        meta = session.get_modelmeta().custom_metadata_map
+        if "foldwise.family" not in meta:
+            raise ExportError(f"{path} was not written by `foldwise export` (no foldwise metadata)")
+        height, width = int(meta["foldwise.image_height"]), int(meta["foldwise.image_width"])
+        return cls(
+            session=session,
+            family=meta["foldwise.family"],
+            classes=json.loads(meta["foldwise.classes"]),
+            image_size=(height, width) if height and width else None,
+        )
+
+    def detect(self, image: np.ndarray) -> dict[str, np.ndarray]:
+        """``detect_object``'s result for one RGB uint8 image: boxes, scores, labels (0-based)."""
+        if image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8:
+            raise ValueError(f"expected an RGB uint8 image (H, W, 3), got {image.dtype} {image.shape}")
+        if self.image_size is not None and image.shape[:2] != self.image_size:
+            raise ValueError(
+                f"this {self.family} export takes {self.image_size[0]}x{self.image_size[1]} images, "
+                f"got {image.shape[0]}x{image.shape[1]}: export again with --image-size"
+            )
+        tensor = np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32) / 255.0
+        boxes, scores, labels = self.session.run(None, {"image": tensor})
+        return {
+            "boxes": boxes.astype(np.float32).reshape(-1, 4),
+            "scores": scores.astype(np.float32),
+            "labels": labels.astype(np.int64) - 1,
+        }
