@@ -149,7 +149,9 @@ class AugmentationConfig(_Section):
     per image per step. Off by default: the paper trains without augmentation."""
 
     enabled: bool = False
-    crop: float = Field(default=0.3, ge=0.0, le=1.0, description="random resized crop (35-100% of the area)")
+    crop: float = Field(
+        default=0.5, ge=0.0, le=1.0, description="random crop: 35-100% of the area, aspect 9:16 to 16:9, not distorted"
+    )
     photometric: float = Field(default=0.5, ge=0.0, le=1.0, description="brightness, contrast, saturation, hue")
     grayscale: float = Field(default=0.05, ge=0.0, le=1.0)
     blur: float = Field(default=0.1, ge=0.0, le=1.0, description="Gaussian blur, sigma 0.3-1.5 px")

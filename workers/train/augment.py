@@ -2,7 +2,8 @@
 
 Rendering already varies everything the scene holds (pose, light, clutter, lens, noise); these
 transforms vary the same rendered image a little further each time it is drawn into a batch,
-at no render cost: a random resized crop (objects larger and cut by the frame), photometric
+at no render cost: a random resized crop at a random aspect ratio (objects larger, cut by the
+frame, and frames that are not square), photometric
 distortion (brightness, contrast, saturation, hue), greyscale, Gaussian blur, sensor noise and
 JPEG, each applied with its own probability (``DetectorConfig.augmentation``). No flip and no
 rotation: a mirrored print is not the object (foldwise detects one particular texture), and a
@@ -27,10 +28,13 @@ if TYPE_CHECKING:
     from foldwise.config import AugmentationConfig
 
 MIN_BOX_SIDE = 2.0
-# The random resized crop keeps this share of the image area at least, at an aspect ratio
-# within this range (the output keeps the input's size).
+# The random crop keeps this share of the image area at least, at a width / height ratio drawn
+# log-uniformly in CROP_ASPECT, and comes out at that aspect with its long side at the
+# detector's input size. Renders are square; photographs are 4:3, 3:2, 16:9 or portrait, and
+# a detector trained on square frames only learns where a square frame's borders are: on 4:3
+# images of the same objects its boxes came out stretched (IoU < 0.5 at 0.9 confidence).
 CROP_SCALE = (0.35, 1.0)
-CROP_RATIO = (3 / 4, 4 / 3)
+CROP_ASPECT = (9 / 16, 16 / 9)
 BLUR_SIGMA = (0.3, 1.5)
 NOISE_SIGMA = 0.03  # of full scale, on images in 0..1
 JPEG_QUALITY = (20, 90)
@@ -46,8 +50,7 @@ def build_augmentation(config: AugmentationConfig, crop_size: tuple[int, int]):
 
     steps = []
     if config.crop > 0:
-        crop = v2.RandomResizedCrop(crop_size, scale=CROP_SCALE, ratio=CROP_RATIO, antialias=True)
-        steps.append(v2.RandomApply([crop], p=config.crop))
+        steps.append(v2.RandomApply([_aspect_crop(max(crop_size))], p=config.crop))
     if config.photometric > 0:
         steps.append(v2.RandomPhotometricDistort(p=config.photometric))
     if config.grayscale > 0:
@@ -61,6 +64,33 @@ def build_augmentation(config: AugmentationConfig, crop_size: tuple[int, int]):
         steps.append(v2.RandomApply([v2.GaussianNoise(sigma=NOISE_SIGMA, clip=True)], p=config.noise))
     steps.append(v2.SanitizeBoundingBoxes(min_size=MIN_BOX_SIDE))
     return v2.Compose(steps)
+
+
+def _aspect_crop(long_side: int):
+    """A random crop (CROP_SCALE of the area, aspect in CROP_ASPECT, undistorted) resized so
+    its long side is ``long_side``; boxes follow (torchvision's resized_crop kernels)."""
+    from torchvision.transforms import v2
+    from torchvision.transforms.v2 import functional as F
+
+    class RandomAspectResizedCrop(v2.Transform):
+        def make_params(self, flat_inputs):
+            height, width = v2.query_size(flat_inputs)
+            area = height * width * float(torch.empty(()).uniform_(*CROP_SCALE))
+            log_low, log_high = np.log(CROP_ASPECT[0]), np.log(CROP_ASPECT[1])
+            aspect = float(np.exp(torch.empty(()).uniform_(log_low, log_high).item()))
+            crop_w = int(round(min(width, np.sqrt(area * aspect))))
+            crop_h = int(round(min(height, crop_w / aspect)))
+            crop_w, crop_h = max(crop_w, 1), max(crop_h, 1)
+            top = int(torch.randint(0, height - crop_h + 1, ()).item())
+            left = int(torch.randint(0, width - crop_w + 1, ()).item())
+            scale = long_side / max(crop_h, crop_w)
+            size = [max(1, int(round(crop_h * scale))), max(1, int(round(crop_w * scale)))]
+            return {"top": top, "left": left, "height": crop_h, "width": crop_w, "size": size}
+
+        def transform(self, inpt, params):
+            return self._call_kernel(F.resized_crop, inpt, **params, antialias=True)
+
+    return RandomAspectResizedCrop()
 
 
 def _jpeg_transform():

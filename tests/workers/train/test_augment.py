@@ -36,10 +36,13 @@ def test_boxes_follow_the_crop_and_a_box_cut_away_is_dropped_with_its_label():
     image[10:30, 20:50] = 255  # a white box: wherever the crop puts it, the box must frame it
     boxes = np.array([[20, 10, 50, 30]], np.float32)
     kept = 0
+    aspects = set()
     for seed in range(40):
         torch.manual_seed(seed)
         out, target = augmented(transform, image, boxes, np.array([1]), CPU)
-        assert out.shape == (3, 64, 64) and out.dtype == torch.float32
+        # Frames of many shapes, none distorted: the long side is the input size.
+        assert max(out.shape[1:]) == 64 and out.dtype == torch.float32
+        aspects.add(round(out.shape[2] / out.shape[1], 1))
         if len(target["boxes"]) == 0:
             continue
         kept += 1
@@ -50,6 +53,26 @@ def test_boxes_follow_the_crop_and_a_box_cut_away_is_dropped_with_its_label():
         assert abs(rows[0] - y0) <= 1.5 and abs(rows[-1] + 1 - y1) <= 1.5
         assert target["labels"].tolist() == [2]  # 0-based 1 -> torchvision's 1-based 2
     assert 10 < kept <= 40
+    assert min(aspects) < 0.8 and max(aspects) > 1.25
+
+
+def test_the_crop_keeps_the_objects_shape():
+    """A square object stays square whatever the frame's aspect (no anisotropic resize)."""
+    transform = build_augmentation(AugmentationConfig(enabled=True, crop=1.0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0), (64, 64))
+    image = np.zeros((64, 64, 3), np.uint8)
+    image[24:40, 24:40] = 255
+    boxes = np.array([[24, 24, 40, 40]], np.float32)
+    checked = 0
+    for seed in range(20):
+        torch.manual_seed(seed)
+        out, target = augmented(transform, image, boxes, np.array([0]), CPU)
+        height, width = out.shape[1:]
+        if len(target["boxes"]):
+            x0, y0, x1, y1 = target["boxes"][0].tolist()
+            if x0 > 0 and y0 > 0 and x1 < width - 1 and y1 < height - 1:  # not cut by the frame
+                checked += 1
+                assert abs((x1 - x0) - (y1 - y0)) <= 1.0
+    assert checked >= 5
 
 
 def test_photometric_steps_change_pixels_not_boxes_and_the_seed_fixes_them():
@@ -69,7 +92,7 @@ def test_photometric_steps_change_pixels_not_boxes_and_the_seed_fixes_them():
 def test_an_image_without_objects_passes_through():
     transform = build_augmentation(AugmentationConfig(enabled=True, crop=1.0), (64, 64))
     out, target = augmented(transform, _image(), np.zeros((0, 4), np.float32), np.zeros(0, np.int64), CPU)
-    assert out.shape == (3, 64, 64) and target["boxes"].shape == (0, 4) and len(target["labels"]) == 0
+    assert max(out.shape[1:]) == 64 and target["boxes"].shape == (0, 4) and len(target["labels"]) == 0
 
 
 def test_training_sees_augmented_batches_is_seeded_and_records_the_settings(tmp_path, monkeypatch):
