@@ -28,6 +28,9 @@ scores foldwise's landings, and nothing in foldwise is tuned to it.
     python bench/wild.py --model var/.../model.pt         # score a checkpoint
     python bench/wild.py --model M.pt --n-ood 300 --out bench/results/wild.json
 
+A third score, ``in_domain_reframed``, puts the in-domain images in 4:3 and 3:4 frames (mirrored
+borders): the same objects, other frames.
+
 JSON out: both mAPs, their ratio (the goal is ≥ 0.8), the out-of-domain breakdown by scene
 kind (negatives, small / medium / large / frame-filling sheets, occluded, several targets),
 the time each part took and the machine.
@@ -647,6 +650,38 @@ def make_in_domain_set(config, out: Path, n_per_pair: int, seed: int, echo=print
     return out
 
 
+def make_reframed_set(source: Path, out: Path) -> Path:
+    """foldwise's own renders in other frames: each square image padded (mirrored edges) to 4:3
+    landscape or, every other image, 3:4 portrait, boxes moved with it. The objects are the
+    in-domain ones; only the frame changes, which tells framing apart from appearance."""
+    import cv2
+
+    document = json.loads((source / "annotations.json").read_text())
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    shifts = {}
+    for index, image in enumerate(document["images"]):
+        pixels = cv2.imread(str(source / image["file_name"]), cv2.IMREAD_COLOR)
+        height, width = pixels.shape[:2]
+        if index % 2 == 0:  # landscape: pad left and right
+            extra = int(round(width * 4 / 3)) - width
+            left, top = extra // 2, 0
+            framed = cv2.copyMakeBorder(pixels, 0, 0, left, extra - left, cv2.BORDER_REFLECT)
+        else:  # portrait: pad top and bottom
+            extra = int(round(height * 4 / 3)) - height
+            left, top = 0, extra // 2
+            framed = cv2.copyMakeBorder(pixels, top, extra - top, 0, 0, cv2.BORDER_REFLECT)
+        cv2.imwrite(str(out / image["file_name"]), framed)
+        image["height"], image["width"] = framed.shape[:2]
+        shifts[image["id"]] = (left, top)
+    for annotation in document["annotations"]:
+        left, top = shifts[annotation["image_id"]]
+        annotation["bbox"][0] += left
+        annotation["bbox"][1] += top
+        annotation.pop("amodal_bbox", None)
+    (out / "annotations.json").write_text(json.dumps(document))
+    return out
+
+
 def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: float) -> dict:
     from workers.train.checkpoint import load_detector
     from workers.train.data import load_coco_dataset
@@ -726,6 +761,8 @@ def main(argv=None) -> dict:
     in_domain_dir = args.in_domain_dir or ROOT / f"var/bench/wild-in-domain-{config.name}"
     make_in_domain_set(config, in_domain_dir, args.n_in_domain, seed=config.seed + 7919, echo=echo)
     report["in_domain"] = score(checkpoint, in_domain_dir, args.threshold, args.iou)
+    reframed_dir = make_reframed_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-reframed"))
+    report["in_domain_reframed"] = score(checkpoint, reframed_dir, args.threshold, args.iou)
     report["out_of_domain"] = score(checkpoint, ood_dir, args.threshold, args.iou)
     in_map, ood_map = report["in_domain"]["map"], report["out_of_domain"]["map"]
     report["ratio"] = None if not in_map else ood_map / in_map

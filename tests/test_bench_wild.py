@@ -66,7 +66,7 @@ def test_a_fully_visible_target_is_boxed_at_its_projected_outline():
         if result is None:
             continue
         _, objects, _ = result
-        target = scene.scene.objects["wild-target-0"]
+        target = next(o for o in scene.scene.objects if o.pass_index == 1)
         corners = [world_to_camera_view(scene.scene, scene.scene.camera, target.matrix_basis @ v.co) for v in target.data.vertices]
         xs = np.array([c.x for c in corners]) * recipe.width
         ys = (1 - np.array([c.y for c in corners])) * recipe.height
@@ -93,6 +93,7 @@ def test_the_benchmark_trains_scores_both_sets_and_reports_the_ratio(tmp_path):
     assert finished.returncode == 0, finished.stderr[-3000:]
     report = json.loads(out.read_text())
     assert report["in_domain"]["images"] == 2 and report["out_of_domain"]["images"] == 4
+    assert report["in_domain_reframed"]["images"] == 2  # the same images in 4:3 and 3:4 frames
     for part in ("in_domain", "out_of_domain"):
         assert 0.0 <= report[part]["map"] <= 1.0
     assert Path(report["model"]).is_file()
@@ -113,6 +114,32 @@ def test_a_plain_scene_is_a_flat_sheet_seen_from_above_at_half_the_frame():
     x0, y0, x1, y1 = objects[0][1]
     assert x1 - x0 == pytest.approx(0.5 * 160, abs=2)  # coffee is wider than tall: its width is the long side
     assert objects[0][2] == 1.0
-    assert [o.name for o in scene.scene.objects if o.type == "MESH"] == ["wild-ground", "wild-target-0"]
+    # Names as Blender gives them (another scene in this process may hold the plain ones).
+    assert sorted(o.name.split(".")[0] for o in scene.scene.objects if o.type == "MESH") == ["wild-ground", "wild-target-0"]
     with pytest.raises(ValueError, match="unknown factor"):
         wild.OodRecipe(factors=("weather",))
+
+
+def test_reframing_pads_to_four_by_three_and_moves_the_boxes(tmp_path):
+    import cv2
+
+    source = tmp_path / "square"
+    (source / "images").mkdir(parents=True)
+    for name in ("a", "b"):
+        image = np.zeros((48, 48, 3), np.uint8)
+        image[10:20, 5:15] = 255
+        cv2.imwrite(str(source / f"images/{name}.png"), image)
+    document = {
+        "images": [{"id": i + 1, "file_name": f"images/{n}.png", "width": 48, "height": 48} for i, n in enumerate("ab")],
+        "annotations": [{"id": i + 1, "image_id": i + 1, "category_id": 1, "bbox": [5, 10, 10, 10]} for i in range(2)],
+        "categories": [{"id": 1, "name": "coffee"}],
+    }
+    (source / "annotations.json").write_text(json.dumps(document))
+    out = wild.make_reframed_set(source, tmp_path / "framed")
+    framed = json.loads((out / "annotations.json").read_text())
+    assert [(i["width"], i["height"]) for i in framed["images"]] == [(64, 48), (48, 64)]
+    for image, annotation in zip(framed["images"], framed["annotations"]):
+        pixels = cv2.imread(str(out / image["file_name"]))
+        assert pixels.shape[:2] == (image["height"], image["width"])
+        x, y, w, h = annotation["bbox"]
+        assert pixels[int(y) : int(y + h), int(x) : int(x + w)].min() == 255  # the white square moved with its box
