@@ -6,11 +6,13 @@ being ignored. ``load_config`` raises :class:`ConfigError` naming the offending 
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
-from typing import Any, Literal
+from types import UnionType
+from typing import Any, Literal, Union, get_args, get_origin
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from foldwise.conditions import load_condition_table
 
@@ -19,9 +21,40 @@ class ConfigError(ValueError):
     """An experiment configuration that cannot run; the message names the bad key."""
 
 
+# Upper bounds on what a config may ask for: a config is a request for work, and a slip of the
+# keyboard (10**9 images per increment) must be an error at once, not a job that never ends.
+MAX_IMAGES_PER_INCREMENT = 100_000
+MAX_ITERATIONS = 1_000_000
+MAX_WINDOW = 1_000
+MAX_INCREMENTS = 10_000
+MAX_TEST_IMAGES_PER_STAGE = 100_000
+MAX_BATCH = 4_096
+# Control characters (NUL above all) in a text field: PostgreSQL refuses NUL in text, and
+# no name or path needs any of them.
+CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f]")
+
+
 class _Section(BaseModel):
     # inf/nan have no place in a config, and PostgreSQL's JSON columns cannot store them.
     model_config = ConfigDict(extra="forbid", frozen=True, allow_inf_nan=False)
+
+    @field_validator("*", mode="before")
+    @classmethod
+    def _strict_numbers_and_clean_text(cls, value: Any, info: ValidationInfo) -> Any:
+        """A boolean is not a count (pydantic reads `true` as 1) and text holds no control characters."""
+        if isinstance(value, bool) and bool not in _scalar_types(cls.model_fields[info.field_name].annotation):
+            raise ValueError("expected a number, got a boolean")
+        if isinstance(value, str) and CONTROL_CHARACTERS.search(value):
+            raise ValueError(f"control character {CONTROL_CHARACTERS.search(value).group()!r} in text")
+        return value
+
+
+def _scalar_types(annotation: Any) -> set[Any]:
+    """The types an annotation admits at its top level (int | None -> {int, NoneType})."""
+    arguments = get_args(annotation)
+    if get_origin(annotation) in (Union, UnionType):
+        return {t for argument in arguments for t in _scalar_types(argument)}
+    return {annotation}
 
 
 class AssetsConfig(_Section):
@@ -52,12 +85,12 @@ class RenderConfig(_Section):
 class StageOverrides(_Section):
     """Active-learning settings a mixed stage uses instead of the experiment's own."""
 
-    m: int | None = Field(default=None, ge=1)
-    t: int | None = Field(default=None, ge=1)
-    M: int | None = Field(default=None, ge=1)
-    N: int | None = Field(default=None, ge=1)
+    m: int | None = Field(default=None, ge=1, le=MAX_IMAGES_PER_INCREMENT)
+    t: int | None = Field(default=None, ge=1, le=MAX_ITERATIONS)
+    M: int | None = Field(default=None, ge=1, le=MAX_WINDOW)
+    N: int | None = Field(default=None, ge=1, le=MAX_WINDOW)
     tau: float | None = Field(default=None, ge=0.0, le=1.0)
-    max_increments: int | None = Field(default=None, ge=1)
+    max_increments: int | None = Field(default=None, ge=1, le=MAX_INCREMENTS)
     training_set: Literal["reset", "grow"] | None = None
 
 
@@ -127,7 +160,7 @@ class CurriculumConfig(_Section):
 
 class TestSetConfig(_Section):
     # n: standard test images per (condition, difficulty); the paper has 30 per object.
-    per_stage: int = Field(default=150, ge=1)
+    per_stage: int = Field(default=150, ge=1, le=MAX_TEST_IMAGES_PER_STAGE)
     # Which (condition, difficulty) pairs the standard test set covers: the paper's Table 3
     # ("table3", its 7 conditions), every condition of the table ("all"), or only the
     # curriculum's stages ("curriculum", mixed stages included).
@@ -135,12 +168,12 @@ class TestSetConfig(_Section):
 
 
 class ActiveLearningConfig(_Section):
-    m: int = Field(default=50, ge=1, description="training images per increment")
-    t: int = Field(default=1000, ge=1, description="training iterations per increment")
-    M: int = Field(default=3, ge=1, description="recent window of the stopping rule")
-    N: int = Field(default=8, ge=1, description="earlier window of the stopping rule")
+    m: int = Field(default=50, ge=1, le=MAX_IMAGES_PER_INCREMENT, description="training images per increment")
+    t: int = Field(default=1000, ge=1, le=MAX_ITERATIONS, description="training iterations per increment")
+    M: int = Field(default=3, ge=1, le=MAX_WINDOW, description="recent window of the stopping rule")
+    N: int = Field(default=8, ge=1, le=MAX_WINDOW, description="earlier window of the stopping rule")
     tau: float = Field(default=0.02, ge=0.0, le=1.0, description="plateau threshold on |P_M - P_N|")
-    max_increments: int = Field(default=40, ge=1, description="cap on increments per stage")
+    max_increments: int = Field(default=40, ge=1, le=MAX_INCREMENTS, description="cap on increments per stage")
     training_set: Literal["reset", "grow"] = "reset"
 
 
@@ -169,13 +202,13 @@ class DetectorConfig(_Section):
     momentum: float = Field(default=0.9, ge=0, lt=1)
     weight_decay: float = Field(default=1e-4, ge=0)
     # Non-finite losses tolerated (each skipped, learning rate lowered) before the task fails.
-    max_nonfinite_steps: int = Field(default=5, ge=0)
+    max_nonfinite_steps: int = Field(default=5, ge=0, le=MAX_ITERATIONS)
     device: Literal["auto", "cpu", "cuda"] = "auto"
     # Torch intra-op threads; 0 lets torch choose.
-    num_threads: int = Field(default=0, ge=0)
+    num_threads: int = Field(default=0, ge=0, le=1024)
     # Learning-rate schedule of one train_detector call: linear warm-up from 0.1% over
     # warmup_iterations, then constant or a cosine decay to min_lr_fraction × learning_rate.
-    warmup_iterations: int = Field(default=50, ge=0)
+    warmup_iterations: int = Field(default=50, ge=0, le=MAX_ITERATIONS)
     lr_schedule: Literal["constant", "cosine"] = "cosine"
     min_lr_fraction: float = Field(default=0.05, ge=0.0, le=1.0)
     # Gradient norm clip (0 disables); random initialisation is unstable without it.
@@ -189,14 +222,14 @@ class DetectorConfig(_Section):
     # Width of the R-CNN box head's two fully connected layers (torchvision: 1024).
     representation_size: int = Field(default=256, ge=8, le=4096)
     # RPN proposals kept per image after NMS (torchvision's COCO values: 2000 / 1000).
-    rpn_proposals_train: int = Field(default=300, ge=1)
-    rpn_proposals_test: int = Field(default=100, ge=1)
+    rpn_proposals_train: int = Field(default=300, ge=1, le=10_000)
+    rpn_proposals_test: int = Field(default=100, ge=1, le=10_000)
     # RoIs sampled per image for the box head's loss (torchvision: 512).
-    roi_samples_per_image: int = Field(default=64, ge=1)
+    roi_samples_per_image: int = Field(default=64, ge=1, le=MAX_BATCH)
     # Edge Boxes proposals per image for the fast_rcnn family (the whole-image box included).
     edge_boxes: int = Field(default=200, ge=1, le=5000)
     # Detections returned per image, and the score below which none is returned.
-    detections_per_image: int = Field(default=20, ge=1)
+    detections_per_image: int = Field(default=20, ge=1, le=1_000)
     box_score_threshold: float = Field(default=0.05, ge=0.0, lt=1.0)
     augmentation: AugmentationConfig = AugmentationConfig()
 
@@ -212,7 +245,7 @@ class DetectorConfig(_Section):
 class EvaluationConfig(_Section):
     score_threshold: float = Field(default=0.8, ge=0.0, le=1.0, description="the paper's confidence cut")
     iou_threshold: float = Field(default=0.5, gt=0.0, le=1.0)
-    batch_size: int = Field(default=16, ge=1)
+    batch_size: int = Field(default=16, ge=1, le=MAX_BATCH)
     # pycocotools' metrics beside the paper's mAP. The stopping rule never reads them, and on a
     # 3,150-image test set they cost ~20 s per increment, against ~1 s for the VOC mAP.
     coco: bool = True
@@ -277,6 +310,8 @@ def _format_validation_error(error: ValidationError) -> str:
         message = item["msg"]
         if item["type"] == "extra_forbidden":
             message = "unknown key"
+        elif item["type"] == "value_error":
+            message = message.removeprefix("Value error, ")
         lines.append(f"{key}: {message}")
     return "invalid experiment config:\n  " + "\n  ".join(lines)
 

@@ -12,6 +12,8 @@ of the Celery app import them only inside task bodies, and are never imported he
 from typing import Any
 
 from fastapi import FastAPI, Request, status
+from fastapi.exception_handlers import request_validation_exception_handler
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 
 from foldwise.config import ExperimentConfig
@@ -45,6 +47,19 @@ async def not_found(_request: Request, error: queries.NotFound) -> JSONResponse:
     return JSONResponse({"detail": str(error)}, status_code=status.HTTP_404_NOT_FOUND)
 
 
+ID_RANGE_ERRORS = frozenset({"greater_than_equal", "less_than_equal"})
+
+
+async def id_out_of_range(request: Request, error: RequestValidationError) -> JSONResponse:
+    """A path id that is a whole number outside the ids' range names no row: 404, like any
+    other id that does not exist. Every other validation error keeps FastAPI's 422."""
+    errors = error.errors()
+    if errors and all(item["loc"][0] == "path" and item["type"] in ID_RANGE_ERRORS for item in errors):
+        names = ", ".join(f"{item['loc'][-1]} {item['input']}" for item in errors)
+        return JSONResponse({"detail": f"{names} does not exist"}, status_code=status.HTTP_404_NOT_FOUND)
+    return await request_validation_exception_handler(request, error)
+
+
 def create_app(
     settings: Settings | None = None,
     *,
@@ -66,6 +81,7 @@ def create_app(
     app.state.broker = BrokerProbe(settings, timeout_s=broker_timeout_s, ping_timeout_s=ping_timeout_s)
     app.state.schema_check = SchemaCheck(settings.resolved_database_url)
     app.add_exception_handler(queries.NotFound, not_found)
+    app.add_exception_handler(RequestValidationError, id_out_of_range)
     for router in ROUTERS:
         app.include_router(router)
     document_config_schema(app)

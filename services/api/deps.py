@@ -18,8 +18,10 @@ from db.session import get_sessionmaker
 from foldwise.settings import Settings
 from services.api.probes import BrokerProbe, SchemaCheck
 
-# Database ids are 64-bit; a larger number can name nothing (and SQLite would overflow on it).
-MAX_ID = 2**63 - 1
+# Database ids are 32-bit INTEGER columns (PostgreSQL refuses a larger number with an error, not
+# an empty result): an id outside 1..MAX_ID names nothing, and the app answers 404 for it
+# (services.api.app.id_out_of_range).
+MAX_ID = 2**31 - 1
 
 ExperimentId = Annotated[int, Path(ge=1, le=MAX_ID, description="experiment id")]
 ModelId = Annotated[int, Path(ge=1, le=MAX_ID, description="model id (ω)")]

@@ -278,8 +278,19 @@ def test_unknown_ids_are_404_naming_the_id(client, seeded, path, message):
     assert response.json() == {"detail": message}
 
 
-@pytest.mark.parametrize("bad_id", ["0", "-3", str(2**63), "abc", "1.5"])
-def test_ids_that_cannot_exist_are_422_not_500(client, bad_id):
+@pytest.mark.parametrize("bad_id", ["0", "-3", str(2**31), str(2**63), str(10**40)])
+def test_ids_outside_the_id_range_are_404_not_500(client, bad_id):
+    # 2**31 is one past PostgreSQL's INTEGER: asking the database for it was a 500.
+    paths = (f"/experiments/{bad_id}", f"/models/{bad_id}", f"/experiments/{bad_id}/history",
+             f"/experiments/{bad_id}/images/{bad_id}.png", f"/models/{bad_id}/checkpoint")  # fmt: skip
+    for path in paths:
+        response = client.get(path)
+        assert response.status_code == 404, path
+        assert bad_id in response.json()["detail"] and "does not exist" in response.json()["detail"]
+
+
+@pytest.mark.parametrize("bad_id", ["abc", "1.5", "1e3"])
+def test_ids_that_are_not_whole_numbers_are_422(client, bad_id):
     for path in (f"/experiments/{bad_id}", f"/models/{bad_id}", f"/experiments/{bad_id}/history"):
         response = client.get(path)
         assert response.status_code == 422, path
