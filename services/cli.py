@@ -28,12 +28,18 @@ def _fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
-def _load(config_path: Path):
+def _load(config_path: Path, check_assets: bool = False):
+    """The config, or a one-line error (exit 2); with ``check_assets`` its asset folders are
+    checked too, before any work starts."""
     from foldwise.config import ConfigError, load_config
+    from workers.render.asset_check import AssetError, validate_assets
 
     try:
-        return load_config(config_path)
-    except ConfigError as error:
+        config = load_config(config_path)
+        if check_assets:
+            validate_assets(config.assets)
+        return config
+    except (ConfigError, AssetError) as error:
         _fail(str(error))
 
 
@@ -49,7 +55,7 @@ def run(
     from services.embedded import run_to_completion, start_experiment
     from services.report import write_report
 
-    config = _load(config_path)
+    config = _load(config_path, check_assets=True)
     settings = get_settings()
     console.print(
         f"foldwise: experiment [bold]{config.name}[/] — {len(config.stage_order())} stages, "

@@ -34,17 +34,14 @@ from typing import Callable
 import numba
 import numpy as np
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+from workers.render.asset_check import AssetError, image_files
+
 PROCEDURAL_PREFIX = "procedural:"
 PROCEDURAL_BACKGROUNDS = ("noise", "gradient", "stripes", "checker")
 
 BUILTIN_OBJECTS = ("astronaut", "coffee", "chelsea", "rocket", "motorcycle_left")
 BUILTIN_BACKGROUNDS = ("brick", "grass", "gravel", "hubble_deep_field", "moon", "immunohistochemistry", "retina", "cell")
 BUILTIN_OCCLUDERS = ("coins", "page", "camera", "text", "clock", "colorwheel", "logo")
-
-
-class AssetError(ValueError):
-    """An asset folder or image that cannot be used; the message names the path."""
 
 
 @dataclass(frozen=True)
@@ -121,11 +118,7 @@ def _folder_assets(folder: Path, what: str, keep_alpha: bool, name_by_stem: bool
     import cv2
 
     folder = Path(folder).expanduser()
-    if not folder.is_dir():
-        raise AssetError(f"assets.{what}: folder {str(folder)!r} does not exist")
-    files = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
-    if not files:
-        raise AssetError(f"assets.{what}: folder {str(folder)!r} holds no images ({' '.join(IMAGE_SUFFIXES)})")
+    files = image_files(folder, what)
     assets = []
     for path in files:
         # A header check is cheap enough for thousands of files and catches non-images early;

@@ -132,6 +132,12 @@ def list_experiments(
 )
 def create_experiment(request: Request, response: Response, session: SessionDep, config: ConfigBody) -> dict[str, Any]:
     """Record a new experiment (status pending); the scheduler starts it on its next pass."""
+    from workers.render.asset_check import AssetError, validate_assets  # Pillow only: no torch, no bpy
+
+    try:
+        validate_assets(config.assets)  # asset folders on this server, checked once before anything is recorded
+    except AssetError as error:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error)) from None
     experiment = queries.create_experiment(session, config)
     session.commit()
     response.headers["Location"] = request.scope.get("root_path", "") + request.app.url_path_for(

@@ -109,6 +109,9 @@ def test_an_id_that_names_no_row_is_404(client, method, path, bad_id):
         ({"name": "x", "render": {"image_size": 10**6}}, 422, "render.image_size"),
         ({"name": "x", "evaluation": {"batch_size": 10**9}}, 422, "evaluation.batch_size"),
         ({"name": "x", "curriculum": {"mixed": {"active_learning": {"m": False}}}}, 422, "curriculum.mixed.active_learning.m"),
+        # An asset folder the server does not have: it was a 201, then a scheduler error on every pass.
+        ({"name": "x", "assets": {"backgrounds": "/nonexistent/foldwise"}}, 422,
+         "assets.backgrounds: folder '/nonexistent/foldwise' does not exist"),
     ],
 )
 def test_a_bad_config_is_422_naming_the_key_and_records_nothing(client, database_url, body, status, named):

@@ -1,0 +1,108 @@
+"""User asset folders are checked before any work: each bad folder or file is one clear error."""
+
+from __future__ import annotations
+
+import struct
+import subprocess
+import sys
+import zlib
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from foldwise.config import AssetsConfig
+from workers.render.asset_check import MAX_PIXELS, AssetError, validate_assets
+
+REPO_ROOT = Path(__file__).resolve().parents[3]
+
+
+def _png(path: Path, width: int, height: int) -> Path:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    image = np.random.default_rng(width * 7 + height).integers(0, 255, (height, width, 3), dtype=np.uint8)
+    assert cv2.imwrite(str(path), image)
+    return path
+
+
+def _chunk(kind: bytes, data: bytes) -> bytes:
+    return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+
+def _png_claiming(path: Path, width: int, height: int) -> Path:
+    """A well-formed PNG header (valid CRCs) that claims width x height, with one row of data."""
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", header) + _chunk(b"IDAT", zlib.compress(b"\x00" * 64)) + _chunk(b"IEND", b""))
+    return path
+
+
+@pytest.fixture
+def folders(tmp_path):
+    objects = tmp_path / "objects"
+    _png(objects / "poster.png", 64, 48)
+    backgrounds = tmp_path / "backgrounds"
+    _png(backgrounds / "wall.png", 40, 40)
+    occluders = tmp_path / "occluders"
+    _png(occluders / "leaf.png", 8, 8)
+    return {"objects": objects, "backgrounds": backgrounds, "occluders": occluders}
+
+
+def test_good_folders_and_the_defaults_pass(folders):
+    validate_assets(None)
+    validate_assets(AssetsConfig())
+    validate_assets(AssetsConfig(**folders))
+
+
+@pytest.mark.parametrize(
+    ("what", "spoil", "message"),
+    [
+        ("objects", lambda d: d / "missing", "folder '{d}/missing' does not exist"),
+        ("backgrounds", lambda d: _png(d / "x.png", 20, 20), "is not a folder"),
+        ("occluders", lambda d: (d.mkdir(), d)[-1], "holds no images"),
+        ("objects", lambda d: (d.mkdir(), (d / "notes.png").write_text("not an image"), d)[-1], "notes.png' is not a readable image"),
+        ("backgrounds", lambda d: (_png(d / "cut.png", 64, 64).write_bytes((d / "cut.png").read_bytes()[:90]), d)[-1], "cut.png' is not a readable image"),
+        ("backgrounds", lambda d: (_png(d / "dot.png", 1, 1), d)[-1], "dot.png' is 1x1 pixels; backgrounds need at least 16"),
+        ("occluders", lambda d: (_png(d / "speck.png", 7, 30), d)[-1], "speck.png' is 7x30 pixels; occluders need at least 8"),
+        ("objects", lambda d: (d.mkdir(), _png_claiming(d / "bomb.png", 100_000, 100_000), d)[-1], f"bomb.png' is larger than {MAX_PIXELS:,} pixels"),
+    ],
+)
+def test_each_bad_folder_or_file_is_named(tmp_path, folders, what, spoil, message):
+    target = tmp_path / f"bad_{what}"
+    folder = spoil(target)
+    with pytest.raises(AssetError) as caught:
+        validate_assets(AssetsConfig(**{**folders, what: folder}))
+    assert str(caught.value).startswith(f"assets.{what}: ")
+    assert message.format(d=target) in str(caught.value)
+
+
+def test_a_png_claiming_ten_billion_pixels_is_refused_without_decoding(tmp_path):
+    # It is 100 bytes; decoding it would allocate 30 GB. The check reads only its header.
+    folder = tmp_path / "objects"
+    folder.mkdir()
+    _png_claiming(folder / "bomb.png", 100_000, 100_000)
+    # VmHWM, the peak RSS of this process image (ru_maxrss would carry pytest's own over exec).
+    script = (
+        "import re; from foldwise.config import AssetsConfig;"
+        "from workers.render.asset_check import validate_assets, AssetError\n"
+        f"try: validate_assets(AssetsConfig(objects={str(folder)!r}))\n"
+        "except AssetError: pass\n"
+        "print(re.search(r'VmHWM:\\s+(\\d+)', open('/proc/self/status').read()).group(1))"
+    )
+    done = subprocess.run([sys.executable, "-c", script], cwd=REPO_ROOT, capture_output=True, text=True, check=True)
+    assert int(done.stdout) < 300_000  # KiB: the interpreter and Pillow, not the image
+
+
+def test_foldwise_run_with_a_bad_asset_folder_is_one_line_and_records_nothing(tmp_path):
+    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
+    config["assets"] = {**config.get("assets", {}), "backgrounds": str(tmp_path / "nowhere")}
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(config))
+    env = {"FOLDWISE_DATA_DIR": str(tmp_path / "data"), "PATH": "/usr/bin:/bin", "COLUMNS": "200"}
+    done = subprocess.run(
+        [sys.executable, "-m", "services.cli", "run", str(path)], cwd=REPO_ROOT, capture_output=True, text=True, env=env
+    )
+    output = (done.stdout + done.stderr).strip()
+    assert done.returncode == 2, output
+    assert output == f"error: assets.backgrounds: folder '{tmp_path / 'nowhere'}' does not exist"
+    assert not (tmp_path / "data").exists()  # no database, no images: nothing started
