@@ -70,6 +70,7 @@ class RenderStatus(str, enum.Enum):
     queued = "queued"  # sent
     rendered = "rendered"
     failed = "failed"  # every resample rejected, or the worker raised
+    discarded = "discarded"  # sampled ahead, never needed: the experiment ended first
 
 
 class ModelStatus(str, enum.Enum):
@@ -78,6 +79,7 @@ class ModelStatus(str, enum.Enum):
     training = "training"
     evaluated = "evaluated"
     failed = "failed"
+    discarded = "discarded"  # the experiment ended (failed or cancelled) before it was trained
 
 
 class Experiment(Base):

@@ -80,6 +80,11 @@ class RenderConfig(_Section):
     max_resamples: int = Field(default=20, ge=0, le=1000)
     # θ per render task: larger batches amortise task overhead, smaller ones spread better.
     batch_size: int = Field(default=8, ge=1, le=1000)
+    # A run that lost more than this share of its images (every resample rejected, or the
+    # worker raised) fails instead of reporting `finished` on what was left.
+    max_failed_share: float = Field(
+        default=0.1, ge=0.0, le=1.0, description="share of failed images above which the experiment fails"
+    )
 
 
 class StageOverrides(_Section):

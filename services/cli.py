@@ -90,7 +90,7 @@ def run(
         info = queries.summary(session, experiment_id)
         stage_rows = queries.stages(session, experiment_id)
     table = Table(title=f"experiment {experiment_id} ({config.name}): {status}")
-    for column in ("c", "δ", "increments", "end reason", "best mAP", "time (s)"):
+    for column in ("c", "δ", "increments", "end reason", "best mAP", "failed images", "time (s)"):
         table.add_column(column, justify="right" if column not in ("c", "δ", "end reason") else "left")
     for row in stage_rows:
         table.add_row(
@@ -99,9 +99,13 @@ def run(
             str(row["increments"]),
             row["end_reason"] or row["status"],
             "—" if row["best_map"] is None else f"{row['best_map']:.3f}",
+            str(row["failed_images"]),
             "—" if row["seconds"] is None else f"{row['seconds']:.1f}",
         )
     console.print(table)
+    if info["failed_by_reason"]:
+        reasons = ", ".join(f"{count} {reason}" for reason, count in info["failed_by_reason"].items())
+        console.print(f"images that could not be rendered: {reasons}", highlight=False)
     if info["error"]:
         console.print(f"[red]failed:[/] {info['error']}", highlight=False)
     files = write_report(experiment_id, report_dir or settings.data_dir / f"experiments/{experiment_id}/report")

@@ -7,10 +7,11 @@ shape.
 
 from __future__ import annotations
 
+import logging
 from datetime import datetime, timezone
 from typing import Any
 
-from sqlalchemy import func, select
+from sqlalchemy import func, select, update
 from sqlalchemy.orm import Session
 
 from db.models import (
@@ -18,12 +19,17 @@ from db.models import (
     Experiment,
     ExperimentStatus,
     Model,
+    ModelStatus,
     ParameterSet,
+    RenderStatus,
     Stage,
     StageStatus,
 )
 from foldwise.config import ExperimentConfig
 from services.api.schemas import EvaluationDetail, ExperimentListItem, ModelDetail, StageRef
+
+
+log = logging.getLogger(__name__)
 
 
 class NotFound(LookupError):
@@ -38,11 +44,64 @@ def create_experiment(session: Session, config: ExperimentConfig) -> Experiment:
 
 
 def cancel_experiment(session: Session, experiment_id: int) -> Experiment:
+    """Cancel a pending or running experiment; one that has ended keeps its status.
+
+    A conditional UPDATE, not read-then-write: a scheduler finishing the experiment at the same
+    moment either commits first (the WHERE no longer matches, and `finished` stands) or waits
+    on the row until the cancel commits (and then plans nothing for a cancelled experiment).
+    """
+    get_experiment(session, experiment_id)
+    cancelled = session.execute(
+        update(Experiment)
+        .where(Experiment.id == experiment_id, Experiment.status.in_((ExperimentStatus.pending, ExperimentStatus.running)))
+        .values(status=ExperimentStatus.cancelled, finished_at=datetime.now(timezone.utc))
+        .execution_options(synchronize_session=False)
+    ).rowcount
+    if cancelled:
+        discard_open_work(session, experiment_id)
     experiment = get_experiment(session, experiment_id)
-    if experiment.status in (ExperimentStatus.pending, ExperimentStatus.running):
-        experiment.status = ExperimentStatus.cancelled
-        experiment.finished_at = datetime.now(timezone.utc)
+    session.refresh(experiment)
     return experiment
+
+
+def discard_open_work(session: Session, experiment_id: int) -> dict[str, int]:
+    """An ended experiment leaves nothing queued or running: θ sampled ahead and models not yet
+    trained become ``discarded`` (workers skip them if their message still arrives); the
+    messages of models already sent are revoked where a broker is reachable."""
+    thetas = session.execute(
+        update(ParameterSet)
+        .where(ParameterSet.experiment_id == experiment_id, ParameterSet.status.in_((RenderStatus.pending, RenderStatus.queued)))
+        .values(status=RenderStatus.discarded)
+        .execution_options(synchronize_session=False)
+    ).rowcount
+    open_models = (ModelStatus.pending, ModelStatus.queued, ModelStatus.training)
+    task_ids = list(
+        session.scalars(
+            select(Model.task_id).where(
+                Model.experiment_id == experiment_id, Model.status.in_(open_models), Model.task_id.is_not(None)
+            )
+        )
+    )
+    models = session.execute(
+        update(Model)
+        .where(Model.experiment_id == experiment_id, Model.status.in_(open_models))
+        .values(status=ModelStatus.discarded, error="the experiment ended before this model was trained")
+        .execution_options(synchronize_session=False)
+    ).rowcount
+    if task_ids:
+        _revoke(task_ids)
+    return {"parameter_sets": thetas, "models": models}
+
+
+def _revoke(task_ids: list[str]) -> None:
+    """Best effort: a message that is not revoked finds its row discarded and does nothing."""
+    try:
+        from workers.app import app
+
+        if not app.conf.task_always_eager:
+            app.control.revoke(task_ids)
+    except Exception as error:  # no broker reachable: the workers' status checks suffice
+        log.warning("could not revoke %d task(s): %s", len(task_ids), error)
 
 
 def get_experiment(session: Session, experiment_id: int) -> Experiment:
@@ -120,6 +179,13 @@ def stages(session: Session, experiment_id: int) -> list[dict[str, Any]]:
         .order_by(Model.increment)
     ):
         scores.setdefault(model.stage_id, []).append((model.increment, score, model.id))
+    failed_images = dict(
+        session.execute(
+            select(ParameterSet.stage_id, func.count())
+            .where(ParameterSet.experiment_id == experiment_id, ParameterSet.status == RenderStatus.failed)
+            .group_by(ParameterSet.stage_id)
+        ).all()
+    )
     out = []
     for stage in session.scalars(select(Stage).where(Stage.experiment_id == experiment_id).order_by(Stage.order)):
         entries = scores.get(stage.id, [])
@@ -136,12 +202,38 @@ def stages(session: Session, experiment_id: int) -> list[dict[str, Any]]:
                 "init_model_id": stage.init_model_id,
                 "best_model_id": stage.best_model_id,
                 "best_map": best if best is not None else (max(finite) if finite else None),
+                "failed_images": failed_images.get(stage.id, 0),
                 "started_at": _iso(stage.started_at),
                 "finished_at": _iso(stage.finished_at),
                 "seconds": _seconds_between(stage.started_at, stage.finished_at) if stage.started_at else None,
             }
         )
     return out
+
+
+REJECTED_PREFIX = "every resample rejected; last reason: "
+
+
+def failure_reason(error: str | None) -> str:
+    """A failed θ's error as a reason to count: the rejection's reason, or the exception type."""
+    if not error:
+        return "unknown"
+    if error.startswith(REJECTED_PREFIX):
+        return "rejected: " + error[len(REJECTED_PREFIX) :].split(" (")[0][:80]
+    return error.split(":", 1)[0][:80]
+
+
+def failed_by_reason(session: Session, experiment_id: int, stage_id: int | None = None) -> dict[str, int]:
+    query = select(ParameterSet.error).where(
+        ParameterSet.experiment_id == experiment_id, ParameterSet.status == RenderStatus.failed
+    )
+    if stage_id is not None:
+        query = query.where(ParameterSet.stage_id == stage_id)
+    reasons: dict[str, int] = {}
+    for error in session.scalars(query):
+        reason = failure_reason(error)
+        reasons[reason] = reasons.get(reason, 0) + 1
+    return dict(sorted(reasons.items(), key=lambda item: (-item[1], item[0])))
 
 
 def summary(session: Session, experiment_id: int) -> dict[str, Any]:
@@ -197,6 +289,7 @@ def summary(session: Session, experiment_id: int) -> dict[str, Any]:
             ),
             "stages": session.scalar(select(func.count()).select_from(Stage).where(Stage.experiment_id == experiment_id)),
         },
+        "failed_by_reason": failed_by_reason(session, experiment_id),
         "best": {"map": best[0], "model_id": best[1]} if best else None,
         "final_model_id": experiment.final_model_id,
         "created_at": _iso(experiment.created_at),

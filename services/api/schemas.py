@@ -57,6 +57,9 @@ class ExperimentSummary(_Shape):
     classes: list[Any] | None = Field(description="the detector's classes (object names), fixed at the start")
     current_stage: CurrentStage | None
     counts: Counts
+    failed_by_reason: dict[str, int] = Field(
+        default_factory=dict, description="failed θ (images that could not be rendered) counted by reason"
+    )
     best: BestModel | None = Field(description="the best score in P so far and its model")
     final_model_id: int | None
     created_at: str | None
@@ -75,6 +78,7 @@ class StageSummary(_Shape):
     init_model_id: int | None = Field(description="ω_in of the first increment: the previous stage's ω_be")
     best_model_id: int | None = Field(description="ω_be")
     best_map: float | None
+    failed_images: int = Field(default=0, description="θ of this stage that could not be rendered")
     started_at: str | None
     finished_at: str | None
     seconds: float | None

@@ -185,6 +185,9 @@ def plan(s: Snapshot) -> list[Decision]:
     test_open = sum(test[status] for status in _OPEN)
     if test_open == 0 and test[RenderStatus.rendered] == 0:
         return decisions + [Fail("no image of the standard test set could be rendered (see parameter_sets.error)")]
+    lost = _lost_too_much(s)
+    if lost:
+        return decisions + [Fail(lost)]
 
     stage = next((st for st in s.stages if st.status != StageStatus.done), None)
     if stage is None:
@@ -232,7 +235,9 @@ def plan(s: Snapshot) -> list[Decision]:
     else:
         if latest.status == ModelStatus.pending:
             decisions.append(EnqueueTraining(latest.id))
-        elif s.stale(latest.claimed_at or latest.enqueued_at):
+        elif s.stale(_latest(latest.claimed_at, latest.enqueued_at)):
+            # The later of claim and (re-)send: a model re-sent once waits a whole window
+            # before the next re-send (its old claim alone re-sent it on every pass).
             decisions.append(EnqueueTraining(latest.id, requeue=True))
         ensure_sampled(stage, latest.increment + 1)
 
@@ -241,6 +246,30 @@ def plan(s: Snapshot) -> list[Decision]:
     if following is not None:
         ensure_sampled(following, 1)
     return decisions
+
+
+# Below this many finished renders a share says little (one failure in four is not a trend).
+MIN_RENDERS_FOR_SHARE = 20
+
+
+def _lost_too_much(s: Snapshot) -> str | None:
+    """The reason to fail when more than render.max_failed_share of the finished renders failed."""
+    done: Counter = Counter()
+    for counts in s.theta_counts.values():
+        done.update(counts)
+    failed, finished = done[RenderStatus.failed], done[RenderStatus.failed] + done[RenderStatus.rendered]
+    limit = s.config.render.max_failed_share
+    if finished >= MIN_RENDERS_FOR_SHARE and failed > limit * finished:
+        return (
+            f"{failed} of {finished} images ({failed / finished:.0%}) failed to render, more than "
+            f"render.max_failed_share = {limit:.0%}; GET /experiments/{s.experiment_id} counts them by reason"
+        )
+    return None
+
+
+def _latest(*moments: datetime | None) -> datetime | None:
+    known = [moment for moment in moments if moment is not None]
+    return max(known) if known else None
 
 
 # ---------------------------------------------------------------------------------------
@@ -444,12 +473,23 @@ def apply(
                 experiment.status = ExperimentStatus.finished
                 experiment.final_model_id = final_model_id
                 experiment.finished_at = now
+                _discard_open_work(session, experiment.id)
             case Fail(reason):
                 experiment.status = ExperimentStatus.failed
                 experiment.error = reason
                 experiment.finished_at = now
                 log.error("experiment %s failed: %s", experiment.id, reason)
+                _discard_open_work(session, experiment.id)
     return sends
+
+
+def _discard_open_work(session: Session, experiment_id: int) -> None:
+    from services.queries import discard_open_work
+
+    session.flush()
+    discarded = discard_open_work(session, experiment_id)
+    if any(discarded.values()):
+        log.info("experiment %s ended: discarded %s", experiment_id, discarded)
 
 
 def _mark_sent(send: Send) -> None:

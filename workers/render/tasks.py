@@ -33,6 +33,8 @@ def render_parameter_set(parameter_set_id: int) -> str:
         experiment = session.get(Experiment, row.experiment_id)
         if experiment.status in (ExperimentStatus.cancelled, ExperimentStatus.failed):
             return "skipped"
+        if row.status == RenderStatus.discarded:  # the experiment ended before it was needed
+            return "skipped"
         if row.status == RenderStatus.rendered and row.image_path and store.resolve(row.image_path).is_file():
             return "skipped"
         theta = dict(row.theta)
@@ -52,6 +54,8 @@ def render_parameter_set(parameter_set_id: int) -> str:
     except RenderRejected as rejected:
         with session_scope() as session:
             row = session.get(ParameterSet, parameter_set_id)
+            if row is None or row.status == RenderStatus.discarded:
+                return "skipped"
             row.status = RenderStatus.failed
             row.error = f"every resample rejected; last reason: {rejected.reason}"
             row.rejections = list(getattr(rejected, "reasons", [rejected.reason]))
@@ -69,6 +73,8 @@ def render_parameter_set(parameter_set_id: int) -> str:
         row = session.get(ParameterSet, parameter_set_id)
         if row is None:
             return "missing"
+        if row.status == RenderStatus.discarded:  # discarded while it rendered: it stays so
+            return "skipped"
         row.status = RenderStatus.rendered
         row.image_path = relative
         row.rendered_theta = rendered_theta.to_dict()
@@ -88,7 +94,7 @@ def render_parameter_set(parameter_set_id: int) -> str:
 def _record_failure(parameter_set_id: int, error: Exception) -> None:
     with session_scope() as session:
         row = session.get(ParameterSet, parameter_set_id)
-        if row is not None and row.status != RenderStatus.rendered:
+        if row is not None and row.status not in (RenderStatus.rendered, RenderStatus.discarded):
             row.status = RenderStatus.failed
             row.error = f"{type(error).__name__}: {error}"
 

@@ -43,7 +43,7 @@ def _claim(model_id: int, task_id: str) -> bool:
     stale_before = utcnow() - timedelta(seconds=get_settings().requeue_after_s)
     with session_scope() as session:
         model = session.get(Model, model_id, with_for_update=True)
-        if model is None or model.status in (ModelStatus.evaluated, ModelStatus.failed):
+        if model is None or model.status in (ModelStatus.evaluated, ModelStatus.failed, ModelStatus.discarded):
             return False
         experiment = session.get(Experiment, model.experiment_id)
         if experiment.status in (ExperimentStatus.cancelled, ExperimentStatus.failed):
@@ -165,6 +165,8 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
         log.exception("increment of model %s failed", model_id)
         with session_scope() as session:
             model = session.get(Model, model_id)
+            if model.status == ModelStatus.discarded:
+                return "skipped"
             model.status = ModelStatus.failed
             model.error = f"{type(error).__name__}: {error}"
         return "failed"
@@ -174,6 +176,8 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
 
     with session_scope() as session:
         model = session.get(Model, model_id)
+        if model.status == ModelStatus.discarded:  # the experiment ended while it trained
+            return "skipped"
         model.checkpoint_path = relative
         model.train_seconds = train_seconds
         # How many images the increment trained on: m, or every increment's so far with "grow".

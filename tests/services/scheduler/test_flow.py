@@ -296,3 +296,44 @@ def test_every_render_failing_fails_the_experiment_with_the_reason(database, eag
         sample = session.scalars(select(ParameterSet)).first()
     assert "standard test set" in error and "parameter_sets.error" in error
     assert sample.error == "FileNotFoundError: texture astronaut.png"
+
+
+def _failing_every(monkeypatch, fake, every: int):
+    """Render with the fake, but make every n-th θ (by id) fail as a rejected render would."""
+    import workers.render.tasks
+
+    monkeypatch.setattr(workers.train.tasks, "run_increment", fake.train)
+
+    def sometimes(parameter_set_id):
+        if parameter_set_id % every == 0:
+            with session_scope() as session:
+                row = session.get(ParameterSet, parameter_set_id)
+                row.status, row.error = RenderStatus.failed, "every resample rejected; last reason: target hidden"
+            return "failed"
+        return fake.render(parameter_set_id)
+
+    monkeypatch.setattr(workers.render.tasks, "render_parameter_set", sometimes)
+
+
+def test_losing_more_than_the_allowed_share_of_images_fails_the_run(database, eager, monkeypatch):
+    _failing_every(monkeypatch, Fakes(), every=4)  # 25% lost
+    experiment_id = start_experiment(config(render={"max_failed_share": 0.1}))
+    assert run_to_completion(experiment_id) == "failed"
+    with session_scope() as session:
+        summary = queries.summary(session, experiment_id)
+    assert "failed to render, more than render.max_failed_share = 10%" in summary["error"]
+    assert summary["failed_by_reason"] == {"rejected: target hidden": summary["counts"]["parameter_sets"]["test"]["failed"]
+                                           + summary["counts"]["parameter_sets"].get("train", {}).get("failed", 0)}  # fmt: skip
+
+
+def test_a_run_within_the_allowed_share_finishes_and_counts_what_it_lost(database, eager, monkeypatch):
+    _failing_every(monkeypatch, Fakes(), every=4)
+    experiment_id = start_experiment(config(render={"max_failed_share": 0.5}))
+    assert run_to_completion(experiment_id) == "finished"
+    with session_scope() as session:
+        summary = queries.summary(session, experiment_id)
+        stages = queries.stages(session, experiment_id)
+    lost = summary["failed_by_reason"]["rejected: target hidden"]
+    assert lost > 0 and set(summary["failed_by_reason"]) == {"rejected: target hidden"}
+    assert sum(stage["failed_images"] for stage in stages) == lost - summary["counts"]["parameter_sets"]["test"]["failed"]
+    assert all(stage["failed_images"] >= 0 for stage in stages) and any(stage["failed_images"] for stage in stages)

@@ -1,0 +1,164 @@
+"""An ended experiment leaves no row queued or running; cancel and finish never overwrite each
+other; a re-sent training message is not re-sent again on every pass."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+import uuid
+from collections import Counter
+from datetime import timedelta
+
+import pytest
+from sqlalchemy import create_engine, select, text
+
+from db.models import Experiment, ExperimentStatus, Model, ModelStatus, ParameterSet, RenderStatus
+from db.session import session_scope
+from services import queries
+from services.embedded import start_experiment
+from services.scheduler import reconcile
+from services.scheduler.reconcile import EnqueueTraining, Finish, apply, reconcile_once
+from tests.services.scheduler.test_flow import config
+from tests.services.scheduler.test_plan import NOW, model, plan, snapshot
+
+POSTGRES_ADMIN = os.environ.get("FOLDWISE_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres")
+
+
+def _statuses(experiment_id: int) -> tuple[Counter, Counter]:
+    with session_scope() as session:
+        thetas = Counter(s.value for s in session.scalars(select(ParameterSet.status).where(ParameterSet.experiment_id == experiment_id)))
+        models = Counter(s.value for s in session.scalars(select(Model.status).where(Model.experiment_id == experiment_id)))
+    return thetas, models
+
+
+@pytest.fixture
+def sent(monkeypatch, database):
+    """The scheduler's messages, recorded and never delivered (as if every worker were down)."""
+    messages: list[reconcile.Send] = []
+    monkeypatch.setattr(reconcile, "_send", messages.append)
+    return messages
+
+
+def _in_flight(experiment_id: int) -> None:
+    """Reconcile until θ are queued and a model is waiting for a worker that never comes."""
+    for _ in range(10):
+        reconcile_once(experiment_id)
+    with session_scope() as session:
+        # The test set and increment 1 rendered, so that a model is created and queued.
+        for row in session.scalars(select(ParameterSet).where(ParameterSet.experiment_id == experiment_id)):
+            if row.split.value == "test" or row.increment == 1:
+                row.status, row.image_path, row.box, row.label = RenderStatus.rendered, "x.png", [1, 1, 9, 9], 0
+    for _ in range(3):
+        reconcile_once(experiment_id)
+
+
+def test_cancel_discards_what_was_queued_and_workers_skip_it(sent):
+    experiment_id = start_experiment(config())
+    _in_flight(experiment_id)
+    thetas, models = _statuses(experiment_id)
+    assert thetas["queued"] > 0 and models["queued"] == 1
+
+    with session_scope() as session:
+        assert queries.cancel_experiment(session, experiment_id).status == ExperimentStatus.cancelled
+    thetas, models = _statuses(experiment_id)
+    assert thetas["queued"] == thetas["pending"] == 0 and thetas["discarded"] > 0
+    assert set(models) == {"discarded"}
+    with session_scope() as session:
+        summary = queries.summary(session, experiment_id)
+        queued_id = session.scalar(select(ParameterSet.id).where(ParameterSet.status == RenderStatus.discarded))
+        model_id = session.scalar(select(Model.id))
+    assert summary["counts"]["parameter_sets"]["train"]["discarded"] > 0
+
+    # A message that was already on its way finds its row discarded and does nothing.
+    from workers.render.tasks import render_parameter_set
+    from workers.train.tasks import _claim
+
+    assert render_parameter_set(queued_id) == "skipped"
+    assert _claim(model_id, "late-delivery") is False
+    assert _statuses(experiment_id)[1] == Counter({"discarded": 1})
+
+
+def test_finish_discards_the_renders_sampled_ahead(sent):
+    experiment_id = start_experiment(config())
+    _in_flight(experiment_id)
+    with session_scope() as session:
+        experiment = session.get(Experiment, experiment_id)
+        apply(session, experiment, [Finish(None)], config())
+    thetas, models = _statuses(experiment_id)
+    assert thetas["queued"] == thetas["pending"] == 0 and thetas["discarded"] > 0
+    assert models == Counter({"discarded": 1})
+    assert reconcile_once(experiment_id) == []  # nothing left to decide, nothing re-sent
+
+
+def test_cancel_after_finish_keeps_finished(database):
+    experiment_id = start_experiment(config())
+    with session_scope() as session:
+        session.get(Experiment, experiment_id).status = ExperimentStatus.finished
+    with session_scope() as session:
+        assert queries.cancel_experiment(session, experiment_id).status == ExperimentStatus.finished
+
+
+def test_a_resent_training_message_waits_a_whole_window_before_the_next():
+    # Claimed 2 h ago by a worker that died; re-sent 1 min ago: the old claim must not re-send
+    # it again (it did on every pass: 4,112 messages in 60 s).
+    claimed_long_ago = model(1, 1, status=ModelStatus.training, enqueued=NOW - timedelta(minutes=1))
+    claimed_long_ago = claimed_long_ago.__class__(**{**claimed_long_ago.__dict__, "claimed_at": NOW - timedelta(hours=2)})
+    assert not any(isinstance(d, EnqueueTraining) for d in plan(snapshot(models=[claimed_long_ago])))
+    lapsed = claimed_long_ago.__class__(**{**claimed_long_ago.__dict__, "enqueued_at": NOW - timedelta(hours=2)})
+    assert EnqueueTraining(1, requeue=True) in plan(snapshot(models=[lapsed]))
+
+
+@pytest.fixture
+def postgres(monkeypatch):
+    admin = create_engine(POSTGRES_ADMIN, isolation_level="AUTOCOMMIT")
+    try:
+        connection = admin.connect()
+    except Exception as error:
+        admin.dispose()
+        pytest.skip(f"PostgreSQL not reachable at {POSTGRES_ADMIN}: {type(error).__name__}")
+    name = f"foldwise_race_{uuid.uuid4().hex[:8]}"
+    connection.execute(text(f'CREATE DATABASE "{name}"'))
+    url = POSTGRES_ADMIN.rsplit("/", 1)[0] + f"/{name}"
+    from db.migrate import upgrade
+    from db.session import reset_engines
+    from foldwise.settings import get_settings
+
+    monkeypatch.setenv("FOLDWISE_DATABASE_URL", url)
+    get_settings.cache_clear()
+    reset_engines()
+    upgrade(url)
+    yield url
+    reset_engines()
+    get_settings.cache_clear()
+    connection.execute(text(f'DROP DATABASE "{name}" WITH (FORCE)'))
+    connection.close()
+    admin.dispose()
+
+
+@pytest.mark.parametrize("scheduler_decides", ["finish", "nothing"])
+def test_cancel_waits_for_a_scheduler_holding_the_row_and_never_overwrites_finish(postgres, scheduler_decides):
+    experiment_id = start_experiment(config())
+    with session_scope() as session:
+        session.get(Experiment, experiment_id).status = ExperimentStatus.running
+    holding = threading.Event()
+    outcome: dict = {}
+
+    def scheduler() -> None:
+        with session_scope() as session:
+            experiment = session.scalar(select(Experiment).where(Experiment.id == experiment_id).with_for_update())
+            holding.set()
+            time.sleep(0.5)  # the cancel arrives while the scheduler holds the row
+            if scheduler_decides == "finish":
+                experiment.status = ExperimentStatus.finished
+
+    thread = threading.Thread(target=scheduler)
+    thread.start()
+    assert holding.wait(5)
+    with session_scope() as session:
+        outcome["status"] = queries.cancel_experiment(session, experiment_id).status
+    thread.join()
+    expected = ExperimentStatus.finished if scheduler_decides == "finish" else ExperimentStatus.cancelled
+    assert outcome["status"] == expected
+    with session_scope() as session:
+        assert session.get(Experiment, experiment_id).status == expected
