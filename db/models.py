@@ -162,6 +162,9 @@ class ParameterSet(Base):
     error: Mapped[str | None] = mapped_column(Text)
     enqueued_at: Mapped[datetime | None]
     rendered_at: Mapped[datetime | None]
+    # How often rendering it started: a θ that kills its worker on every delivery is given up
+    # after tasks.max_deliveries instead of being redelivered forever.
+    attempts: Mapped[int] = mapped_column(default=0, server_default="0")
 
 
 class Model(Base):

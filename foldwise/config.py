@@ -256,6 +256,17 @@ class EvaluationConfig(_Section):
     coco: bool = True
 
 
+class TaskLimitsConfig(_Section):
+    """Time limits per task kind and the delivery cap: a task that hangs or kills its worker on
+    every delivery ends as a failure with its reason instead of being redelivered forever."""
+
+    # Soft limits (the task stops and records why); the hard limit, HARD_LIMIT_GRACE_S later,
+    # kills a task that ignores the soft one. Render: per θ (a batch gets its θ count times it).
+    render_time_limit_s: float = Field(default=600.0, gt=0, le=86_400)
+    train_time_limit_s: float = Field(default=86_400.0, gt=0, le=30 * 86_400, description="per increment: train + evaluate")
+    max_deliveries: int = Field(default=3, ge=1, le=100, description="times a θ or model may start before it fails")
+
+
 class ExperimentConfig(_Section):
     name: str = Field(min_length=1, max_length=200)
     seed: int = Field(default=0, ge=0, lt=2**31)
@@ -266,6 +277,7 @@ class ExperimentConfig(_Section):
     active_learning: ActiveLearningConfig = ActiveLearningConfig()
     detector: DetectorConfig = DetectorConfig()
     evaluation: EvaluationConfig = EvaluationConfig()
+    tasks: TaskLimitsConfig = TaskLimitsConfig()
 
     @field_validator("name")
     @classmethod

@@ -343,12 +343,17 @@ def load_snapshot(session: Session, experiment: Experiment, now: datetime | None
     )
 
 
+# The hard time limit follows the soft one by this much: time to record the failure.
+HARD_LIMIT_GRACE_S = 60.0
+
+
 @dataclass(frozen=True)
 class Send:
     """A task message to send once the transaction that decided it has committed."""
 
     kind: str  # "render" | "train"
     ids: tuple[int, ...]
+    soft_time_limit_s: float | None = None  # None: the worker's defaults (no limit)
 
 
 def _assets(config: ExperimentConfig):
@@ -440,7 +445,8 @@ def apply(
                     log.warning("experiment %s: %d θ queued too long, sending them again", experiment.id, len(ids))
                 batch = config.render.batch_size
                 for start in range(0, len(ids), batch):
-                    sends.append(Send("render", ids[start : start + batch]))
+                    chunk = ids[start : start + batch]
+                    sends.append(Send("render", chunk, config.tasks.render_time_limit_s * len(chunk)))
             case OpenStage(stage_id, init_model_id):
                 stage = stages[stage_id]
                 stage.status = StageStatus.running
@@ -458,11 +464,11 @@ def apply(
                 )
                 session.add(model)
                 session.flush()
-                sends.append(Send("train", (model.id,)))
+                sends.append(Send("train", (model.id,), config.tasks.train_time_limit_s))
             case EnqueueTraining(model_id, requeue):
                 if requeue:
                     log.warning("experiment %s: model %s queued too long, sending it again", experiment.id, model_id)
-                sends.append(Send("train", (model_id,)))
+                sends.append(Send("train", (model_id,), config.tasks.train_time_limit_s))
             case CloseStage(stage_id, reason, best_model_id):
                 stage = stages[stage_id]
                 stage.status = StageStatus.done
@@ -522,8 +528,12 @@ def _send(send: Send) -> None:
         import workers.train.tasks  # noqa: F401
 
         app.tasks[name].apply(args=args, throw=True)
-    else:
+    elif send.soft_time_limit_s is None:
         app.send_task(name, args=args)
+    else:
+        app.send_task(
+            name, args=args, soft_time_limit=send.soft_time_limit_s, time_limit=send.soft_time_limit_s + HARD_LIMIT_GRACE_S
+        )
 
 
 def reconcile_once(experiment_id: int) -> list[Decision]:

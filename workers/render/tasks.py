@@ -9,6 +9,10 @@ from __future__ import annotations
 
 import logging
 import time
+
+from celery.exceptions import SoftTimeLimitExceeded
+from sqlalchemy import update
+
 from db.models import Experiment, ExperimentStatus, ParameterSet, RenderStatus, utcnow
 from db.session import session_scope
 from foldwise import store
@@ -40,6 +44,17 @@ def render_parameter_set(parameter_set_id: int) -> str:
         theta = dict(row.theta)
         experiment_id = row.experiment_id
         config = ExperimentConfig.model_validate(experiment.config)
+        cap = config.tasks.max_deliveries
+        if row.attempts >= cap:
+            # Every earlier attempt started and never finished: its worker was killed (out of
+            # memory?) or hit the hard time limit. Another delivery would do the same.
+            row.status = RenderStatus.failed
+            row.error = (
+                f"started {row.attempts} times (tasks.max_deliveries = {cap}) without finishing: "
+                "its worker was killed or it ran past its time limit each time"
+            )
+            return "failed"
+        row.attempts += 1
 
     started = time.perf_counter()
     try:
@@ -99,12 +114,32 @@ def _record_failure(parameter_set_id: int, error: Exception) -> None:
             row.error = f"{type(error).__name__}: {error}"
 
 
+def _back_to_pending(parameter_set_ids: list[int]) -> None:
+    """θ a batch could not reach: the scheduler sends them again on its next pass."""
+    with session_scope() as session:
+        session.execute(
+            update(ParameterSet)
+            .where(ParameterSet.id.in_(parameter_set_ids), ParameterSet.status == RenderStatus.queued)
+            .values(status=RenderStatus.pending)
+        )
+
+
 @app.task(name=RENDER_TASK)
 def render_batch(parameter_set_ids: list[int]) -> dict[str, int]:
     outcome: dict[str, int] = {}
-    for parameter_set_id in parameter_set_ids:
+    for position, parameter_set_id in enumerate(parameter_set_ids):
         try:
             what = render_parameter_set(parameter_set_id)
+        except SoftTimeLimitExceeded:
+            # The batch's time (tasks.render_time_limit_s per θ) is spent: this θ fails with the
+            # reason, the rest go back to the scheduler before the hard limit kills the task.
+            _record_failure(parameter_set_id, TimeoutError("past its time limit (tasks.render_time_limit_s per θ)"))
+            rest = list(parameter_set_ids[position + 1 :])
+            if rest:
+                _back_to_pending(rest)
+            outcome["failed"] = outcome.get("failed", 0) + 1
+            outcome["returned"] = len(rest)
+            break
         except Exception as error:  # a broken θ or asset must not take the rest of the batch down
             log.exception("θ %s could not be rendered", parameter_set_id)
             _record_failure(parameter_set_id, error)

@@ -55,6 +55,16 @@ def _claim(model_id: int, task_id: str) -> bool:
             and model.claimed_at > stale_before
         ):
             return False
+        cap = ExperimentConfig.model_validate(experiment.config).tasks.max_deliveries
+        if model.attempts >= cap:
+            # Every earlier delivery started and never finished: killed (out of memory?) or past
+            # its hard time limit. Another would do the same.
+            model.status = ModelStatus.failed
+            model.error = (
+                f"started {model.attempts} times (tasks.max_deliveries = {cap}) without finishing: "
+                "its worker was killed or it ran past its time limit each time"
+            )
+            return False
         model.status = ModelStatus.training
         model.task_id = task_id
         model.claimed_at = utcnow()

@@ -1,0 +1,118 @@
+"""Poison tasks end: time limits per task kind from the config, and a delivery cap after which
+the θ or model fails with its reason instead of being redelivered forever."""
+
+from __future__ import annotations
+
+import pytest
+from celery.exceptions import SoftTimeLimitExceeded
+from sqlalchemy import select
+
+from db.models import Experiment, ExperimentStatus, Model, ModelStatus, ParameterSet, RenderStatus
+from db.session import session_scope
+from services.embedded import start_experiment
+from services.scheduler import reconcile
+from services.scheduler.reconcile import HARD_LIMIT_GRACE_S, reconcile_once
+from tests.services.scheduler.test_finish_cleanup import _in_flight
+from tests.services.scheduler.test_flow import config
+
+
+@pytest.fixture
+def broker(monkeypatch, database):
+    """Messages as a broker would receive them: task name, arguments and options."""
+    from workers.app import app, use_eager
+
+    messages: list[tuple[str, list, dict]] = []
+    previous = app.conf.task_always_eager
+    use_eager(False)
+    monkeypatch.setattr(app, "send_task", lambda name, args, **options: messages.append((name, args, options)))
+    yield messages
+    use_eager(previous)
+
+
+def test_every_message_carries_the_time_limits_of_its_kind(broker):
+    limits = {"render_time_limit_s": 30, "train_time_limit_s": 7200}
+    experiment_id = start_experiment(config(tasks=limits))
+    _in_flight(experiment_id)
+    renders = [(args, options) for name, args, options in broker if name == "foldwise.render_batch"]
+    trains = [(args, options) for name, args, options in broker if name == "foldwise.train_increment"]
+    assert renders and trains
+    for (ids,), options in renders:
+        assert options == {"soft_time_limit": 30 * len(ids), "time_limit": 30 * len(ids) + HARD_LIMIT_GRACE_S}
+    for _, options in trains:
+        assert options == {"soft_time_limit": 7200, "time_limit": 7200 + HARD_LIMIT_GRACE_S}
+
+
+def test_a_model_killed_on_every_delivery_fails_after_the_cap(monkeypatch, database):
+    from workers.train.tasks import _claim
+
+    monkeypatch.setattr(reconcile, "_send", lambda send: None)
+    monkeypatch.setenv("FOLDWISE_REQUEUE_AFTER_S", "0")  # every claim is stale at once: the worker died
+    from foldwise.settings import get_settings
+
+    get_settings.cache_clear()
+    experiment_id = start_experiment(config(tasks={"max_deliveries": 2}))
+    _in_flight(experiment_id)
+    with session_scope() as session:
+        model_id = session.scalar(select(Model.id).where(Model.experiment_id == experiment_id))
+    assert _claim(model_id, "delivery-1") and _claim(model_id, "delivery-2")  # both die mid-increment
+    assert not _claim(model_id, "delivery-3")
+    with session_scope() as session:
+        model = session.get(Model, model_id)
+        assert model.status == ModelStatus.failed and model.attempts == 2
+        assert "started 2 times (tasks.max_deliveries = 2) without finishing" in model.error
+    reconcile_once(experiment_id)
+    with session_scope() as session:
+        experiment = session.get(Experiment, experiment_id)
+        assert experiment.status == ExperimentStatus.failed and "max_deliveries" in experiment.error
+    get_settings.cache_clear()
+
+
+def test_a_theta_started_as_often_as_the_cap_is_not_rendered_again(monkeypatch, database):
+    import workers.render.pipeline
+    from workers.render.tasks import render_parameter_set
+
+    monkeypatch.setattr(reconcile, "_send", lambda send: None)
+    experiment_id = start_experiment(config(tasks={"max_deliveries": 3}))
+    reconcile_once(experiment_id)
+    with session_scope() as session:
+        theta_id = session.scalar(select(ParameterSet.id).where(ParameterSet.experiment_id == experiment_id))
+        session.get(ParameterSet, theta_id).attempts = 3
+
+    def must_not_render(*args, **kwargs):
+        raise AssertionError("rendered past the delivery cap")
+
+    monkeypatch.setattr(workers.render.pipeline, "render_with_resample", must_not_render)
+    assert render_parameter_set(theta_id) == "failed"
+    with session_scope() as session:
+        row = session.get(ParameterSet, theta_id)
+        assert row.status == RenderStatus.failed and "tasks.max_deliveries = 3" in row.error
+
+
+def test_a_batch_past_its_soft_limit_fails_that_theta_and_hands_the_rest_back(monkeypatch, database):
+    import workers.render.tasks
+
+    monkeypatch.setattr(reconcile, "_send", lambda send: None)
+    experiment_id = start_experiment(config())
+    reconcile_once(experiment_id)
+    reconcile_once(experiment_id)  # marks the first batches queued
+    with session_scope() as session:
+        ids = list(session.scalars(select(ParameterSet.id).where(ParameterSet.status == RenderStatus.queued).limit(3)))
+    assert len(ids) == 3
+    done = []
+
+    def slow_second(parameter_set_id):
+        if parameter_set_id == ids[1]:
+            raise SoftTimeLimitExceeded()
+        done.append(parameter_set_id)
+        return "rendered"
+
+    monkeypatch.setattr(workers.render.tasks, "render_parameter_set", slow_second)
+    outcome = workers.render.tasks.render_batch.run(ids)
+    assert outcome == {"rendered": 1, "failed": 1, "returned": 1} and done == [ids[0]]
+    with session_scope() as session:
+        rows = {row.id: row for row in session.scalars(select(ParameterSet).where(ParameterSet.id.in_(ids)))}
+    assert rows[ids[1]].status == RenderStatus.failed and "past its time limit" in rows[ids[1]].error
+    assert rows[ids[2]].status == RenderStatus.pending  # the scheduler sends it again on its next pass
+    with session_scope() as session:
+        snapshot = reconcile.load_snapshot(session, session.get(Experiment, experiment_id))
+    assert ids[2] in snapshot.pending_theta_ids
