@@ -238,7 +238,13 @@ def test_reader_refuses_a_file_without_services():
 
 @pytest.fixture(scope="module")
 def compose() -> dict[str, Any]:
-    return load_compose({})
+    return load_compose({"FOLDWISE_API_TOKEN": "t0ken"})
+
+
+def test_compose_refuses_to_start_without_a_token():
+    for variables in ({}, {"FOLDWISE_API_TOKEN": ""}):
+        with pytest.raises(ComposeError, match="required variable FOLDWISE_API_TOKEN is missing a value: set FOLDWISE_API_TOKEN"):
+            load_compose(variables)
 
 
 def test_every_role_of_the_design_is_a_service(compose):
