@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from functools import lru_cache
 from pathlib import Path
 
@@ -25,6 +26,14 @@ class Settings(BaseSettings):
     visibility_timeout_s: int = 6 * 3600
     # Queued render/train work not finished after this long is enqueued again (idempotent).
     requeue_after_s: float = 3600.0
+    # Folders (os.pathsep-separated) under which an experiment POSTed to the API may name its
+    # asset folders; unset, the API accepts none (workers would read any folder a token holder
+    # names). `foldwise run`, a user's own process, is not limited.
+    asset_roots: str = ""
+
+    @property
+    def asset_root_paths(self) -> list[Path]:
+        return [Path(part).expanduser().resolve() for part in self.asset_roots.split(os.pathsep) if part.strip()]
 
     @property
     def resolved_database_url(self) -> str:

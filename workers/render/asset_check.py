@@ -54,6 +54,24 @@ def check_image_header(path: Path, what: str) -> tuple[int, int]:
     return width, height
 
 
+def check_asset_roots(config, roots: list[Path]) -> None:
+    """AssetError unless every user folder of ``config`` lies under one of ``roots`` (links resolved)."""
+    if config is None:
+        return
+    for what in ("objects", "backgrounds", "occluders"):
+        folder = getattr(config, what)
+        if folder is None:
+            continue
+        if not roots:
+            raise AssetError(
+                f"assets.{what}: this server takes asset folders only under FOLDWISE_ASSET_ROOTS, which is not set"
+            )
+        real = Path(folder).expanduser().resolve()
+        if not any(real == root or root in real.parents for root in roots):
+            allowed = ", ".join(str(root) for root in roots)
+            raise AssetError(f"assets.{what}: {str(folder)!r} is outside the asset roots of this server ({allowed})")
+
+
 def validate_assets(config) -> None:
     """Check every user folder of an ``AssetsConfig`` (None, or a default folder: nothing to check)."""
     if config is None:

@@ -132,9 +132,10 @@ def list_experiments(
 )
 def create_experiment(request: Request, response: Response, session: SessionDep, config: ConfigBody) -> dict[str, Any]:
     """Record a new experiment (status pending); the scheduler starts it on its next pass."""
-    from workers.render.asset_check import AssetError, validate_assets  # Pillow only: no torch, no bpy
+    from workers.render.asset_check import AssetError, check_asset_roots, validate_assets  # Pillow only
 
     try:
+        check_asset_roots(config.assets, request.app.state.settings.asset_root_paths)
         validate_assets(config.assets)  # asset folders on this server, checked once before anything is recorded
     except AssetError as error:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error)) from None

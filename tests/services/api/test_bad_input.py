@@ -57,6 +57,7 @@ def database_url(request, tmp_path, monkeypatch):
     monkeypatch.setenv("FOLDWISE_DATABASE_URL", url)
     monkeypatch.setenv("FOLDWISE_BROKER_URL", f"redis://127.0.0.1:{_closed_port()}/0")
     monkeypatch.setenv("FOLDWISE_API_TOKEN", TOKEN)
+    monkeypatch.setenv("FOLDWISE_ASSET_ROOTS", os.pathsep.join(["/nonexistent", str(tmp_path / "assets")]))
     get_settings.cache_clear()
     reset_engines()
     yield url
@@ -129,3 +130,36 @@ def test_bad_posts_leave_the_database_usable(client, database_url):
     assert created.status_code == 201
     assert client.get(f"/experiments/{created.json()['id']}").json()["name"] == "plain name"
     assert _experiments(database_url) == 1
+
+
+def _folder_of_pngs(folder, side=32):
+    import cv2
+    import numpy as np
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(folder / "a.png"), np.full((side, side, 3), 128, np.uint8))
+    return folder
+
+
+def test_asset_folders_only_under_the_servers_roots(client, database_url, tmp_path):
+    inside = _folder_of_pngs(tmp_path / "assets" / "backgrounds")
+    outside = _folder_of_pngs(tmp_path / "elsewhere")
+    escape = tmp_path / "assets" / "link"
+    escape.symlink_to(outside, target_is_directory=True)
+    for folder in (outside, escape):
+        response = client.post("/experiments", json={"name": "x", "assets": {"backgrounds": str(folder)}}, headers=AUTH)
+        assert response.status_code == 422 and "outside the asset roots of this server" in response.json()["detail"]
+    assert _experiments(database_url) == 0
+    created = client.post("/experiments", json={"name": "x", "assets": {"backgrounds": str(inside)}}, headers=AUTH)
+    assert created.status_code == 201, created.text
+
+
+def test_without_asset_roots_the_api_takes_no_asset_folder(database_url, monkeypatch, tmp_path):
+    monkeypatch.delenv("FOLDWISE_ASSET_ROOTS")
+    get_settings.cache_clear()
+    client = TestClient(create_app(broker_timeout_s=0.3, ping_timeout_s=0.2))
+    folder = _folder_of_pngs(tmp_path / "assets" / "backgrounds")
+    response = client.post("/experiments", json={"name": "x", "assets": {"backgrounds": str(folder)}}, headers=AUTH)
+    assert response.status_code == 422
+    assert response.json()["detail"] == "assets.backgrounds: this server takes asset folders only under FOLDWISE_ASSET_ROOTS, which is not set"
+    assert client.post("/experiments", json={"name": "defaults need no folder"}, headers=AUTH).status_code == 201
