@@ -54,14 +54,17 @@ def check_image_header(path: Path, what: str) -> tuple[int, int]:
     return width, height
 
 
+def _user_folders(config):
+    """(kind, folder) for each asset folder an ``AssetsConfig`` names (None: the built-in defaults)."""
+    for what in ("objects", "backgrounds", "occluders"):
+        folder = None if config is None else getattr(config, what)
+        if folder is not None:
+            yield what, folder
+
+
 def check_asset_roots(config, roots: list[Path]) -> None:
     """AssetError unless every user folder of ``config`` lies under one of ``roots`` (links resolved)."""
-    if config is None:
-        return
-    for what in ("objects", "backgrounds", "occluders"):
-        folder = getattr(config, what)
-        if folder is None:
-            continue
+    for what, folder in _user_folders(config):
         if not roots:
             raise AssetError(
                 f"assets.{what}: this server takes asset folders only under FOLDWISE_ASSET_ROOTS, which is not set"
@@ -74,11 +77,6 @@ def check_asset_roots(config, roots: list[Path]) -> None:
 
 def validate_assets(config) -> None:
     """Check every user folder of an ``AssetsConfig`` (None, or a default folder: nothing to check)."""
-    if config is None:
-        return
-    for what in ("objects", "backgrounds", "occluders"):
-        folder = getattr(config, what)
-        if folder is None:
-            continue
+    for what, folder in _user_folders(config):
         for path in image_files(folder, what):
             check_image_header(path, what)

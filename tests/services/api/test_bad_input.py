@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import os
 import socket
-import uuid
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import create_engine, func, select, text
+from sqlalchemy import func, select
 
 from db.migrate import upgrade
 from db.models import Experiment
@@ -23,7 +22,6 @@ from services.api.app import create_app
 
 TOKEN = "s3cret-token"
 AUTH = {"Authorization": f"Bearer {TOKEN}"}
-POSTGRES_ADMIN = os.environ.get("FOLDWISE_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres")
 
 
 def _closed_port() -> int:
@@ -34,24 +32,7 @@ def _closed_port() -> int:
 
 @pytest.fixture(params=["sqlite", "postgresql"])
 def database_url(request, tmp_path, monkeypatch):
-    if request.param == "sqlite":
-        url, drop = f"sqlite:///{tmp_path / 'api.db'}", None
-    else:
-        admin = create_engine(POSTGRES_ADMIN, isolation_level="AUTOCOMMIT")
-        try:
-            connection = admin.connect()
-        except Exception as error:  # no server on this machine
-            admin.dispose()
-            pytest.skip(f"PostgreSQL not reachable at {POSTGRES_ADMIN}: {type(error).__name__}")
-        name = f"foldwise_bad_{uuid.uuid4().hex[:8]}"
-        connection.execute(text(f'CREATE DATABASE "{name}"'))
-        url = POSTGRES_ADMIN.rsplit("/", 1)[0] + f"/{name}"
-
-        def drop():
-            connection.execute(text(f'DROP DATABASE "{name}" WITH (FORCE)'))
-            connection.close()
-            admin.dispose()
-
+    url = f"sqlite:///{tmp_path / 'api.db'}" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
     upgrade(url)
     monkeypatch.setenv("FOLDWISE_DATA_DIR", str(tmp_path))
     monkeypatch.setenv("FOLDWISE_DATABASE_URL", url)
@@ -63,8 +44,6 @@ def database_url(request, tmp_path, monkeypatch):
     yield url
     reset_engines()
     get_settings.cache_clear()
-    if drop:
-        drop()
 
 
 @pytest.fixture

@@ -3,15 +3,13 @@ other; a re-sent training message is not re-sent again on every pass."""
 
 from __future__ import annotations
 
-import os
 import threading
 import time
-import uuid
 from collections import Counter
 from datetime import timedelta
 
 import pytest
-from sqlalchemy import create_engine, select, text
+from sqlalchemy import select
 
 from db.models import Experiment, ExperimentStatus, Model, ModelStatus, ParameterSet, RenderStatus
 from db.session import session_scope
@@ -21,8 +19,6 @@ from services.scheduler import reconcile
 from services.scheduler.reconcile import EnqueueTraining, Finish, apply, reconcile_once
 from tests.services.scheduler.test_flow import config
 from tests.services.scheduler.test_plan import NOW, model, plan, snapshot
-
-POSTGRES_ADMIN = os.environ.get("FOLDWISE_TEST_POSTGRES_URL", "postgresql+psycopg://postgres@127.0.0.1:5432/postgres")
 
 
 def _statuses(experiment_id: int) -> tuple[Counter, Counter]:
@@ -109,35 +105,8 @@ def test_a_resent_training_message_waits_a_whole_window_before_the_next():
     assert EnqueueTraining(1, requeue=True) in plan(snapshot(models=[lapsed]))
 
 
-@pytest.fixture
-def postgres(monkeypatch):
-    admin = create_engine(POSTGRES_ADMIN, isolation_level="AUTOCOMMIT")
-    try:
-        connection = admin.connect()
-    except Exception as error:
-        admin.dispose()
-        pytest.skip(f"PostgreSQL not reachable at {POSTGRES_ADMIN}: {type(error).__name__}")
-    name = f"foldwise_race_{uuid.uuid4().hex[:8]}"
-    connection.execute(text(f'CREATE DATABASE "{name}"'))
-    url = POSTGRES_ADMIN.rsplit("/", 1)[0] + f"/{name}"
-    from db.migrate import upgrade
-    from db.session import reset_engines
-    from foldwise.settings import get_settings
-
-    monkeypatch.setenv("FOLDWISE_DATABASE_URL", url)
-    get_settings.cache_clear()
-    reset_engines()
-    upgrade(url)
-    yield url
-    reset_engines()
-    get_settings.cache_clear()
-    connection.execute(text(f'DROP DATABASE "{name}" WITH (FORCE)'))
-    connection.close()
-    admin.dispose()
-
-
 @pytest.mark.parametrize("scheduler_decides", ["finish", "nothing"])
-def test_cancel_waits_for_a_scheduler_holding_the_row_and_never_overwrites_finish(postgres, scheduler_decides):
+def test_cancel_waits_for_a_scheduler_holding_the_row_and_never_overwrites_finish(postgres_database, scheduler_decides):
     experiment_id = start_experiment(config())
     with session_scope() as session:
         session.get(Experiment, experiment_id).status = ExperimentStatus.running
