@@ -116,19 +116,29 @@ def run(
 
 @app.command()
 def report(
-    experiment_id: int = typer.Argument(..., metavar="EXPERIMENT"),
-    out: Path | None = typer.Option(None, "--out", help="output directory (default: the experiment's report dir)"),
+    experiment_ids: list[int] = typer.Argument(..., metavar="EXPERIMENT...", help="one or more experiment ids"),
+    out: Path | None = typer.Option(None, "--out", help="output directory (default: the first experiment's report dir)"),
+    figures: bool = typer.Option(False, "--figures", help="also the paper's Fig. 4, 5, 7, 8 (PNG, SVG, CSV), a line per experiment"),
 ) -> None:
-    """Plot error (1 − mAP) against cumulative wall time, render/train/eval apart; write PNG and CSV."""
+    """Plot error (1 − mAP) against cumulative wall time, render/train/eval apart; write PNG and CSV.
+
+    With --figures, the paper's figures too, the experiments side by side (one per detector
+    compares detectors)."""
     from foldwise.settings import get_settings
+    from services.figures import write_figures
     from services.queries import NotFound
     from services.report import write_report
 
+    out = out or get_settings().data_dir / f"experiments/{experiment_ids[0]}/report"
     try:
-        files = write_report(experiment_id, out or get_settings().data_dir / f"experiments/{experiment_id}/report")
+        for experiment_id in experiment_ids:
+            files = write_report(experiment_id, out)
+            console.print(f"{len(files.rows)} evaluations → {files.png}  {files.csv}", highlight=False)
+        if figures:
+            for name, paths in write_figures(experiment_ids, out).items():
+                console.print(f"{name} → {'  '.join(str(p) for p in paths)}", highlight=False)
     except NotFound as error:
         _fail(str(error))
-    console.print(f"{len(files.rows)} evaluations → {files.png}  {files.csv}", highlight=False)
 
 
 @db_app.command("upgrade")

@@ -74,3 +74,24 @@ def model_checkpoint(model_id: ModelId, session: SessionDep) -> FileResponse:
     """ω's checkpoint file (``foldwise evaluate/detect/export --model`` read it)."""
     path = artifacts.checkpoint_file(session, model_id)
     return FileResponse(path, media_type="application/octet-stream", filename=f"model-{model_id}.pt")
+
+
+FIGURE_MEDIA = {"png": "image/png", "svg": "image/svg+xml", "csv": "text/csv"}
+
+
+@router.get(
+    "/experiments/{experiment_id}/figures/{name}.{extension}",
+    response_class=FileResponse,
+    responses={**NOT_FOUND, 200: {"content": {media: {} for media in FIGURE_MEDIA.values()}}},
+)
+def experiment_figure(
+    experiment_id: ExperimentId,
+    name: Annotated[str, Path(pattern="^fig(4|5|7|8)$", description="fig4, fig5, fig7 or fig8 (services/figures.py)")],
+    extension: Annotated[str, Path(pattern="^(png|svg|csv)$")],
+) -> FileResponse:
+    """One of the paper's figures for this experiment, drawn afresh from the record."""
+    from services.figures import write_figures
+
+    paths = write_figures([experiment_id], store.resolve(store.report_dir(experiment_id)), names=(name,))[name]
+    path = next(p for p in paths if p.suffix == f".{extension}")
+    return FileResponse(path, media_type=FIGURE_MEDIA[extension], filename=path.name)

@@ -98,6 +98,11 @@ def test_downloads(client, smoke):
     report = client.get(f"/experiments/{smoke}/report.csv")
     assert report.status_code == 200 and report.text.startswith("stage,condition")
     assert client.get(f"/experiments/{smoke}/report.png").content[:4] == b"\x89PNG"
+    figure = client.get(f"/experiments/{smoke}/figures/fig7.svg")
+    assert figure.status_code == 200 and figure.headers["content-type"].startswith("image/svg+xml")
+    assert "standard test set mAP across the curriculum" in figure.text
+    numbers = client.get(f"/experiments/{smoke}/figures/fig8.csv")
+    assert numbers.text.startswith("experiment,condition,difficulty,best_model_id,best_map")
 
 
 def test_artifact_routes_say_what_is_missing(client, smoke):
@@ -105,6 +110,8 @@ def test_artifact_routes_say_what_is_missing(client, smoke):
     assert client.get("/experiments/999/images").status_code == 404
     assert client.get("/models/999/checkpoint").json()["detail"] == "model 999 does not exist"
     assert client.get(f"/experiments/{smoke}/report.pdf").status_code == 422
+    assert client.get(f"/experiments/{smoke}/figures/fig6.png").status_code == 422
+    assert client.get("/experiments/999/figures/fig4.png").status_code == 404
 
 
 def test_every_evaluation_keeps_a_few_test_images_detections(client, smoke):

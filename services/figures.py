@@ -1,0 +1,230 @@
+"""The paper's figures from the database, for one experiment or several side by side.
+
+`foldwise report E [E ...] --figures` (and ``GET /experiments/{id}/figures/{name}.{png,svg,csv}``)
+draw, each as PNG and SVG with its numbers as CSV:
+
+* ``fig4``: mAP against increment k for every (condition, difficulty) stage, a line per
+  experiment (run one experiment per detector to compare detectors, as the paper's Fig. 4);
+* ``fig5``: the best mAP each experiment reached per condition (Fig. 5);
+* ``fig7``: the standard test set's mAP across the whole curriculum, increment after
+  increment, stages marked (Fig. 7);
+* ``fig8``: the mAP of each stage's best model ω_be (Fig. 8).
+
+Every figure names its axes and units, the protocol's score cut and IoU threshold, and the
+conditions by their full names.
+"""
+
+from __future__ import annotations
+
+import csv
+from dataclasses import dataclass
+from pathlib import Path
+
+from db.session import session_scope
+from foldwise.conditions import load_condition_table
+from foldwise.config import ExperimentConfig
+from services import queries
+
+FIGURES = ("fig4", "fig5", "fig7", "fig8")
+MAP_LABEL = "mAP (score ≥ {cut:g}, IoU ≥ {iou:g})"
+
+
+@dataclass(frozen=True)
+class Run:
+    """One experiment's record, as the figures read it."""
+
+    experiment_id: int
+    label: str  # legend: "faster_rcnn (experiment 3)"
+    score_threshold: float
+    iou_threshold: float
+    history: list[dict]
+    stages: list[dict]
+
+
+def load_runs(experiment_ids: list[int]) -> list[Run]:
+    runs = []
+    with session_scope() as session:
+        for experiment_id in experiment_ids:
+            experiment = queries.get_experiment(session, experiment_id)
+            config = ExperimentConfig.model_validate(experiment.config)
+            runs.append(
+                Run(
+                    experiment_id=experiment_id,
+                    label=f"{config.detector.family} (experiment {experiment_id}: {experiment.name})",
+                    score_threshold=config.evaluation.score_threshold,
+                    iou_threshold=config.evaluation.iou_threshold,
+                    history=queries.history(session, experiment_id),
+                    stages=queries.stages(session, experiment_id),
+                )
+            )
+    return runs
+
+
+def _protocol(runs: list[Run]) -> str:
+    cuts = sorted({(run.score_threshold, run.iou_threshold) for run in runs})
+    return "; ".join(MAP_LABEL.format(cut=cut, iou=iou) for cut, iou in cuts)
+
+
+def _stage_keys(runs: list[Run]) -> list[tuple[str, str]]:
+    """(condition, difficulty) in curriculum order, the union over the runs."""
+    keys: list[tuple[str, str]] = []
+    for run in runs:
+        for stage in run.stages:
+            key = (stage["condition"], stage["difficulty"])
+            if key not in keys:
+                keys.append(key)
+    return keys
+
+
+def _write_csv(path: Path, columns: list[str], rows: list[dict]) -> None:
+    with open(path, "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=columns)
+        writer.writeheader()
+        writer.writerows(rows)
+
+
+def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ...] = FIGURES) -> dict[str, list[Path]]:
+    """Draw the named figures of these experiments into ``out_dir``; returns the files per figure."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    matplotlib.rcParams["svg.fonttype"] = "none"  # text stays text in the SVG: searchable, editable
+    import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
+
+    unknown = sorted(set(names) - set(FIGURES))
+    if unknown:
+        raise ValueError(f"unknown figure(s) {unknown}; known: {', '.join(FIGURES)}")
+    runs = load_runs(experiment_ids)
+    table = load_condition_table()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    stem = "experiments-" + "-".join(str(i) for i in experiment_ids)
+    protocol = _protocol(runs)
+    colours = plt.get_cmap("tab10")
+    written: dict[str, list[Path]] = {}
+
+    def save(name: str, figure, columns: list[str], rows: list[dict]) -> None:
+        paths = [out_dir / f"{name}-{stem}.{suffix}" for suffix in ("png", "svg", "csv")]
+        figure.savefig(paths[0], dpi=120)
+        figure.savefig(paths[1])
+        plt.close(figure)
+        _write_csv(paths[2], columns, rows)
+        written[name] = paths
+
+    keys = _stage_keys(runs)
+    if "fig4" in names:
+        conditions = list(dict.fromkeys(c for c, _ in keys))
+        difficulties = list(dict.fromkeys(d for _, d in keys))
+        figure, axes = plt.subplots(
+            len(conditions), len(difficulties), figsize=(3.2 * len(difficulties), 2.3 * len(conditions)),
+            squeeze=False, sharey=True, constrained_layout=True,
+        )  # fmt: skip
+        rows = []
+        for i, condition in enumerate(conditions):
+            for j, difficulty in enumerate(difficulties):
+                ax = axes[i][j]
+                if (condition, difficulty) not in keys:  # not a stage of any run (the mixed stage's easy)
+                    ax.set_visible(False)
+                    continue
+                ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+                for r, run in enumerate(runs):
+                    points = [(e["k"], e["map"]) for e in run.history if (e["condition"], e["difficulty"]) == (condition, difficulty)]
+                    rows += [{"experiment": run.experiment_id, "condition": condition, "difficulty": difficulty, "k": k, "map": m}
+                             for k, m in points]  # fmt: skip
+                    finite = [(k, m) for k, m in points if m is not None]
+                    if finite:
+                        ax.plot(*zip(*finite), "o-", markersize=3, color=colours(r % 10), label=run.label)
+                ax.set_title(f"{table.name(condition)}, {difficulty}", fontsize=8)
+                ax.set_ylim(-0.02, 1.02)
+                ax.grid(alpha=0.3)
+                if i == len(conditions) - 1:
+                    ax.set_xlabel("increment k")
+                if j == 0:
+                    ax.set_ylabel("mAP")
+        axes[0][0].legend(fontsize=6, loc="lower right")
+        figure.suptitle(f"Fig. 4: mAP on the standard test set after each increment; {protocol}", fontsize=9)
+        save("fig4", figure, ["experiment", "condition", "difficulty", "k", "map"], rows)
+
+    if "fig5" in names:
+        conditions = list(dict.fromkeys(c for c, _ in keys))
+        figure, ax = plt.subplots(figsize=(max(6, 1.1 * len(conditions) * max(1, len(runs))), 4), constrained_layout=True)
+        width = 0.8 / max(1, len(runs))
+        rows = []
+        for r, run in enumerate(runs):
+            bests = []
+            for condition in conditions:
+                scores = [s["best_map"] for s in run.stages if s["condition"] == condition and s["best_map"] is not None]
+                best = max(scores) if scores else None
+                bests.append(best)
+                rows.append({"experiment": run.experiment_id, "condition": condition, "name": table.name(condition), "best_map": best})
+            ax.bar([c + r * width for c in range(len(conditions))], [b or 0.0 for b in bests], width, label=run.label,
+                   color=colours(r % 10))  # fmt: skip
+        ax.set_xticks([c + width * (len(runs) - 1) / 2 for c in range(len(conditions))])
+        ax.set_xticklabels([table.name(c) for c in conditions], rotation=30, ha="right", fontsize=8)
+        ax.set_ylabel(f"best {MAP_LABEL.format(cut=runs[0].score_threshold, iou=runs[0].iou_threshold) if runs else 'mAP'}")
+        ax.set_ylim(0, 1.02)
+        ax.set_title(f"Fig. 5: the best mAP per condition (any difficulty, any increment); {protocol}", fontsize=9)
+        ax.legend(fontsize=7)
+        ax.grid(axis="y", alpha=0.3)
+        save("fig5", figure, ["experiment", "condition", "name", "best_map"], rows)
+
+    if "fig7" in names:
+        figure, ax = plt.subplots(figsize=(11, 5), constrained_layout=True)
+        rows = []
+        for r, run in enumerate(runs):
+            xs = list(range(1, len(run.history) + 1))
+            ys = [e["map"] for e in run.history]
+            rows += [{"experiment": run.experiment_id, "increment": x, "condition": e["condition"], "difficulty": e["difficulty"],
+                      "k": e["k"], "map": e["map"]} for x, e in zip(xs, run.history)]  # fmt: skip
+            ax.plot(xs, [y if y is not None else float("nan") for y in ys], ".-", color=colours(r % 10), label=run.label)
+        if runs:  # stage bands of the first run
+            start = 1
+            for n, (condition, difficulty) in enumerate(_bands(runs[0].history)):
+                end = start + condition[2]
+                ax.axvspan(start - 0.5, end - 0.5, color="grey", alpha=0.12 if n % 2 else 0.0)
+                ax.text((start + end - 1) / 2, 1.03, f"{table.name(condition[0])}, {difficulty}", ha="center", va="top",
+                        fontsize=6, rotation=90)  # fmt: skip
+                start = end
+        ax.set_xlabel("increment, counted across the whole curriculum")
+        ax.set_ylabel("mAP on the standard test set")
+        ax.set_ylim(-0.02, 1.05)
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_title(f"Fig. 7: standard test set mAP across the curriculum; {protocol}", fontsize=9)
+        ax.legend(fontsize=7, loc="lower right")
+        ax.grid(alpha=0.3)
+        save("fig7", figure, ["experiment", "increment", "condition", "difficulty", "k", "map"], rows)
+
+    if "fig8" in names:
+        labels = [f"{table.name(c)}, {d}" for c, d in keys]
+        figure, ax = plt.subplots(figsize=(max(6, 0.45 * len(keys) * max(1, len(runs))), 4.5), constrained_layout=True)
+        width = 0.8 / max(1, len(runs))
+        rows = []
+        for r, run in enumerate(runs):
+            by_key = {(s["condition"], s["difficulty"]): s for s in run.stages}
+            values = [by_key.get(key, {}).get("best_map") for key in keys]
+            rows += [{"experiment": run.experiment_id, "condition": c, "difficulty": d,
+                      "best_model_id": by_key.get((c, d), {}).get("best_model_id"), "best_map": v}
+                     for (c, d), v in zip(keys, values)]  # fmt: skip
+            ax.bar([i + r * width for i in range(len(keys))], [v or 0.0 for v in values], width, label=run.label,
+                   color=colours(r % 10))  # fmt: skip
+        ax.set_xticks([i + width * (len(runs) - 1) / 2 for i in range(len(keys))])
+        ax.set_xticklabels(labels, rotation=60, ha="right", fontsize=7)
+        ax.set_ylabel("mAP of the stage's best model ω_be")
+        ax.set_ylim(0, 1.02)
+        ax.set_title(f"Fig. 8: the best model of each stage; {protocol}", fontsize=9)
+        ax.legend(fontsize=7)
+        ax.grid(axis="y", alpha=0.3)
+        save("fig8", figure, ["experiment", "condition", "difficulty", "best_model_id", "best_map"], rows)
+    return written
+
+
+def _bands(history: list[dict]):
+    """Consecutive runs of one stage in P: ((condition, difficulty, length), difficulty)."""
+    bands: list[list] = []
+    for entry in history:
+        key = (entry["condition"], entry["difficulty"])
+        if bands and bands[-1][0] == key:
+            bands[-1][1] += 1
+        else:
+            bands.append([key, 1])
+    return [((key[0], key[1], length), key[1]) for key, length in bands]
