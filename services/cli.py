@@ -28,16 +28,19 @@ def _fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
-def _load(config_path: Path, check_assets: bool = False):
-    """The config, or a one-line error (exit 2); with ``check_assets`` its asset folders are
-    checked too, before any work starts."""
+def _load(config_path: Path, preflight: bool = False):
+    """The config, or a one-line error (exit 2); with ``preflight`` its asset folders and
+    ImageNet weights (when it asks for them) are checked too, before any work starts."""
     from foldwise.config import ConfigError, load_config
+    from foldwise.weights import missing_imagenet_weights
     from workers.render.asset_check import AssetError, validate_assets
 
     try:
         config = load_config(config_path)
-        if check_assets:
+        if preflight:
             validate_assets(config.assets)
+            if config.detector.pretrained == "imagenet" and (problem := missing_imagenet_weights(config.detector.backbone)):
+                raise ConfigError(problem)
         return config
     except (ConfigError, AssetError) as error:
         _fail(str(error))
@@ -55,7 +58,7 @@ def run(
     from services.embedded import run_to_completion, start_experiment
     from services.report import write_report
 
-    config = _load(config_path, check_assets=True)
+    config = _load(config_path, preflight=True)
     settings = get_settings()
     console.print(
         f"foldwise: experiment [bold]{config.name}[/] — {len(config.stage_order())} stages, "
