@@ -676,3 +676,13 @@ def test_obj_round_trips(tmp_path):
     np.testing.assert_array_equal(faces, mesh.faces)
     write_obj(mesh, str(tmp_path / "as_string.obj"))
     assert (tmp_path / "as_string.obj").read_text() == path.read_text()
+
+
+def test_the_papers_canonical_sheet_of_2_rulings_and_3_regions_is_reachable():
+    # render.smooth_steps: 1 (or the condition table's canonical smooth_steps) gives the paper's
+    # sharp creases: 2 guiding rulings cut the sheet into 3 planar regions; the default
+    # interpolates 3 rulings per guide, smooth bends of 7 regions.
+    paper = sample_sheet(2, np.random.default_rng(7), *A4, smooth_steps=1)
+    smooth = sample_sheet(2, np.random.default_rng(7), *A4)
+    assert len(paper.fold_lines) == 2 and len(np.unique(paper.face_regions)) == 3
+    assert len(smooth.fold_lines) == 6 and len(np.unique(smooth.face_regions)) == 7
