@@ -87,6 +87,8 @@ class Experiment(Base):
 
     id: Mapped[int] = mapped_column(primary_key=True)
     name: Mapped[str] = mapped_column(String(200))
+    # Experiments run side by side to be compared (one per detector, or per reset/grow choice).
+    study: Mapped[str | None] = mapped_column(String(200), index=True)
     config: Mapped[dict[str, Any]]
     seed: Mapped[int]
     # Detector classes: the object names, fixed when the experiment starts.

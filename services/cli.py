@@ -52,21 +52,29 @@ def run(
     report_dir: Path | None = typer.Option(None, "--report-dir", help="where to write the PNG/CSV report"),
 ) -> None:
     """Run an experiment end to end in this process (SQLite by default, eager Celery)."""
+    config = _load(config_path, preflight=True)
+    _, status = _run_experiment(config, report_dir)
+    if status != "finished":
+        raise typer.Exit(1)
+
+
+def _run_experiment(config, report_dir: Path | None, study: str | None = None) -> tuple[int, str]:
+    """Record and run one experiment in this process with progress, then print its stage table
+    and write its report; returns its id and final status."""
     from db.session import session_scope
     from foldwise.settings import get_settings
     from services import queries
     from services.embedded import run_to_completion, start_experiment
     from services.report import write_report
 
-    config = _load(config_path, preflight=True)
     settings = get_settings()
     console.print(
         f"foldwise: experiment [bold]{config.name}[/] — {len(config.stage_order())} stages, "
         f"detector {config.detector.family}/{config.detector.backbone}, renderer {config.render.backend}, "
-        f"database {settings.resolved_database_url}",
+        f"database {settings.resolved_database_url}" + (f", study {study}" if study else ""),
         highlight=False,
     )
-    experiment_id = start_experiment(config)
+    experiment_id = start_experiment(config, study=study)
     stage_count = len(config.stage_order())
     # A line per increment when the output is not a terminal (make run | tee log).
     with CommandProgress(console, "starting", total=stage_count, unit="stages") as progress:
@@ -113,7 +121,67 @@ def run(
         console.print(f"[red]failed:[/] {info['error']}", highlight=False)
     files = write_report(experiment_id, report_dir or settings.data_dir / f"experiments/{experiment_id}/report")
     console.print(f"report: {files.png}  {files.csv}", highlight=False)
-    if status != "finished":
+    return experiment_id, status
+
+
+def _choices(option: str, text: str, known: tuple[str, ...]) -> list[str]:
+    values = [part.strip() for part in text.split(",") if part.strip()]
+    if len(set(values)) != len(values):
+        _fail(f"{option}: {text!r} names a value twice")
+    for value in values:
+        if value not in known:
+            _fail(f"{option}: unknown value {value!r}; known: {', '.join(known)}")
+    return values
+
+
+@app.command()
+def study(
+    config_path: Path = typer.Argument(..., metavar="CONFIG", help="experiment YAML, e.g. configs/quick.yaml"),
+    detectors: str = typer.Option("", "--detectors", help="comma list of faster_rcnn, fast_rcnn, yolo (default: the config's)"),
+    training_set: str = typer.Option("", "--training-set", help="comma list of reset, grow (default: the config's)"),
+    name: str | None = typer.Option(None, "--name", help="the study id (default: the config's name and the time)"),
+    out: Path | None = typer.Option(None, "--out", help="where the figures go (default: DATA_DIR/studies/NAME)"),
+) -> None:
+    """Run CONFIG once per detector and per training-set choice, one after another in this
+    process, under one study id; then draw the paper's figures with the runs side by side.
+
+    In the distributed stack, POST the variants with ?study=NAME and the workers run them
+    side by side; `foldwise report E1 E2 ... --figures` draws them."""
+    from datetime import datetime, timezone
+
+    from typing import get_args
+
+    from foldwise.config import ActiveLearningConfig, ConfigError, DetectorConfig, parse_config
+    from foldwise.settings import get_settings
+    from services.figures import write_figures
+
+    config = _load(config_path, preflight=True)
+    known_families = get_args(DetectorConfig.model_fields["family"].annotation)
+    known_sets = get_args(ActiveLearningConfig.model_fields["training_set"].annotation)
+    families = _choices("--detectors", detectors, known_families) or [config.detector.family]
+    choices = _choices("--training-set", training_set, known_sets) or [config.active_learning.training_set]
+    study_id = name or f"{config.name}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}"
+    variants = []
+    for family in families:
+        for choice in choices:
+            data = config.model_dump(mode="json")
+            data["name"] = f"{config.name}-{family}-{choice}"
+            data["detector"] = {**data["detector"], "family": family}
+            data["active_learning"] = {**data["active_learning"], "training_set": choice}
+            try:
+                variants.append(parse_config(data))
+            except ConfigError as error:
+                _fail(str(error).replace("\n  ", " "))
+    console.print(f"study {study_id}: {len(variants)} experiments", highlight=False)
+    finished = []
+    for variant in variants:
+        finished.append(_run_experiment(variant, None, study=study_id))
+    out = out or get_settings().data_dir / "studies" / study_id
+    for figure, paths in write_figures([experiment_id for experiment_id, _ in finished], out).items():
+        console.print(f"{figure} → {'  '.join(str(p) for p in paths)}", highlight=False)
+    summary = ", ".join(f"{experiment_id} {status}" for experiment_id, status in finished)
+    console.print(f"study {study_id}: experiments {summary}", highlight=False)
+    if any(status != "finished" for _, status in finished):
         raise typer.Exit(1)
 
 

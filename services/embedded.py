@@ -21,10 +21,10 @@ class Stalled(RuntimeError):
     """The scheduler decided nothing although the experiment has not ended (a bug)."""
 
 
-def start_experiment(config: ExperimentConfig) -> int:
+def start_experiment(config: ExperimentConfig, study: str | None = None) -> int:
     upgrade()
     with session_scope() as session:
-        return queries.create_experiment(session, config).id
+        return queries.create_experiment(session, config, study=study).id
 
 
 def run_to_completion(

@@ -36,8 +36,8 @@ class NotFound(LookupError):
     pass
 
 
-def create_experiment(session: Session, config: ExperimentConfig) -> Experiment:
-    experiment = Experiment(name=config.name, config=config.model_dump(mode="json"), seed=config.seed)
+def create_experiment(session: Session, config: ExperimentConfig, study: str | None = None) -> Experiment:
+    experiment = Experiment(name=config.name, study=study, config=config.model_dump(mode="json"), seed=config.seed)
     session.add(experiment)
     session.flush()
     return experiment
@@ -269,6 +269,7 @@ def summary(session: Session, experiment_id: int) -> dict[str, Any]:
     return {
         "id": experiment.id,
         "name": experiment.name,
+        "study": experiment.study,
         "status": experiment.status.value,
         "error": experiment.error,
         "seed": experiment.seed,
@@ -304,6 +305,7 @@ def list_experiments(session: Session) -> list[ExperimentListItem]:
         ExperimentListItem(
             id=e.id,
             name=e.name,
+            study=e.study,
             status=e.status,
             created_at=_iso(e.created_at),
             finished_at=_iso(e.finished_at),

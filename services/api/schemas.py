@@ -24,6 +24,7 @@ class ErrorDetail(BaseModel):
 class ExperimentListItem(_Shape):
     id: int
     name: str
+    study: str | None = Field(default=None, description="the study it was run in, side by side with others")
     status: ExperimentStatus
     created_at: str | None
     finished_at: str | None
@@ -51,6 +52,7 @@ class BestModel(_Shape):
 class ExperimentSummary(_Shape):
     id: int
     name: str
+    study: str | None = Field(default=None, description="the study it was run in, if any")
     status: ExperimentStatus
     error: str | None
     seed: int

@@ -109,11 +109,14 @@ CONFIG_BODY_DOC = {
 def list_experiments(
     session: SessionDep,
     status_filter: Annotated[ExperimentStatus | None, Query(alias="status")] = None,
+    study: Annotated[str | None, Query(max_length=200, description="keep one study's experiments")] = None,
 ) -> list[ExperimentListItem]:
-    """Every experiment, oldest first; ``?status=running`` keeps one status."""
+    """Every experiment, oldest first; ``?status=running`` keeps one status, ``?study=`` one study."""
     experiments = queries.list_experiments(session)
     if status_filter is not None:
         experiments = [e for e in experiments if e.status == status_filter]
+    if study is not None:
+        experiments = [e for e in experiments if e.study == study]
     return experiments
 
 
@@ -130,8 +133,18 @@ def list_experiments(
         422: {"model": ErrorDetail, "description": "an invalid config; the message names the key"},
     },
 )
-def create_experiment(request: Request, response: Response, session: SessionDep, config: ConfigBody) -> dict[str, Any]:
-    """Record a new experiment (status pending); the scheduler starts it on its next pass."""
+def create_experiment(
+    request: Request,
+    response: Response,
+    session: SessionDep,
+    config: ConfigBody,
+    study: Annotated[
+        str | None,
+        Query(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f]+$", description="group it with other experiments"),
+    ] = None,
+) -> dict[str, Any]:
+    """Record a new experiment (status pending); the scheduler starts it on its next pass.
+    ``?study=NAME`` groups it with others run side by side (one per detector, say)."""
     from workers.render.asset_check import AssetError, check_asset_roots, validate_assets  # Pillow only
 
     try:
@@ -139,7 +152,7 @@ def create_experiment(request: Request, response: Response, session: SessionDep,
         validate_assets(config.assets)  # asset folders on this server, checked once before anything is recorded
     except AssetError as error:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error)) from None
-    experiment = queries.create_experiment(session, config)
+    experiment = queries.create_experiment(session, config, study=study)
     session.commit()
     response.headers["Location"] = request.scope.get("root_path", "") + request.app.url_path_for(
         "experiment_summary", experiment_id=experiment.id
