@@ -189,7 +189,7 @@ def study(
 def report(
     experiment_ids: list[int] = typer.Argument(..., metavar="EXPERIMENT...", help="one or more experiment ids"),
     out: Path | None = typer.Option(None, "--out", help="output directory (default: the first experiment's report dir)"),
-    figures: bool = typer.Option(False, "--figures", help="also the paper's Fig. 4, 5, 7, 8 (PNG, SVG, CSV), a line per experiment"),
+    figures: bool = typer.Option(False, "--figures", help="also the paper's Fig. 4 to 8 (PNG, SVG, CSV), a line per experiment"),
 ) -> None:
     """Plot error (1 − mAP) against cumulative wall time, render/train/eval apart; write PNG and CSV.
 

@@ -6,6 +6,8 @@ draw, each as PNG and SVG with its numbers as CSV:
 * ``fig4``: mAP against increment k for every (condition, difficulty) stage, a line per
   experiment (run one experiment per detector to compare detectors, as the paper's Fig. 4);
 * ``fig5``: the best mAP each experiment reached per condition (Fig. 5);
+* ``fig6``: mAP against cumulative training time, a line per experiment (a reset run beside a
+  grow run of the same config is the paper's Fig. 6), with each run's total training time;
 * ``fig7``: the standard test set's mAP across the whole curriculum, increment after
   increment, stages marked (Fig. 7);
 * ``fig8``: the mAP of each stage's best model ω_be (Fig. 8).
@@ -25,7 +27,7 @@ from foldwise.conditions import load_condition_table
 from foldwise.config import ExperimentConfig
 from services import queries
 
-FIGURES = ("fig4", "fig5", "fig7", "fig8")
+FIGURES = ("fig4", "fig5", "fig6", "fig7", "fig8")
 MAP_LABEL = "mAP (score ≥ {cut:g}, IoU ≥ {iou:g})"
 
 
@@ -167,6 +169,27 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
         ax.legend(fontsize=7)
         ax.grid(axis="y", alpha=0.3)
         save("fig5", figure, ["experiment", "condition", "name", "best_map"], rows)
+
+    if "fig6" in names:
+        figure, ax = plt.subplots(figsize=(9, 4.5), constrained_layout=True)
+        rows = []
+        for r, run in enumerate(runs):
+            seconds, points = 0.0, []
+            for entry in run.history:
+                seconds += entry["train_seconds"] or 0.0
+                points.append((seconds, entry["map"]))
+                rows.append({"experiment": run.experiment_id, "condition": entry["condition"], "difficulty": entry["difficulty"],
+                             "k": entry["k"], "cumulative_train_seconds": seconds, "map": entry["map"]})  # fmt: skip
+            finite = [(x, y) for x, y in points if y is not None]
+            if finite:
+                ax.plot(*zip(*finite), ".-", color=colours(r % 10), label=f"{run.label}: {seconds:.0f} s of training")
+        ax.set_xlabel("cumulative training time (s)")
+        ax.set_ylabel("mAP on the standard test set")
+        ax.set_ylim(-0.02, 1.02)
+        ax.set_title(f"Fig. 6: mAP against training time (reset against grow: one run each); {protocol}", fontsize=9)
+        ax.legend(fontsize=7, loc="lower right")
+        ax.grid(alpha=0.3)
+        save("fig6", figure, ["experiment", "condition", "difficulty", "k", "cumulative_train_seconds", "map"], rows)
 
     if "fig7" in names:
         figure, ax = plt.subplots(figsize=(11, 5), constrained_layout=True)

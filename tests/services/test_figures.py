@@ -40,6 +40,8 @@ def test_every_figure_is_written_with_its_numbers(fakes, tmp_path):  # noqa: F81
     fig8 = {(row["condition"], row["difficulty"]): row for row in csv.DictReader(open(written["fig8"][2])) if row["experiment"] == str(second)}
     for stage in stages:
         assert float(fig8[(stage["condition"], stage["difficulty"])]["best_map"]) == stage["best_map"]
+    fig6 = [row for row in csv.DictReader(open(written["fig6"][2])) if row["experiment"] == str(first)]
+    assert float(fig6[-1]["cumulative_train_seconds"]) == sum(entry["train_seconds"] for entry in history)
     fig5 = {row["condition"]: float(row["best_map"]) for row in csv.DictReader(open(written["fig5"][2])) if row["experiment"] == str(first)}
     assert fig5["fb"] == 0.61
 

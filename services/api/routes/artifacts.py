@@ -86,7 +86,7 @@ FIGURE_MEDIA = {"png": "image/png", "svg": "image/svg+xml", "csv": "text/csv"}
 )
 def experiment_figure(
     experiment_id: ExperimentId,
-    name: Annotated[str, Path(pattern="^fig(4|5|7|8)$", description="fig4, fig5, fig7 or fig8 (services/figures.py)")],
+    name: Annotated[str, Path(pattern="^fig(4|5|6|7|8)$", description="fig4 to fig8 (services/figures.py)")],
     extension: Annotated[str, Path(pattern="^(png|svg|csv)$")],
 ) -> FileResponse:
     """One of the paper's figures for this experiment, drawn afresh from the record."""

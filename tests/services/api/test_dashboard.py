@@ -110,7 +110,7 @@ def test_artifact_routes_say_what_is_missing(client, smoke):
     assert client.get("/experiments/999/images").status_code == 404
     assert client.get("/models/999/checkpoint").json()["detail"] == "model 999 does not exist"
     assert client.get(f"/experiments/{smoke}/report.pdf").status_code == 422
-    assert client.get(f"/experiments/{smoke}/figures/fig6.png").status_code == 422
+    assert client.get(f"/experiments/{smoke}/figures/fig9.png").status_code == 422
     assert client.get("/experiments/999/figures/fig4.png").status_code == 404
 
 
