@@ -356,7 +356,58 @@ def export(
     typer.echo(f"wrote {written} ({written.stat().st_size / 1e6:.1f} MB): {detector.meta['family']}, classes {classes}")
 
 
+# --------------------------------------------------------------------------- finetune
+
+
+def finetune(
+    model: Annotated[Path, typer.Option("--model", help="The foldwise checkpoint to fine-tune.")],
+    data: Annotated[Path, typer.Option("--data", help="Real images: a COCO JSON file or folder, or a Pascal VOC folder.")],
+    out: Annotated[Path, typer.Option("--out", help="Folder for the models, the table and Fig. 11.")],
+    sweep: Annotated[str, typer.Option("--sweep", help="Real training images per point, e.g. 0,25,50,100,200.")] = "0,25,50,100,200",
+    iterations: Annotated[int, typer.Option("--iterations", min=1, max=1_000_000, help="Iterations per model.")] = 200,
+    test_fraction: Annotated[float, typer.Option("--test-fraction", min=0.05, max=0.95, help="Share held out for testing.")] = 0.5,
+    seed: Annotated[int, typer.Option("--seed", help="Seed of the split, weights and batch order.")] = 0,
+) -> None:
+    """Fine-tune a foldwise model on real photographs: a sweep over the number of real training
+    images, a fresh-initialisation baseline beside it, both scored on a held-out real split (Fig. 11)."""
+    from workers.train.data import DatasetError
+    from workers.train.finetune import load_real_dataset, match_classes, split, sweep as run_sweep, write_fig11
+
+    def bad_input(message: str) -> NoReturn:
+        typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
+        raise typer.Exit(code=2)
+
+    try:
+        sizes = sorted({int(part) for part in sweep.split(",") if part.strip()})
+    except ValueError:
+        bad_input(f"--sweep: {sweep!r} is not a comma list of whole numbers")
+    if not sizes or sizes[0] < 0:
+        bad_input(f"--sweep: {sweep!r} needs one or more counts >= 0")
+    detector = _load_model(model)
+    model_classes = [str(name) for name in detector.meta["classes"]]
+    try:
+        samples, classes = load_real_dataset(data)
+        samples = match_classes(samples, classes, model_classes)
+        pool, test = split(samples, test_fraction, seed)
+    except DatasetError as error:
+        bad_input(str(error))
+    typer.echo(f"{len(samples)} real images of {', '.join(classes)}: {len(pool)} to train from, {len(test)} to test on")
+
+    def report(point) -> None:
+        fresh = "—" if point.fresh_map is None else f"{point.fresh_map:.3f}"
+        line = f"n = {point.n:4d}: fine-tuned mAP {point.finetuned_map:.3f}, fresh initialisation {fresh}"
+        typer.echo(line)
+
+    try:
+        points = run_sweep(model, pool, test, sizes, iterations, out, seed=seed, on_point=report)
+    except DatasetError as error:
+        bad_input(str(error))
+    paths = write_fig11(points, out, title=f"{model.name} on {data.name}")
+    typer.echo("Fig. 11: " + "  ".join(str(path) for path in paths))
+
+
 def register(app: typer.Typer) -> None:
+    app.command("finetune")(finetune)
     app.command("train")(train)
     app.command("evaluate")(evaluate)
     app.command("detect")(detect)

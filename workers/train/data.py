@@ -55,10 +55,14 @@ def load_coco_dataset(directory: str | Path) -> tuple[list[Sample], list[str]]:
     """Samples (one per image, in the file's order) and the class names in category order.
 
     Category ids are 1-based; a category's 0-based label is its position in the list of
-    categories sorted by id. ``iscrowd`` is ignored: every annotation is a target.
+    categories sorted by id. ``iscrowd`` is ignored: every annotation is a target. ``directory``
+    may also be a COCO JSON file; its image file names are then relative to its folder.
     """
     directory = Path(directory)
-    annotation_path = directory / "annotations.json"
+    if directory.suffix.lower() == ".json" and directory.is_file():
+        directory, annotation_path = directory.parent, directory
+    else:
+        annotation_path = directory / "annotations.json"
     if not annotation_path.is_file():
         raise DatasetError(f"{directory}: no annotations.json (not a dataset folder written by `foldwise render`)")
     try:

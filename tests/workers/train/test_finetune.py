@@ -1,0 +1,94 @@
+"""`foldwise finetune` on a stand-in real set (skimage photographs with object prints warped
+onto them, bench/standin_real.py): VOC and COCO import, classes matched by name, a subset of
+the model's classes, an unknown class named, and a sweep with its fresh baseline and Fig. 11."""
+
+from __future__ import annotations
+
+import csv
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import typer
+from typer.testing import CliRunner
+
+from foldwise.config import DetectorConfig
+from workers.train.cli import register
+from workers.train.data import DatasetError
+from workers.train.finetune import load_real_dataset, match_classes, split
+from workers.train.training import train_detector
+
+REPO_ROOT = Path(__file__).resolve().parents[3]
+sys.path.insert(0, str(REPO_ROOT))
+from bench.standin_real import make_standin_set  # noqa: E402
+
+MODEL_CLASSES = ["astronaut", "coffee", "chelsea"]
+app = typer.Typer()
+register(app)
+
+
+@pytest.fixture(scope="module")
+def standin(tmp_path_factory):
+    return make_standin_set(tmp_path_factory.mktemp("standin"), n=12, classes=["coffee", "astronaut"], size=(96, 72))
+
+
+@pytest.fixture(scope="module")
+def tiny_model(standin, tmp_path_factory):
+    """A 3-class model (the real set holds 2 of them, in another order): 2 iterations at 64 px."""
+    samples, classes = load_real_dataset(standin / "voc")
+    samples = match_classes(samples, classes, MODEL_CLASSES)
+    path = tmp_path_factory.mktemp("model") / "tiny.pt"
+    config = DetectorConfig(family="yolo", input_size=64, batch_size=2, num_threads=1)
+    train_detector(samples[:4], init=None, iterations=2, config=config, classes=MODEL_CLASSES, out=path)
+    return path
+
+
+def test_voc_and_coco_give_the_same_set_matched_to_the_models_classes(standin):
+    voc, voc_classes = load_real_dataset(standin / "voc")
+    coco, coco_classes = load_real_dataset(standin / "coco.json")
+    assert len(voc) == len(coco) == 12 and set(voc_classes) == set(coco_classes) == {"coffee", "astronaut"}
+    voc, coco = match_classes(voc, voc_classes, MODEL_CLASSES), match_classes(coco, coco_classes, MODEL_CLASSES)
+    for a, b in zip(sorted(voc, key=lambda s: s.image_path.name), sorted(coco, key=lambda s: s.image_path.name)):
+        assert a.image_path.resolve() == b.image_path.resolve()
+        np.testing.assert_allclose(a.boxes, b.boxes, atol=0.051)  # VOC's one decimal
+        assert sorted(a.labels.tolist()) == sorted(b.labels.tolist()) and set(a.labels.tolist()) <= {0, 1}
+
+
+def test_an_unknown_class_is_named_with_the_known_ones(standin):
+    samples, classes = load_real_dataset(standin / "voc")
+    with pytest.raises(DatasetError, match=r"class\(es\) \['coffee'\] .* its classes: astronaut, rocket"):
+        match_classes(samples, classes, ["astronaut", "rocket"])
+
+
+def test_the_split_is_seeded_and_disjoint(standin):
+    samples, _ = load_real_dataset(standin / "voc")
+    pool, test = split(samples, 0.5, seed=3)
+    again, _ = split(samples, 0.5, seed=3)
+    assert [s.image_path for s in pool] == [s.image_path for s in again]
+    assert not {s.image_path for s in pool} & {s.image_path for s in test} and len(pool) + len(test) == 12
+
+
+def test_finetune_sweeps_beside_a_fresh_baseline_and_draws_fig11(standin, tiny_model, tmp_path):
+    out = tmp_path / "finetune"
+    result = CliRunner().invoke(app, [
+        "finetune", "--model", str(tiny_model), "--data", str(standin / "coco.json"), "--sweep", "0,3",
+        "--iterations", "2", "--out", str(out),
+    ])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert "n =    0: fine-tuned mAP" in result.output and "n =    3: fine-tuned mAP" in result.output
+    rows = list(csv.DictReader(open(out / "fig11.csv")))
+    assert [int(row["n"]) for row in rows] == [0, 3]
+    assert rows[0]["fresh_map"] == "" and rows[1]["fresh_map"] != ""
+    assert all(0.0 <= float(row["finetuned_map"]) <= 1.0 for row in rows)
+    assert (out / "fig11.png").stat().st_size > 0 and "real training images" in (out / "fig11.svg").read_text()
+    assert (out / "finetuned-3.pt").is_file() and (out / "fresh-3.pt").is_file()
+
+
+def test_finetune_refuses_an_unknown_class_and_a_folder_that_is_no_set_in_one_line(standin, tmp_path):
+    other = tmp_path / "no-coffee.pt"
+    config = DetectorConfig(family="yolo", input_size=64, batch_size=2, num_threads=1)
+    train_detector([], init=None, iterations=0, config=config, classes=["astronaut", "rocket"], out=other)
+    for data, message in ((standin / "voc", "its classes: astronaut, rocket"), (tmp_path / "nowhere", "not a real-image set")):
+        result = CliRunner().invoke(app, ["finetune", "--model", str(other), "--data", str(data), "--out", str(tmp_path / "o")])
+        assert result.exit_code == 2 and message in result.output and result.output.strip().count("\n") == 0, result.output

@@ -1,0 +1,192 @@
+"""Fine-tuning a foldwise model on real photographs (the paper's §5.5.2 and Fig. 11).
+
+A real set is a COCO JSON file (or a folder holding ``annotations.json``) or a Pascal VOC
+folder (``Annotations/*.xml`` beside ``JPEGImages/``). Its classes are matched to the
+checkpoint's by name, and it may hold a subset of them; labels are renumbered to the
+checkpoint's order, so the fine-tuned model keeps every class it had. The set is split once,
+by a seeded shuffle, into a training pool and a test split; for each size n of the sweep the
+checkpoint is fine-tuned on the first n pool images, a fresh model (the checkpoint's
+architecture, new weights) is trained on the same n beside it, and both are scored on the
+test split under the paper's protocol.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import xml.etree.ElementTree as ElementTree
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from workers.train.data import DatasetError, Sample, load_coco_dataset, validate_box
+
+
+def load_real_dataset(path: str | Path) -> tuple[list[Sample], list[str]]:
+    """Samples and class names of a COCO file or folder, or of a Pascal VOC folder."""
+    path = Path(path)
+    if (path.is_file() and path.suffix.lower() == ".json") or (path / "annotations.json").is_file():
+        return load_coco_dataset(path)
+    if (path / "Annotations").is_dir():
+        return _load_voc(path)
+    raise DatasetError(
+        f"{path}: not a real-image set: expected a COCO JSON file, a folder with annotations.json, "
+        "or a Pascal VOC folder (Annotations/*.xml and JPEGImages/)"
+    )
+
+
+def _load_voc(folder: Path) -> tuple[list[Sample], list[str]]:
+    classes: list[str] = []
+    samples = []
+    files = sorted((folder / "Annotations").glob("*.xml"))
+    if not files:
+        raise DatasetError(f"{folder}/Annotations holds no .xml annotation")
+    for xml_path in files:
+        try:
+            root = ElementTree.parse(xml_path).getroot()
+        except ElementTree.ParseError as error:
+            raise DatasetError(f"{xml_path}: not valid XML: {error}") from None
+        filename = root.findtext("filename")
+        if not filename:
+            raise DatasetError(f"{xml_path}: no <filename>")
+        image_path = folder / "JPEGImages" / filename
+        if not image_path.is_file():
+            raise DatasetError(f"{xml_path}: image file {image_path} does not exist")
+        width = float(root.findtext("size/width") or 0)
+        height = float(root.findtext("size/height") or 0)
+        boxes, labels = [], []
+        for number, obj in enumerate(root.iter("object")):
+            name = (obj.findtext("name") or "").strip()
+            where = f"{xml_path} (object {number})"
+            if not name:
+                raise DatasetError(f"{where}: no <name>")
+            try:
+                # VOC pixels are 1-based and inclusive: x0 - 1 .. x1 in 0-based pixel edges.
+                box = [float(obj.findtext(f"bndbox/{key}")) for key in ("xmin", "ymin", "xmax", "ymax")]
+            except (TypeError, ValueError):
+                raise DatasetError(f"{where}: <bndbox> needs numeric xmin, ymin, xmax, ymax") from None
+            box = [box[0] - 1, box[1] - 1, box[2], box[3]]
+            if width and height:
+                validate_box(box, width, height, where)
+            if name not in classes:
+                classes.append(name)
+            boxes.append(box)
+            labels.append(classes.index(name))
+        samples.append(Sample(image_path, np.asarray(boxes, np.float32).reshape(-1, 4), np.asarray(labels, np.int64)))
+    return samples, classes
+
+
+def match_classes(samples: list[Sample], classes: list[str], model_classes: list[str]) -> list[Sample]:
+    """The samples with labels renumbered to ``model_classes`` (matched by name); a class the
+    model does not know is an error that lists the ones it does."""
+    unknown = [name for name in classes if name not in model_classes]
+    if unknown:
+        raise DatasetError(
+            f"the real set has class(es) {unknown} that the model does not know; its classes: {', '.join(model_classes)}"
+        )
+    mapping = np.asarray([model_classes.index(name) for name in classes], dtype=np.int64)
+    return [
+        Sample(s.image_path, s.boxes, mapping[s.labels] if len(s.labels) else s.labels, s.condition, s.difficulty)
+        for s in samples
+    ]
+
+
+def split(samples: list[Sample], test_fraction: float, seed: int) -> tuple[list[Sample], list[Sample]]:
+    """(training pool, test split), by one seeded shuffle: the pool's first n are the sweep's n."""
+    if not 0 < test_fraction < 1:
+        raise ValueError(f"test fraction must be between 0 and 1, got {test_fraction}")
+    order = np.random.default_rng(seed).permutation(len(samples))
+    n_test = max(1, int(round(len(samples) * test_fraction)))
+    if n_test >= len(samples):
+        raise DatasetError(f"{len(samples)} real images cannot make both a training pool and a test split")
+    test = [samples[i] for i in order[:n_test]]
+    pool = [samples[i] for i in order[n_test:]]
+    return pool, test
+
+
+@dataclass(frozen=True)
+class SweepPoint:
+    n: int
+    finetuned_map: float
+    fresh_map: float | None  # None at n = 0: a fresh model trained on nothing is not a model
+    finetuned_unthresholded: float
+    fresh_unthresholded: float | None
+
+
+def sweep(
+    checkpoint: Path,
+    pool: list[Sample],
+    test: list[Sample],
+    sizes: list[int],
+    iterations: int,
+    out_dir: Path,
+    seed: int = 0,
+    on_point: Callable[[SweepPoint], None] | None = None,
+) -> list[SweepPoint]:
+    """Fine-tune the checkpoint and train a fresh model on the first n pool images for each n."""
+    from foldwise.config import DetectorConfig
+    from workers.train.checkpoint import load_detector, read_checkpoint
+    from workers.train.evaluation import evaluate_detector
+    from workers.train.training import train_detector
+
+    meta = read_checkpoint(checkpoint)["meta"]
+    classes = list(meta["classes"])
+    config = DetectorConfig.model_validate(meta["config"])
+    too_many = [n for n in sizes if n > len(pool)]
+    if too_many:
+        raise DatasetError(f"sweep sizes {too_many} exceed the {len(pool)} images of the training pool")
+    out_dir.mkdir(parents=True, exist_ok=True)
+
+    def score(path: Path) -> tuple[float, float]:
+        result = evaluate_detector(
+            load_detector(path, device="cpu"), test, classes, score_threshold=0.8, iou_threshold=0.5, coco=False
+        )
+        return result.map, result.map_unthresholded
+
+    points = []
+    for n in sizes:
+        if n == 0:
+            finetuned, fresh = score(checkpoint), (None, None)
+        else:
+            tuned_path, fresh_path = out_dir / f"finetuned-{n}.pt", out_dir / f"fresh-{n}.pt"
+            train_detector(pool[:n], init=checkpoint, iterations=iterations, config=config, classes=classes, out=tuned_path, seed=seed)
+            train_detector(pool[:n], init=None, iterations=iterations, config=config, classes=classes, out=fresh_path, seed=seed)
+            finetuned, fresh = score(tuned_path), score(fresh_path)
+        point = SweepPoint(n, finetuned[0], fresh[0], finetuned[1], fresh[1])
+        points.append(point)
+        if on_point:
+            on_point(point)
+    return points
+
+
+def write_fig11(points: list[SweepPoint], out_dir: Path, title: str) -> list[Path]:
+    """Fig. 11: mAP on the real test split against the number of real training images."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    matplotlib.rcParams["svg.fonttype"] = "none"
+    import matplotlib.pyplot as plt
+
+    paths = [out_dir / f"fig11.{suffix}" for suffix in ("png", "svg", "csv")]
+    with open(paths[2], "w", newline="") as handle:
+        writer = csv.DictWriter(handle, fieldnames=list(SweepPoint.__dataclass_fields__))
+        writer.writeheader()
+        writer.writerows(point.__dict__ for point in points)
+    figure, ax = plt.subplots(figsize=(7, 4.2), constrained_layout=True)
+    ax.plot([p.n for p in points], [p.finetuned_map for p in points], "o-", label="fine-tuned from the foldwise model")
+    fresh = [(p.n, p.fresh_map) for p in points if p.fresh_map is not None]
+    if fresh:
+        ax.plot(*zip(*fresh), "s--", label="fresh initialisation, same images")
+    ax.set_xlabel("real training images (count)")
+    ax.set_ylabel("mAP on the real test split")
+    ax.set_ylim(-0.02, 1.02)
+    ax.set_title(f"Fig. 11: fine-tuning on real images ({title}); mAP (score ≥ 0.8, IoU ≥ 0.5)", fontsize=9)
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    figure.savefig(paths[0], dpi=120)
+    figure.savefig(paths[1])
+    plt.close(figure)
+    (out_dir / "fig11.json").write_text(json.dumps([p.__dict__ for p in points], indent=2))
+    return paths
