@@ -40,4 +40,4 @@ def test_run_through_a_pipe_prints_a_line_per_increment_as_it_goes(database, tmp
     # no wrapping at 80 columns (COLUMNS=80 is ignored off a terminal): the header stays one line
     header = next(line for _, line in arrivals if line.startswith("foldwise: experiment"))
     assert len(header) > 80 and f"database {database}" in header
-    assert any("plateau" in line and line.count("│") == 7 for line in text.splitlines())
+    assert any("plateau" in line and line.count("│") == 8 for line in text.splitlines())  # 7 columns, one row
