@@ -186,6 +186,40 @@ def study(
 
 
 @app.command()
+def baseline(
+    config_path: Path = typer.Argument(..., metavar="CONFIG", help="detector, renderer, image size, assets and seed"),
+    out: Path = typer.Option(..., "--out", help="folder for the images, the model and table2.csv"),
+    train_images: int = typer.Option(500, "--train-images", min=1, max=100_000, help="canonical training images"),
+    iterations: int = typer.Option(2000, "--iterations", min=1, max=1_000_000),
+    test_per_pair: int = typer.Option(30, "--test-per-pair", min=1, max=100_000, help="test images per (condition, difficulty)"),
+    conditions: str = typer.Option("", "--conditions", help="comma list of condition codes (default: every one of the table)"),
+) -> None:
+    """The paper's Table 2: train on canonical images only, score every condition (each
+    difficulty and all together) beside the paper's Fast R-CNN figures."""
+    from foldwise.conditions import load_condition_table
+    from services.baseline import canonical_baseline
+
+    config = _load(config_path, preflight=True)
+    codes = _choices("--conditions", conditions, load_condition_table().codes)
+    rows = canonical_baseline(
+        config, out, train_images, iterations, test_per_pair, codes or None, echo=lambda line: console.print(line, highlight=False)
+    )  # fmt: skip
+
+    def cell(value) -> str:
+        return "—" if value is None else f"{value:.3f}"
+
+    difficulties = list(rows[0].by_difficulty) if rows else []
+    table = Table(title=f"Table 2: trained on canonical images only ({config.detector.family}); mAP, score ≥ "
+                        f"{config.evaluation.score_threshold:g}, IoU ≥ {config.evaluation.iou_threshold:g}")  # fmt: skip
+    for column in ("condition", *difficulties, "all", "paper (Fast R-CNN)"):
+        table.add_column(column, justify="left" if column == "condition" else "right")
+    for row in rows:
+        table.add_row(row.name, *(cell(v) for v in row.by_difficulty.values()), cell(row.map), cell(row.paper))
+    console.print(table)
+    console.print(f"table: {out / 'table2.csv'}", highlight=False)
+
+
+@app.command()
 def report(
     experiment_ids: list[int] = typer.Argument(..., metavar="EXPERIMENT...", help="one or more experiment ids"),
     out: Path | None = typer.Option(None, "--out", help="output directory (default: the first experiment's report dir)"),
