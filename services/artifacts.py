@@ -28,7 +28,18 @@ def image_url(experiment_id: int, parameter_set_id: int) -> str:
 
 
 def latest_increment(session: Session, experiment_id: int) -> tuple[int, int] | None:
-    """(stage order, k) of the newest rendered training images."""
+    """(stage order, k) of the newest increment a model trains or trained on; before the first
+    model, of the newest rendered training images. Images rendered ahead for the next increment
+    are not "the current increment": nothing has trained on them yet."""
+    trained = session.execute(
+        select(Stage.order, Model.increment)
+        .join(Stage, Stage.id == Model.stage_id)
+        .where(Model.experiment_id == experiment_id)
+        .order_by(Stage.order.desc(), Model.increment.desc())
+        .limit(1)
+    ).first()
+    if trained:
+        return trained[0], trained[1]
     row = session.execute(
         select(Stage.order, ParameterSet.increment)
         .join(Stage, Stage.id == ParameterSet.stage_id)
