@@ -26,6 +26,10 @@ class Settings(BaseSettings):
     visibility_timeout_s: int = 6 * 3600
     # Queued render/train work not finished after this long is enqueued again (idempotent).
     requeue_after_s: float = 3600.0
+    # A train worker renews its claim on a model (a heartbeat) every lease_s / 4 while it works;
+    # a claim not renewed for lease_s has lost its worker, and the model is sent again. A task
+    # that runs for hours stays claimed as long as its worker lives.
+    lease_s: float = Field(default=60.0, gt=0)
     # Folders (os.pathsep-separated) under which an experiment POSTed to the API may name its
     # asset folders; unset, the API accepts none (workers would read any folder a token holder
     # names). `foldwise run`, a user's own process, is not limited.

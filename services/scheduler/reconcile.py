@@ -89,6 +89,7 @@ class Snapshot:
     stale_theta_ids: tuple[int, ...]
     now: datetime
     requeue_after: timedelta
+    lease: timedelta = timedelta(seconds=60)
 
     def counts(self, split: Split, stage_id: int | None = None, increment: int | None = None) -> Counter:
         return self.theta_counts.get((split.value, stage_id, increment), Counter())
@@ -102,6 +103,11 @@ class Snapshot:
 
     def stale(self, when: datetime | None) -> bool:
         return when is not None and when < self.now - self.requeue_after
+
+    def lapsed(self, model: ModelView) -> bool:
+        """A claimed model whose worker stopped renewing its lease (and that was not re-sent
+        within the lease either): its worker is gone."""
+        return model.claimed_at is not None and _latest(model.claimed_at, model.enqueued_at) < self.now - self.lease
 
 
 # ---------------------------------------------------------------------------------------
@@ -235,9 +241,12 @@ def plan(s: Snapshot) -> list[Decision]:
     else:
         if latest.status == ModelStatus.pending:
             decisions.append(EnqueueTraining(latest.id))
-        elif s.stale(_latest(latest.claimed_at, latest.enqueued_at)):
-            # The later of claim and (re-)send: a model re-sent once waits a whole window
-            # before the next re-send (its old claim alone re-sent it on every pass).
+        elif latest.status == ModelStatus.training and s.lapsed(latest):
+            # Its worker stopped renewing the claim: gone. Re-sent once per lease (the later of
+            # claim and re-send counts, or the old claim would re-send it on every pass).
+            decisions.append(EnqueueTraining(latest.id, requeue=True))
+        elif latest.status == ModelStatus.queued and s.stale(latest.enqueued_at):
+            # Sent and never claimed: the message was lost (a broker restarted empty).
             decisions.append(EnqueueTraining(latest.id, requeue=True))
         ensure_sampled(stage, latest.increment + 1)
 
@@ -280,6 +289,7 @@ def load_snapshot(session: Session, experiment: Experiment, now: datetime | None
     settings = get_settings()
     now = now or utcnow()
     requeue_after = timedelta(seconds=settings.requeue_after_s)
+    lease = timedelta(seconds=settings.lease_s)
     stages = tuple(
         StageView(st.id, st.order, st.condition, st.difficulty, st.status, st.init_model_id, st.best_model_id)
         for st in session.scalars(select(Stage).where(Stage.experiment_id == experiment.id).order_by(Stage.order))
@@ -340,6 +350,7 @@ def load_snapshot(session: Session, experiment: Experiment, now: datetime | None
         stale_theta_ids=stale,
         now=now,
         requeue_after=requeue_after,
+        lease=lease,
     )
 
 

@@ -10,11 +10,12 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 import time
 from datetime import timedelta
 
 import numpy as np
-from sqlalchemy import select
+from sqlalchemy import select, update
 
 from db.models import (
     Evaluation,
@@ -39,8 +40,9 @@ log = logging.getLogger(__name__)
 
 
 def _claim(model_id: int, task_id: str) -> bool:
-    """Take the model for this delivery, or say another live delivery has it."""
-    stale_before = utcnow() - timedelta(seconds=get_settings().requeue_after_s)
+    """Take the model for this delivery, or say another live delivery has it (its lease renewed
+    within ``lease_s``)."""
+    stale_before = utcnow() - timedelta(seconds=get_settings().lease_s)
     with session_scope() as session:
         model = session.get(Model, model_id, with_for_update=True)
         if model is None or model.status in (ModelStatus.evaluated, ModelStatus.failed, ModelStatus.discarded):
@@ -93,13 +95,49 @@ def _samples(rows):
     return samples
 
 
+class Heartbeat:
+    """Renews this delivery's claim on a model every ``interval_s`` while the increment runs, so
+    the scheduler can tell a long task from a dead worker (a lapsed claim)."""
+
+    def __init__(self, model_id: int, task_id: str, interval_s: float) -> None:
+        self.model_id, self.task_id, self.interval_s = model_id, task_id, interval_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._beat, name=f"heartbeat-model-{model_id}", daemon=True)
+
+    def _beat(self) -> None:
+        while not self._stop.wait(self.interval_s):
+            try:
+                with session_scope() as session:
+                    session.execute(
+                        update(Model)
+                        .where(Model.id == self.model_id, Model.task_id == self.task_id, Model.status == ModelStatus.training)
+                        .values(claimed_at=utcnow())
+                    )
+            except Exception as error:  # a missed beat is not fatal; a lapsed lease re-sends the model
+                log.warning("heartbeat of model %s failed: %s", self.model_id, error)
+
+    def __enter__(self) -> Heartbeat:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *_exc) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
 def run_increment(model_id: int, task_id: str = "direct") -> str:
+    if not _claim(model_id, task_id):
+        return "skipped"
+    if app.conf.task_always_eager:  # one process: no other worker to take over, nothing to renew
+        return _run_claimed_increment(model_id)
+    with Heartbeat(model_id, task_id, get_settings().lease_s / 4):
+        return _run_claimed_increment(model_id)
+
+
+def _run_claimed_increment(model_id: int) -> str:
     from workers.train.checkpoint import detect_object, load_detector
     from workers.train.evaluation import detection_samples, evaluate_predictions
     from workers.train.training import train_detector
-
-    if not _claim(model_id, task_id):
-        return "skipped"
 
     with session_scope() as session:
         model = session.get(Model, model_id)

@@ -98,7 +98,7 @@ def test_cancel_after_finish_keeps_finished(database):
 def test_a_resent_training_message_waits_a_whole_window_before_the_next():
     # Claimed 2 h ago by a worker that died; re-sent 1 min ago: the old claim must not re-send
     # it again (it did on every pass: 4,112 messages in 60 s).
-    claimed_long_ago = model(1, 1, status=ModelStatus.training, enqueued=NOW - timedelta(minutes=1))
+    claimed_long_ago = model(1, 1, status=ModelStatus.training, enqueued=NOW - timedelta(seconds=30))
     claimed_long_ago = claimed_long_ago.__class__(**{**claimed_long_ago.__dict__, "claimed_at": NOW - timedelta(hours=2)})
     assert not any(isinstance(d, EnqueueTraining) for d in plan(snapshot(models=[claimed_long_ago])))
     lapsed = claimed_long_ago.__class__(**{**claimed_long_ago.__dict__, "enqueued_at": NOW - timedelta(hours=2)})

@@ -46,7 +46,7 @@ def test_a_model_killed_on_every_delivery_fails_after_the_cap(monkeypatch, datab
     from workers.train.tasks import _claim
 
     monkeypatch.setattr(reconcile, "_send", lambda send: None)
-    monkeypatch.setenv("FOLDWISE_REQUEUE_AFTER_S", "0")  # every claim is stale at once: the worker died
+    monkeypatch.setenv("FOLDWISE_LEASE_S", "0.001")  # every claim lapses at once: the worker died
     from foldwise.settings import get_settings
 
     get_settings.cache_clear()
@@ -116,3 +116,42 @@ def test_a_batch_past_its_soft_limit_fails_that_theta_and_hands_the_rest_back(mo
     with session_scope() as session:
         snapshot = reconcile.load_snapshot(session, session.get(Experiment, experiment_id))
     assert ids[2] in snapshot.pending_theta_ids
+
+
+def test_a_live_worker_renews_its_lease_and_a_dead_one_lets_it_lapse(monkeypatch, database):
+    """A task that runs for hours stays claimed while its worker beats; once the beats stop the
+    claim lapses within one lease and the scheduler sends the model again."""
+    import time
+    from datetime import timedelta
+
+    from foldwise.settings import get_settings
+    from workers.train.tasks import Heartbeat, _claim
+
+    monkeypatch.setattr(reconcile, "_send", lambda send: None)
+    monkeypatch.setenv("FOLDWISE_LEASE_S", "0.6")
+    get_settings.cache_clear()
+    experiment_id = start_experiment(config())
+    _in_flight(experiment_id)
+    with session_scope() as session:
+        model_id = session.scalar(select(Model.id).where(Model.experiment_id == experiment_id))
+    assert _claim(model_id, "worker-a")
+
+    def claimed_at():
+        with session_scope() as session:
+            return session.get(Model, model_id).claimed_at
+
+    first = claimed_at()
+    with Heartbeat(model_id, "worker-a", interval_s=0.15):
+        time.sleep(1.0)  # longer than the lease: only the beats keep it
+        assert claimed_at() > first
+        assert not _claim(model_id, "worker-b")  # a live lease is not taken over
+        with session_scope() as session:
+            snapshot = reconcile.load_snapshot(session, session.get(Experiment, experiment_id))
+        assert not any(isinstance(d, reconcile.EnqueueTraining) for d in reconcile.plan(snapshot))
+    time.sleep(0.8)  # the worker died: no beat for more than a lease
+    with session_scope() as session:
+        snapshot = reconcile.load_snapshot(session, session.get(Experiment, experiment_id))
+    assert reconcile.EnqueueTraining(model_id, requeue=True) in reconcile.plan(snapshot)
+    assert snapshot.lease == timedelta(seconds=0.6)
+    assert _claim(model_id, "worker-b")  # the lapsed claim is taken over
+    get_settings.cache_clear()
