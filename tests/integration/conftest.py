@@ -430,7 +430,8 @@ def stack(database_url, broker, celery_control, tmp_path_factory) -> Iterator[St
     """migrate, then api, scheduler, 2 × render-worker, train-worker, detect-worker, all from compose.yaml."""
     token = secrets.token_urlsafe(16)
     # What a user's .env would say: the token, and a fast scheduler for a test.
-    compose = load_compose({"FOLDWISE_API_TOKEN": token, "FOLDWISE_SCHEDULER_POLL_S": "0.2"})
+    # A short lease, so that a killed train worker's increment is sent again within seconds.
+    compose = load_compose({"FOLDWISE_API_TOKEN": token, "FOLDWISE_SCHEDULER_POLL_S": "0.2", "FOLDWISE_LEASE_S": "3"})
     root = tmp_path_factory.mktemp("stack")
     stack = Stack(
         compose=compose,
