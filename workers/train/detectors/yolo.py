@@ -56,6 +56,8 @@ import torchvision
 from torch import Tensor, nn
 from torchvision.ops import batched_nms, box_iou
 
+from foldwise.weights import IMAGENET_WEIGHTS
+
 __all__ = [
     "DEFAULT_NUM_ANCHORS",
     "YOLOv2Detector",
@@ -89,15 +91,9 @@ _IMAGENET_STD = (0.229, 0.224, 0.225)
 _PAD_VALUE = 0.5
 _BATCHNORM_MOMENTUM = 0.1
 
-# Backbone base name -> (torchvision builder, ImageNet weights enum entry).
-_BACKBONES: dict[str, tuple[str, str]] = {
-    "mobilenet_v3_large": ("mobilenet_v3_large", "MobileNet_V3_Large_Weights.IMAGENET1K_V1"),
-    "mobilenet_v3_small": ("mobilenet_v3_small", "MobileNet_V3_Small_Weights.IMAGENET1K_V1"),
-    "resnet18": ("resnet18", "ResNet18_Weights.IMAGENET1K_V1"),
-    "resnet34": ("resnet34", "ResNet34_Weights.IMAGENET1K_V1"),
-    "resnet50": ("resnet50", "ResNet50_Weights.IMAGENET1K_V1"),
-    "resnet101": ("resnet101", "ResNet101_Weights.IMAGENET1K_V1"),
-}
+# Backbone base name -> (torchvision builder, ImageNet weights enum entry): the classifiers
+# foldwise knows the ImageNet files of (foldwise/weights.py).
+_BACKBONES: dict[str, tuple[str, str]] = {name: (name, enum_entry) for name, (enum_entry, _file) in IMAGENET_WEIGHTS.items()}
 # Detection-style names ("mobilenet_v3_large_fpn", "mobilenet_v3_large_320_fpn",
 # "resnet50_fpn_v2") name the same feature extractor; the passthrough join plays the FPN's role.
 _BACKBONE_NAME = re.compile(r"^(?P<base>[a-z0-9_]+?)(?:_320)?(?:_fpn)?(?:_v[12])?$")
