@@ -187,6 +187,12 @@ class AugmentationConfig(_Section):
     per image per step. Off by default: the paper trains without augmentation."""
 
     enabled: bool = False
+    zoom: float = Field(
+        default=0.0,
+        ge=0.0,
+        le=1.0,
+        description="object zoom: one target spans 35-150% of the frame's long side (cut by the frame when larger)",
+    )
     crop: float = Field(
         default=0.5, ge=0.0, le=1.0, description="random crop: 35-100% of the area, aspect 9:16 to 16:9, not distorted"
     )

@@ -2,8 +2,9 @@
 
 Rendering already varies everything the scene holds (pose, light, clutter, lens, noise); these
 transforms vary the same rendered image a little further each time it is drawn into a batch,
-at no render cost: a random resized crop at a random aspect ratio (objects larger, cut by the
-frame, and frames that are not square), photometric
+at no render cost: a zoom on one target (the sheet from a third of the frame to overflowing
+it), a random resized crop at a random aspect ratio (objects larger, cut by the frame, and
+frames that are not square), photometric
 distortion (brightness, contrast, saturation, hue), greyscale, Gaussian blur, sensor noise and
 JPEG, each applied with its own probability (``DetectorConfig.augmentation``). No flip and no
 rotation: a mirrored print is not the object (foldwise detects one particular texture), and a
@@ -35,6 +36,14 @@ MIN_BOX_SIDE = 2.0
 # images of the same objects its boxes came out stretched (IoU < 0.5 at 0.9 confidence).
 CROP_SCALE = (0.35, 1.0)
 CROP_ASPECT = (9 / 16, 16 / 9)
+# The object zoom frames one target so that its long side spans ZOOM_FILL of the frame's long
+# side (log-uniform): from a third of the frame to half again more than it, the sheet cut by
+# the borders. Renders show the sheet at 10-60% of the frame; a camera close to a print shows
+# it filling or overflowing the frame, and a detector that never saw that misses it outright.
+# ZOOM_CUT of the views shift the object so far that the frame cuts it, keeping ZOOM_KEEP of it.
+ZOOM_FILL = (0.35, 1.5)
+ZOOM_KEEP = 0.4
+ZOOM_CUT = 0.3
 BLUR_SIGMA = (0.3, 1.5)
 NOISE_SIGMA = 0.03  # of full scale, on images in 0..1
 JPEG_QUALITY = (20, 90)
@@ -49,6 +58,8 @@ def build_augmentation(config: AugmentationConfig, crop_size: tuple[int, int]):
     from torchvision.transforms import v2
 
     steps = []
+    if config.zoom > 0:
+        steps.append(v2.RandomApply([_object_zoom(max(crop_size))], p=config.zoom))
     if config.crop > 0:
         steps.append(v2.RandomApply([_aspect_crop(max(crop_size))], p=config.crop))
     if config.photometric > 0:
@@ -62,6 +73,9 @@ def build_augmentation(config: AugmentationConfig, crop_size: tuple[int, int]):
     steps.append(v2.ToDtype(torch.float32, scale=True))
     if config.noise > 0:
         steps.append(v2.RandomApply([v2.GaussianNoise(sigma=NOISE_SIGMA, clip=True)], p=config.noise))
+    # A crop's resize can leave a clipped edge a float's breadth past the frame (42.000004 in a
+    # 42-px frame), which SanitizeBoundingBoxes treats as outside the image and drops the box.
+    steps.append(v2.ClampBoundingBoxes())
     steps.append(v2.SanitizeBoundingBoxes(min_size=MIN_BOX_SIDE))
     return v2.Compose(steps)
 
@@ -91,6 +105,59 @@ def _aspect_crop(long_side: int):
             return self._call_kernel(F.resized_crop, inpt, **params, antialias=True)
 
     return RandomAspectResizedCrop()
+
+
+def _object_zoom(long_side: int):
+    """A crop around one target (drawn at random) in which the target's long side spans
+    ZOOM_FILL of the crop's long side, at an aspect in CROP_ASPECT, shifted at random so the
+    target may be cut by the frame; resized so its long side is ``long_side``. The crop stays
+    inside the image (no padded borders): where the image is too small for the drawn fill, the
+    crop is the largest the image allows. An image without targets is left as it is."""
+    from torchvision import tv_tensors
+    from torchvision.transforms import v2
+    from torchvision.transforms.v2 import functional as F
+
+    class RandomObjectZoom(v2.Transform):
+        def make_params(self, flat_inputs):
+            height, width = v2.query_size(flat_inputs)
+            boxes = next((item for item in flat_inputs if isinstance(item, tv_tensors.BoundingBoxes)), None)
+            if boxes is None or len(boxes) == 0:
+                return {"skip": True}
+            x0, y0, x1, y1 = (float(v) for v in boxes[int(torch.randint(0, len(boxes), ()).item())])
+            object_side = max(x1 - x0, y1 - y0, 1.0)
+            log_fill = torch.empty(()).uniform_(float(np.log(ZOOM_FILL[0])), float(np.log(ZOOM_FILL[1])))
+            crop_long = object_side / float(np.exp(log_fill.item()))
+            log_aspect = torch.empty(()).uniform_(float(np.log(CROP_ASPECT[0])), float(np.log(CROP_ASPECT[1])))
+            aspect = float(np.exp(log_aspect.item()))  # width / height
+            crop_w, crop_h = (crop_long, crop_long / aspect) if aspect >= 1 else (crop_long * aspect, crop_long)
+            shrink = min(1.0, width / crop_w, height / crop_h)
+            crop_w, crop_h = max(1, int(round(crop_w * shrink))), max(1, int(round(crop_h * shrink)))
+            # Mostly the crop holds the whole object (its centre moves only within the slack);
+            # in ZOOM_CUT of the views it moves so far that only ZOOM_KEEP of the object's width
+            # and height (or of the crop's, when the object overflows it) stays in frame: the
+            # object may be cut by the frame, never cut out.
+            cx, cy = (x0 + x1) / 2, (y0 + y1) / 2
+            object_w, object_h = x1 - x0, y1 - y0
+            if float(torch.rand(())) < ZOOM_CUT:
+                reach_x = max(0.0, (crop_w + object_w) / 2 - ZOOM_KEEP * min(object_w, crop_w))
+                reach_y = max(0.0, (crop_h + object_h) / 2 - ZOOM_KEEP * min(object_h, crop_h))
+            else:
+                reach_x, reach_y = max(0.0, (crop_w - object_w) / 2), max(0.0, (crop_h - object_h) / 2)
+            cx += float(torch.empty(()).uniform_(-reach_x, reach_x))
+            cy += float(torch.empty(()).uniform_(-reach_y, reach_y))
+            left = int(round(min(max(cx - crop_w / 2, 0), width - crop_w)))
+            top = int(round(min(max(cy - crop_h / 2, 0), height - crop_h)))
+            scale = long_side / max(crop_h, crop_w)
+            size = [max(1, int(round(crop_h * scale))), max(1, int(round(crop_w * scale)))]
+            return {"skip": False, "top": top, "left": left, "height": crop_h, "width": crop_w, "size": size}
+
+        def transform(self, inpt, params):
+            if params["skip"]:
+                return inpt
+            params = {key: value for key, value in params.items() if key != "skip"}
+            return self._call_kernel(F.resized_crop, inpt, **params, antialias=True)
+
+    return RandomObjectZoom()
 
 
 def _jpeg_transform():

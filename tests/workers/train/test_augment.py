@@ -10,7 +10,7 @@ import torch
 from foldwise.config import AugmentationConfig, load_config
 from foldwise.settings import REPO_ROOT
 from workers.train import training
-from workers.train.augment import augmented, build_augmentation
+from workers.train.augment import ZOOM_FILL, augmented, build_augmentation
 from workers.train.checkpoint import read_checkpoint
 from workers.train.training import train_detector
 
@@ -87,6 +87,34 @@ def test_photometric_steps_change_pixels_not_boxes_and_the_seed_fixes_them():
     plain = torch.from_numpy(_image()).permute(2, 0, 1).float() / 255
     assert not torch.allclose(outputs[0], plain, atol=0.02)
     assert torch.equal(outputs[0], outputs[1]) and not torch.equal(outputs[0], outputs[2])
+
+
+def test_the_object_zoom_fills_the_frame_with_the_target_and_never_cuts_it_out():
+    """The target's long side spans ZOOM_FILL of the frame (a larger one is cut by the frame),
+    its box still frames the object's pixels, and it is never zoomed out of the frame."""
+    transform = build_augmentation(AugmentationConfig(enabled=True, zoom=1.0, crop=0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0), (64, 64))
+    image = np.zeros((256, 256, 3), np.uint8)
+    image[100:124, 60:108] = 255  # 48 x 24: a small sheet in a large frame
+    boxes = np.array([[60, 100, 108, 124]], np.float32)
+    whole, cut = [], 0
+    for seed in range(60):
+        torch.manual_seed(seed)
+        out, target = augmented(transform, image, boxes, np.array([0]), CPU)
+        height, width = out.shape[1:]
+        assert max(height, width) == 64
+        assert len(target["boxes"]) == 1  # cut by the frame at most, never cut out
+        x0, y0, x1, y1 = target["boxes"][0].tolist()
+        white = out.mean(0) > 0.5
+        rows, cols = np.flatnonzero(white.any(1).numpy()), np.flatnonzero(white.any(0).numpy())
+        assert abs(cols[0] - x0) <= 1.5 and abs(cols[-1] + 1 - x1) <= 1.5
+        assert abs(rows[0] - y0) <= 1.5 and abs(rows[-1] + 1 - y1) <= 1.5
+        if x0 <= 0.5 or y0 <= 0.5 or x1 >= width - 0.5 or y1 >= height - 0.5:
+            cut += 1
+        else:
+            whole.append(max(x1 - x0, y1 - y0) / max(width, height))
+    assert 5 <= cut <= 55  # some views cut the sheet at the frame, most do not
+    assert ZOOM_FILL[0] - 0.05 <= min(whole) and max(whole) <= 1.0
+    assert max(whole) - min(whole) > 0.3  # zoomed by different amounts, not one fixed scale
 
 
 def test_an_image_without_objects_passes_through():
