@@ -22,6 +22,10 @@ from services.api.probes import BrokerProbe, SchemaCheck
 # an empty result): an id outside 1..MAX_ID names nothing, and the app answers 404 for it
 # (services.api.app.id_out_of_range).
 MAX_ID = 2**31 - 1
+# Stage orders and increments k are 32-bit INTEGER columns as well: a filter past this is refused
+# (422) before it reaches the database, which would raise on it (PostgreSQL past 2**31 - 1,
+# SQLite past 2**63 - 1).
+MAX_INT_COLUMN = MAX_ID
 
 ExperimentId = Annotated[int, Path(ge=1, le=MAX_ID, description="experiment id")]
 ModelId = Annotated[int, Path(ge=1, le=MAX_ID, description="model id (ω)")]

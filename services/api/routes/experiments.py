@@ -32,6 +32,10 @@ ACCEPTED_TYPES = "application/json, application/yaml or text/yaml"
 
 LIVE_STATUSES = (ExperimentStatus.pending, ExperimentStatus.running)
 
+# A study name is printed in tables and stored in a text column (PostgreSQL refuses NUL):
+# one line of printable text.
+STUDY_NAME = dict(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f]+$")
+
 router = APIRouter(prefix="/experiments", tags=["experiments"])
 
 
@@ -109,7 +113,7 @@ CONFIG_BODY_DOC = {
 def list_experiments(
     session: SessionDep,
     status_filter: Annotated[ExperimentStatus | None, Query(alias="status")] = None,
-    study: Annotated[str | None, Query(max_length=200, description="keep one study's experiments")] = None,
+    study: Annotated[str | None, Query(**STUDY_NAME, description="keep one study's experiments")] = None,
 ) -> list[ExperimentListItem]:
     """Every experiment, oldest first; ``?status=running`` keeps one status, ``?study=`` one study."""
     experiments = queries.list_experiments(session)
@@ -140,7 +144,7 @@ def create_experiment(
     config: ConfigBody,
     study: Annotated[
         str | None,
-        Query(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f]+$", description="group it with other experiments"),
+        Query(**STUDY_NAME, description="group it with other experiments"),
     ] = None,
 ) -> dict[str, Any]:
     """Record a new experiment (status pending); the scheduler starts it on its next pass.

@@ -142,3 +142,115 @@ def test_without_asset_roots_the_api_takes_no_asset_folder(database_url, monkeyp
     assert response.status_code == 422
     assert response.json()["detail"] == "assets.backgrounds: this server takes asset folders only under FOLDWISE_ASSET_ROOTS, which is not set"
     assert client.post("/experiments", json={"name": "defaults need no folder"}, headers=AUTH).status_code == 201
+
+
+# --------------------------------------------------------------------------- the sweep
+# Every route's numbers and names, each sent every kind of bad value. Before this sweep,
+# ?stage= and ?k= past 2**31 - 1 were a 500 on PostgreSQL, and past 2**63 - 1 on SQLite too.
+
+OUT_OF_RANGE = ["2147483648", "9223372036854775808", "99999999999999999999999", "-1", "0"]
+NOT_INTEGERS = ["abc", "1.5", "1e3", "0x10", "%00", "1%00", "%0A", "nan"]
+BAD_TEXT = ["%00", "a%00b", "%07", "%0A", "%7F", "", "x" * 201]
+
+# Path ids: a whole number outside the ids' range names no row (404); anything else is 422.
+ID_ROUTES = [
+    ("get", "/experiments/{value}"),
+    ("get", "/experiments/{value}/config"),
+    ("get", "/experiments/{value}/stages"),
+    ("get", "/experiments/{value}/history"),
+    ("post", "/experiments/{value}/cancel"),
+    ("get", "/experiments/{value}/images"),
+    ("get", "/experiments/{value}/coco"),
+    ("get", "/experiments/{value}/report.png"),
+    ("get", "/experiments/{value}/figures/fig4.png"),
+    ("get", "/experiments/{experiment}/images/{value}.png"),
+    ("get", "/models/{value}"),
+    ("get", "/models/{value}/checkpoint"),
+    ("post", "/models/{value}/detect"),
+]
+
+# Query and path parameters other than ids: every bad value is a 422 naming the parameter.
+# (method, route, the parameter as FastAPI names it in the error, bad values)
+PARAMETERS = [
+    ("get", "/experiments/{experiment}/images?stage={value}", "stage", ["-1", *OUT_OF_RANGE[:3], *NOT_INTEGERS]),
+    ("get", "/experiments/{experiment}/images?k={value}", "k", OUT_OF_RANGE + NOT_INTEGERS),
+    ("get", "/experiments/{experiment}/images?stage=0&k={value}", "k", OUT_OF_RANGE + NOT_INTEGERS),
+    ("get", "/experiments/{experiment}/images?stage={value}&k=1", "stage", ["-1", *OUT_OF_RANGE[:3], *NOT_INTEGERS]),
+    ("get", "/experiments/{experiment}/images?limit={value}", "limit", ["1001", *OUT_OF_RANGE, *NOT_INTEGERS]),
+    ("get", "/experiments/{experiment}/images?split={value}", "split", ["validation", "%00", "", "1"]),
+    ("get", "/experiments/{experiment}/coco?split={value}", "split", ["validation", "%00", "", "1"]),
+    ("get", "/experiments/{experiment}/report.{value}", "extension", ["pdf", "png%00", "png%0A"]),
+    ("get", "/experiments/{experiment}/figures/{value}.png", "name", ["fig1", "fig4%00", "fig40"]),
+    ("get", "/experiments/{experiment}/figures/fig4.{value}", "extension", ["gif", "svg%00"]),
+    ("get", "/?experiment={value}", "experiment", OUT_OF_RANGE + NOT_INTEGERS),
+    ("get", "/experiments?status={value}", "status", ["done", "%00", "", "1"]),
+    ("get", "/experiments?study={value}", "study", BAD_TEXT),
+    ("post", "/experiments?study={value}", "study", BAD_TEXT),
+    ("post", "/models/1/detect?threshold={value}", "threshold", ["1.5", "-0.1", "nan", "inf", "abc", "%00", "1e9"]),
+]
+PNG_HEADER = b"\x89PNG\r\n\x1a\n" + b"\x00" * 16
+
+
+@pytest.fixture
+def sweep_client(database_url):
+    """A client that answers a server error with its 500 (and body) instead of raising."""
+    return TestClient(create_app(broker_timeout_s=0.3, ping_timeout_s=0.2), raise_server_exceptions=False)
+
+
+def _send(client, method: str, path: str):
+    if "/detect" in path:
+        return client.post(path, content=PNG_HEADER, headers={**AUTH, "Content-Type": "image/png"})
+    if method == "post" and path.startswith("/experiments?"):
+        return client.post(path, json={"name": "in a study"}, headers=AUTH)
+    return getattr(client, method)(path, headers=AUTH)
+
+
+def _wrong(response, status: int, named: str) -> str | None:
+    """Why ``response`` is not a clean ``status`` naming ``named`` (None when it is)."""
+    if response.status_code != status:
+        return f"{response.status_code} (want {status}): {response.text[:200]}"
+    detail = response.json()["detail"]
+    text = str(detail)
+    if "Traceback" in text or named not in text:
+        return f"{status} but the detail does not name {named!r}: {text[:200]}"
+    return None
+
+
+def _existing_experiment(client) -> int:
+    created = client.post("/experiments", json={"name": "target"}, headers=AUTH)
+    assert created.status_code == 201, created.text
+    return created.json()["id"]
+
+
+@pytest.mark.parametrize(("method", "route"), ID_ROUTES, ids=[f"{m} {r}" for m, r in ID_ROUTES])
+def test_every_id_route_refuses_every_bad_id(sweep_client, method, route):
+    experiment = _existing_experiment(sweep_client)
+    wrong = {}
+    for value in OUT_OF_RANGE:
+        response = _send(sweep_client, method, route.format(experiment=experiment, value=value))
+        wrong[value] = _wrong(response, 404, "does not exist")
+    for value in NOT_INTEGERS:
+        response = _send(sweep_client, method, route.format(experiment=experiment, value=value))
+        wrong[value] = _wrong(response, 422, "integer")
+    assert {value: why for value, why in wrong.items() if why} == {}
+
+
+@pytest.mark.parametrize(
+    ("method", "route", "parameter", "values"), PARAMETERS, ids=[f"{m} {r}" for m, r, _, _ in PARAMETERS]
+)
+def test_every_parameter_refuses_every_bad_value_naming_it(sweep_client, database_url, method, route, parameter, values):
+    experiment = _existing_experiment(sweep_client)
+    wrong = {}
+    for value in values:
+        response = _send(sweep_client, method, route.format(experiment=experiment, value=value))
+        wrong[value] = _wrong(response, 422, f"'{parameter}'")
+    assert {value: why for value, why in wrong.items() if why} == {}
+    assert _experiments(database_url) == 1  # only the target: a refused POST records nothing
+
+
+def test_stage_and_k_at_the_column_limit_are_an_empty_page(sweep_client):
+    # The largest value the columns hold is a valid filter that matches nothing, on both databases.
+    experiment = _existing_experiment(sweep_client)
+    response = sweep_client.get(f"/experiments/{experiment}/images?stage=2147483647&k=2147483647")
+    assert response.status_code == 200, response.text
+    assert response.json()["images"] == []
