@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from foldwise.config import ConfigError, load_config, parse_config, parse_config_text
+from foldwise.config import MAX_NESTING, ConfigError, load_config, parse_config, parse_config_text
 from foldwise.settings import REPO_ROOT
 
 CONFIGS = sorted((REPO_ROOT / "configs").glob("*.yaml"))
@@ -115,3 +115,98 @@ def test_a_mixed_stage_may_grow_its_training_set_while_the_others_reset():
     assert config.stage_active_learning("fb").training_set == "reset"
     with pytest.raises(ConfigError, match="training_set"):
         parse_config({"name": "g", "curriculum": {"mixed": {"active_learning": {"training_set": "keep"}}}})
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"active_learning": {"m": "50"}}, "active_learning.m: expected a number, got the text '50'"),
+        ({"active_learning": {"m": 50.0}}, "active_learning.m: expected a whole number, got 50.0"),
+        ({"active_learning": {"m": True}}, "active_learning.m: expected a number, got a boolean"),
+        ({"active_learning": {"tau": "0.02"}}, "active_learning.tau: expected a number, got the text '0.02'"),
+        ({"detector": {"learning_rate": False}}, "detector.learning_rate: expected a number, got a boolean"),
+        ({"render": {"smooth_steps": 2.5}}, "render.smooth_steps: expected a whole number, got 2.5"),
+        ({"seed": "7"}, "seed: expected a number, got the text '7'"),
+        ({"detector": {"anchor_size_range": [0.1, "1"]}}, "detector.anchor_size_range[1]: expected a number, got the text '1'"),
+        ({"curriculum": {"mixed": {"conditions_per_image": [2, 4.0]}}}, "conditions_per_image[1]: expected a whole number, got 4.0"),
+        ({"curriculum": {"mixed": {"active_learning": {"t": "100"}}}}, "curriculum.mixed.active_learning.t: expected a number"),
+    ],
+)
+def test_numbers_are_numbers(data, message):
+    # pydantic alone reads "50" and 50.0 as the count 50, and true as 1.
+    with pytest.raises(ConfigError) as caught:
+        parse_config({"name": "x", **data})
+    assert message in str(caught.value)
+
+
+def test_a_whole_number_is_a_valid_float_and_none_stays_allowed():
+    config = parse_config({"name": "x", "detector": {"learning_rate": 1}, "render": {"smooth_steps": None}})
+    assert config.detector.learning_rate == 1.0 and config.render.smooth_steps is None
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("name: x\nname: y\n", "duplicate key 'name' (line 2, column 1)"),
+        ("name: x\nactive_learning:\n  m: 5\n  t: 9\n  m: 6\n", "duplicate key 'm' (line 5, column 3)"),
+        ("name: x\ncurriculum: {mixed: {negatives: 0.1, negatives: 0.2}}\n", "duplicate key 'negatives'"),
+    ],
+)
+def test_a_key_given_twice_is_an_error_naming_it(text, message):
+    # PyYAML keeps the last value of a repeated key without a word.
+    with pytest.raises(ConfigError) as caught:
+        parse_config_text(text)
+    assert message in str(caught.value) and "\n" not in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "name: x\nbogus: " + "[" * 10_000 + "]" * 10_000 + "\n",
+        "name: x\nbogus: " + "{a: " * 10_000 + "1" + "}" * 10_000 + "\n",
+        "name: x\nbogus:\n" + "".join(" " * i + "- \n" for i in range(1, 2_000)),
+    ],
+    ids=["flow lists", "flow mappings", "block lists"],
+)
+def test_deep_nesting_is_a_clear_error_not_a_recursion_error(text):
+    with pytest.raises(ConfigError) as caught:
+        parse_config_text(text)
+    assert str(caught.value).startswith(f"invalid experiment config: nested deeper than {MAX_NESTING} levels (line ")
+
+
+def test_deep_nesting_through_aliases_and_aliases_that_contain_themselves():
+    # Each line is shallow; the aliases chain them 40 levels deep.
+    chain = "name: x\ncurriculum:\n  l0: &l0 [1]\n" + "".join(f"  l{i}: &l{i} [*l{i - 1}]\n" for i in range(1, 40))
+    with pytest.raises(ConfigError, match="nested deeper than"):
+        parse_config_text(chain)
+    with pytest.raises(ConfigError, match="refers to the mapping or list that contains it"):
+        parse_config_text("name: x\ncurriculum: &loop {conditions: [*loop]}\n")
+
+
+def test_shared_aliases_are_measured_once():
+    # "Billion laughs": 10**9 leaves if walked, 100 distinct lists.
+    text = "name: x\nassets:\n  l0: &l0 [a, a, a, a, a, a, a, a, a, a]\n" + "".join(
+        f"  l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 10)}]\n" for i in range(1, 9)
+    )
+    with pytest.raises(ConfigError, match="assets.l8: unknown key"):
+        parse_config_text(text)
+
+
+def test_yaml_scalars_read_as_yaml_1_2_core():
+    config = parse_config_text(
+        "name: no\nseed: 010\ndetector: {learning_rate: 1e-3, weight_decay: 5E-4, grad_clip_norm: 1_000}\n"
+        "evaluation: {coco: false}\nactive_learning: {t: 1_000}\n"
+    )
+    # YAML 1.1 reads 1e-3 as text, `no` as false and 010 as octal 8.
+    assert config.detector.learning_rate == 0.001 and config.detector.weight_decay == 0.0005
+    assert config.name == "no" and config.seed == 10
+    assert config.detector.grad_clip_norm == 1000.0 and config.active_learning.t == 1000
+    assert parse_config_text("name: 2024-01-01\n").name == "2024-01-01"  # text, not a date
+    with pytest.raises(ConfigError, match="active_learning.m: expected a whole number, got 1000.0"):
+        parse_config_text("name: x\nactive_learning: {m: 1e3}\n")
+
+
+def test_a_long_list_of_errors_is_cut_short():
+    with pytest.raises(ConfigError) as caught:
+        parse_config({"name": "x", **{f"bogus{i}": 1 for i in range(100)}})
+    assert str(caught.value).count("unknown key") == 20 and "and 80 more errors" in str(caught.value)

@@ -10,7 +10,7 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
 
 from db.models import ExperimentStatus
-from foldwise.config import ConfigError, ExperimentConfig, parse_config, parse_config_text
+from foldwise.config import TOO_DEEP, ConfigError, ExperimentConfig, parse_config, parse_config_text
 from services import queries
 from services.api.deps import ExperimentId, SessionDep, TokenRequired
 from services.api.schemas import (
@@ -54,6 +54,17 @@ def _reject_constant(name: str) -> None:
     raise ValueError(f"{name} is not a JSON number")
 
 
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    # Python's json keeps the last of a key given twice; a config that says two things is refused,
+    # as its YAML reading refuses it (foldwise.config).
+    mapping: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in mapping:
+            raise ConfigError(f"invalid experiment config: duplicate key {key!r}")
+        mapping[key] = value
+    return mapping
+
+
 async def read_config(request: Request) -> ExperimentConfig:
     """The request body as a validated experiment config (JSON or YAML)."""
     media_type = _media_type(request)
@@ -78,7 +89,11 @@ async def read_config(request: Request) -> ExperimentConfig:
     try:
         if is_json:
             try:
-                data = json.loads(document, parse_constant=_reject_constant)
+                data = json.loads(document, parse_constant=_reject_constant, object_pairs_hook=_unique_keys)
+            except RecursionError:  # the decoder recurses once per level; parse_config bounds the rest
+                raise ConfigError(TOO_DEEP) from None
+            except ConfigError:
+                raise
             except (json.JSONDecodeError, ValueError) as error:
                 raise ConfigError(f"invalid experiment config: not JSON: {error}") from None
             config = parse_config(data)

@@ -101,6 +101,41 @@ def test_a_bad_config_is_422_naming_the_key_and_records_nothing(client, database
     assert _experiments(database_url) == 0
 
 
+DEEP = 10_000
+
+
+@pytest.mark.parametrize(
+    ("content_type", "body", "named"),
+    [
+        ("application/json", '{"name": "x", "active_learning": {"m": "50"}}', "active_learning.m: expected a number, got the text '50'"),
+        ("application/json", '{"name": "x", "active_learning": {"m": 50.0}}', "active_learning.m: expected a whole number, got 50.0"),
+        ("application/json", '{"name": "x", "name": "y"}', "duplicate key 'name'"),
+        ("application/json", '{"name": "x", "a": ' + "[" * DEEP + "]" * DEEP + "}", "nested deeper than 32 levels"),
+        ("application/json", '{"name": "x", "a": ' + '{"b": ' * DEEP + "1" + "}" * DEEP + "}", "nested deeper than 32 levels"),
+        ("application/json", '{"name": "x", "a": ' + "[" * 500 + "]" * 500 + "}", "nested deeper than 32 levels"),
+        ("application/yaml", "name: x\na: " + "[" * DEEP + "]" * DEEP, "nested deeper than 32 levels (line 2"),
+        ("application/yaml", "name: x\na: " + "{b: " * DEEP + "1" + "}" * DEEP, "nested deeper than 32 levels (line 2"),
+        ("application/yaml", "name: x\nactive_learning:\n  m: 5\n  m: 6\n", "duplicate key 'm' (line 4, column 3)"),
+        ("application/yaml", "name: x\nactive_learning: {m: '50'}\n", "active_learning.m: expected a number"),
+        ("application/yaml", "name: x\ncurriculum: &c {conditions: [*c]}\n", "refers to the mapping or list that contains it"),
+    ],
+    ids=lambda value: value[:40] if isinstance(value, str) else value,
+)
+def test_a_bad_document_is_422_on_one_line_and_records_nothing(client, database_url, content_type, body, named):
+    response = client.post("/experiments", content=body.encode(), headers={**AUTH, "Content-Type": content_type})
+    assert response.status_code == 422, response.text[:300]
+    assert named in response.json()["detail"]
+    assert _experiments(database_url) == 0
+
+
+def test_yaml_floats_without_a_dot_are_floats(client):
+    body = "name: small steps\ndetector: {learning_rate: 1e-3, weight_decay: 5e-4}\n"
+    created = client.post("/experiments", content=body, headers={**AUTH, "Content-Type": "application/yaml"})
+    assert created.status_code == 201, created.text
+    detector = client.get(f"/experiments/{created.json()['id']}/config").json()["detector"]
+    assert (detector["learning_rate"], detector["weight_decay"]) == (0.001, 0.0005)
+
+
 def test_bad_posts_leave_the_database_usable(client, database_url):
     # On PostgreSQL a NUL reaching the INSERT aborted the transaction with a 500.
     for name in ("a\x00", "line\nbreak", "tab\there"):
