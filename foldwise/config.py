@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 from types import UnionType
-from typing import Any, Literal, Union, get_args, get_origin
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
@@ -29,6 +29,13 @@ MAX_WINDOW = 1_000
 MAX_INCREMENTS = 10_000
 MAX_TEST_IMAGES_PER_STAGE = 100_000
 MAX_BATCH = 4_096
+# Past these a run only diverges or does nothing: SGD at a learning rate above 10, a weight
+# decay above 1 (shrinking weights by more than the step), a gradient clip that clips nothing.
+MAX_LEARNING_RATE = 10.0
+MAX_WEIGHT_DECAY = 1.0
+MAX_GRAD_CLIP_NORM = 1e6
+# Conditions one mixed image draws at once (foldwise.sampling); more is a clutter of effects.
+MAX_CONDITIONS_PER_IMAGE = 9
 # Control characters (NUL above all) in a text field: PostgreSQL refuses NUL in text, and
 # no name or path needs any of them.
 CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f]")
@@ -58,6 +65,8 @@ class _Section(BaseModel):
 def _scalar_types(annotation: Any) -> set[Any]:
     """The types an annotation admits at its top level (int | None -> {int, NoneType})."""
     arguments = get_args(annotation)
+    if get_origin(annotation) is Annotated:
+        return _scalar_types(arguments[0])
     if get_origin(annotation) in (Union, UnionType):
         return {t for argument in arguments for t in _scalar_types(argument)}
     return {annotation}
@@ -117,6 +126,9 @@ class StageOverrides(_Section):
     training_set: Literal["reset", "grow"] | None = None
 
 
+ConditionsPerImage = Annotated[int, Field(ge=1, le=MAX_CONDITIONS_PER_IMAGE)]
+
+
 class MixedStageConfig(_Section):
     """The mixed stage(s) that end a curriculum: each image draws several conditions at
     random difficulties up to the stage's (the paper's future work; foldwise.sampling)."""
@@ -124,7 +136,7 @@ class MixedStageConfig(_Section):
     # One mixed stage per difficulty listed, in this order, after every single-condition stage.
     difficulties: list[str] = Field(default_factory=lambda: ["hard"], min_length=1)
     # How many conditions each image draws: [low, high], inclusive.
-    conditions_per_image: tuple[int, int] = (2, 4)
+    conditions_per_image: tuple[ConditionsPerImage, ConditionsPerImage] = (2, 4)
     # Which conditions it draws from (empty: every condition of the table).
     draw_from: list[str] = Field(default_factory=list)
     # The share of its images that show no object at all.
@@ -144,6 +156,9 @@ class MixedStageConfig(_Section):
                 raise ValueError(f"draw_from[{i}]: unknown condition {code!r}; known: {', '.join(table.codes)}")
         if high > len(pool):
             raise ValueError(f"conditions_per_image: {high} conditions per image, but only {len(pool)} to draw from")
+        if len(set(self.difficulties)) != len(self.difficulties):
+            # Two mixed stages of one difficulty would draw the same test set twice.
+            raise ValueError("difficulties: a difficulty is listed twice")
         for i, difficulty in enumerate(self.difficulties):
             if difficulty not in table.difficulties:
                 raise ValueError(
@@ -221,9 +236,9 @@ class DetectorConfig(_Section):
     input_size: int = Field(default=128, ge=32, le=2048)
     pretrained: Literal["none", "imagenet"] = "none"
     batch_size: int = Field(default=4, ge=1, le=512)
-    learning_rate: float = Field(default=0.01, gt=0)
+    learning_rate: float = Field(default=0.01, gt=0, le=MAX_LEARNING_RATE)
     momentum: float = Field(default=0.9, ge=0, lt=1)
-    weight_decay: float = Field(default=1e-4, ge=0)
+    weight_decay: float = Field(default=1e-4, ge=0, le=MAX_WEIGHT_DECAY)
     # Non-finite losses tolerated (each skipped, learning rate lowered) before the task fails.
     max_nonfinite_steps: int = Field(default=5, ge=0, le=MAX_ITERATIONS)
     device: Literal["auto", "cpu", "cuda"] = "auto"
@@ -235,7 +250,7 @@ class DetectorConfig(_Section):
     lr_schedule: Literal["constant", "cosine"] = "cosine"
     min_lr_fraction: float = Field(default=0.05, ge=0.0, le=1.0)
     # Gradient norm clip (0 disables); random initialisation is unstable without it.
-    grad_clip_norm: float = Field(default=10.0, ge=0.0)
+    grad_clip_norm: float = Field(default=10.0, ge=0.0, le=MAX_GRAD_CLIP_NORM)
     # R-CNN anchors (and proposal scale) span this range, as fractions of input_size:
     # at 128 px, 10 px objects up to the whole image.
     anchor_size_range: tuple[float, float] = (0.08, 1.0)

@@ -88,7 +88,10 @@ def test_a_mixed_stage_ends_the_curriculum_with_its_own_settings():
     ("mixed", "key"),
     [
         ({"conditions_per_image": [3, 2]}, "conditions_per_image: needs 1 <= low <= high"),
-        ({"conditions_per_image": [1, 40]}, "only 17 to draw from"),
+        ({"conditions_per_image": [1, 10]}, "curriculum.mixed.conditions_per_image.1: Input should be less than or equal to 9"),
+        ({"conditions_per_image": [0, 2]}, "curriculum.mixed.conditions_per_image.0: Input should be greater than or equal to 1"),
+        ({"draw_from": ["fb", "mb"], "conditions_per_image": [1, 3]}, "only 2 to draw from"),
+        ({"difficulties": ["hard", "medium", "hard"]}, "curriculum.mixed: difficulties: a difficulty is listed twice"),
         ({"draw_from": ["fb", "zz"]}, "draw_from[1]: unknown condition 'zz'"),
         ({"difficulties": ["brutal"]}, "unknown difficulty 'brutal'"),
         ({"negatives": 0.95}, "curriculum.mixed.negatives"),
@@ -210,3 +213,32 @@ def test_a_long_list_of_errors_is_cut_short():
     with pytest.raises(ConfigError) as caught:
         parse_config({"name": "x", **{f"bogus{i}": 1 for i in range(100)}})
     assert str(caught.value).count("unknown key") == 20 and "and 80 more errors" in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    ("detector", "message"),
+    [
+        ({"learning_rate": 10.5}, "detector.learning_rate: Input should be less than or equal to 10"),
+        ({"weight_decay": 1.5}, "detector.weight_decay: Input should be less than or equal to 1"),
+        ({"grad_clip_norm": 1e7}, "detector.grad_clip_norm: Input should be less than or equal to 1000000"),
+    ],
+)
+def test_optimiser_settings_have_sane_upper_bounds(detector, message):
+    with pytest.raises(ConfigError) as caught:
+        parse_config({"name": "x", "detector": detector})
+    assert message in str(caught.value)
+    # At the bound itself the setting is accepted.
+    (key, _), bound = next(iter(detector.items())), {"learning_rate": 10, "weight_decay": 1, "grad_clip_norm": 1e6}
+    assert getattr(parse_config({"name": "x", "detector": {key: bound[key]}}).detector, key) == bound[key]
+
+
+def test_the_bounds_are_in_the_schema():
+    # Clients read the bounds from the schema (GET /openapi.json) before they send a config.
+    from foldwise.config import ExperimentConfig
+
+    definitions = ExperimentConfig.model_json_schema()["$defs"]
+    detector = definitions["DetectorConfig"]["properties"]
+    assert (detector["learning_rate"]["maximum"], detector["weight_decay"]["maximum"]) == (10.0, 1.0)
+    assert detector["grad_clip_norm"]["maximum"] == 1e6
+    per_image = definitions["MixedStageConfig"]["properties"]["conditions_per_image"]["prefixItems"]
+    assert [item["maximum"] for item in per_image] == [9, 9]
