@@ -10,7 +10,18 @@ from __future__ import annotations
 
 from pathlib import Path
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+# What each accepted file name says its content is, as Pillow names the formats (MPO: the
+# multi-picture JPEG some cameras write, a JPEG to every decoder).
+SUFFIX_FORMATS = {
+    ".png": {"PNG"},
+    ".jpg": {"JPEG", "MPO"},
+    ".jpeg": {"JPEG", "MPO"},
+    ".bmp": {"BMP"},
+    ".tif": {"TIFF"},
+    ".tiff": {"TIFF"},
+    ".webp": {"WEBP"},
+}
+IMAGE_SUFFIXES = tuple(SUFFIX_FORMATS)
 # Below these sides an asset cannot be drawn (a 1x1 background or occluder made every θ that
 # drew it fail, silently); above MAX_PIXELS it is refused rather than decoded.
 MIN_SIDE = {"objects": 16, "backgrounds": 16, "occluders": 8}
@@ -40,11 +51,18 @@ def check_image_header(path: Path, what: str) -> tuple[int, int]:
     try:
         with Image.open(path) as image:
             width, height = image.size
+            content = image.format
             image.verify()  # structure and checksums (PNG CRCs), without decoding the pixels
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as error:
         raise AssetError(f"assets.{what}: {str(path)!r} is not a readable image ({type(error).__name__}: {error})") from None
     except Image.DecompressionBombError:
         width = height = None
+        content = None
+    expected = SUFFIX_FORMATS[path.suffix.lower()]
+    if content is not None and content not in expected:
+        # The renderer decodes with OpenCV, which reads no GIF and trusts no name: a file that is
+        # not what its name says is a mistake to fix here, not a θ that fails later.
+        raise AssetError(f"assets.{what}: {str(path)!r} holds a {content} image, not {'/'.join(sorted(expected))} as its name says")
     if width is None or width * height > MAX_PIXELS:
         raise AssetError(f"assets.{what}: {str(path)!r} is larger than {MAX_PIXELS:,} pixels")
     if min(width, height) < MIN_SIDE[what]:
@@ -75,8 +93,24 @@ def check_asset_roots(config, roots: list[Path]) -> None:
             raise AssetError(f"assets.{what}: {str(folder)!r} is outside the asset roots of this server ({allowed})")
 
 
+def check_class_names(files: list[Path]) -> None:
+    """AssetError naming both files when two object images would name the same class (the
+    class of an object image is its file name without the extension: workers/render/assets.py)."""
+    first_with: dict[str, Path] = {}
+    for path in files:
+        if path.stem in first_with:
+            raise AssetError(
+                f"assets.objects: {str(first_with[path.stem])!r} and {str(path)!r} both name the class "
+                f"{path.stem!r}: rename one"
+            )
+        first_with[path.stem] = path
+
+
 def validate_assets(config) -> None:
     """Check every user folder of an ``AssetsConfig`` (None, or a default folder: nothing to check)."""
     for what, folder in _user_folders(config):
-        for path in image_files(folder, what):
+        files = image_files(folder, what)
+        if what == "objects":
+            check_class_names(files)
+        for path in files:
             check_image_header(path, what)

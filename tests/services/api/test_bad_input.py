@@ -289,3 +289,21 @@ def test_stage_and_k_at_the_column_limit_are_an_empty_page(sweep_client):
     response = sweep_client.get(f"/experiments/{experiment}/images?stage=2147483647&k=2147483647")
     assert response.status_code == 200, response.text
     assert response.json()["images"] == []
+
+
+def test_a_misnamed_or_clashing_object_image_is_422_naming_the_files(client, database_url, tmp_path):
+    from PIL import Image
+
+    objects = tmp_path / "assets" / "objects"
+    objects.mkdir(parents=True)
+    Image.new("RGB", (32, 32), (9, 9, 9)).save(objects / "flag.png", format="GIF")
+    response = client.post("/experiments", json={"name": "x", "assets": {"objects": str(objects)}}, headers=AUTH)
+    assert response.status_code == 422
+    assert response.json()["detail"] == f"assets.objects: '{objects / 'flag.png'}' holds a GIF image, not PNG as its name says"
+    (objects / "flag.png").unlink()
+    _folder_of_pngs(objects)
+    Image.new("RGB", (32, 32), (9, 9, 9)).save(objects / "a.jpg", format="JPEG")
+    response = client.post("/experiments", json={"name": "x", "assets": {"objects": str(objects)}}, headers=AUTH)
+    assert response.status_code == 422
+    assert f"'{objects / 'a.jpg'}' and '{objects / 'a.png'}' both name the class 'a'" in response.json()["detail"]
+    assert _experiments(database_url) == 0
