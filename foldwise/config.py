@@ -495,5 +495,12 @@ def parse_config_text(text: str) -> ExperimentConfig:
 def load_config(path: str | Path) -> ExperimentConfig:
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"experiment config {str(path)!r} does not exist")
-    return parse_config_text(path.read_text())
+        what_it_is = "is not a file" if path.exists() else "does not exist"
+        raise ConfigError(f"experiment config {str(path)!r} {what_it_is}")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except OSError as error:
+        raise ConfigError(f"experiment config {str(path)!r} cannot be read: {error.strerror or error}") from None
+    except UnicodeDecodeError as error:
+        raise ConfigError(f"experiment config {str(path)!r} is not UTF-8 text (byte {error.start})") from None
+    return parse_config_text(text)
