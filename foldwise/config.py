@@ -154,6 +154,9 @@ class MixedStageConfig(_Section):
         for i, code in enumerate(self.draw_from):
             if code not in table.conditions:
                 raise ValueError(f"draw_from[{i}]: unknown condition {code!r}; known: {', '.join(table.codes)}")
+        if len(set(self.draw_from)) != len(self.draw_from):
+            # An image draws distinct entries: a condition listed twice could appear twice in one image.
+            raise ValueError("draw_from: a condition is listed twice")
         if high > len(pool):
             raise ValueError(f"conditions_per_image: {high} conditions per image, but only {len(pool)} to draw from")
         if len(set(self.difficulties)) != len(self.difficulties):
@@ -417,11 +420,11 @@ def parse_config(data: Any) -> ExperimentConfig:
 
 
 class _ConfigLoader(yaml.SafeLoader):
-    """PyYAML's safe loader with three YAML 1.1 surprises taken out. A key given twice is an
+    """PyYAML's safe loader with YAML 1.1's surprises taken out. A key given twice is an
     error (PyYAML keeps the last one silently). Scalars resolve as YAML 1.2's core schema does:
     `1e-3` is a float (1.1 wants a dot: `1.0e-3`), `no`, `on`, `off` and `yes` are text, `010`
-    is ten, not octal eight, and `2024-01-01` is text, not a date. Nesting is bounded
-    (MAX_NESTING), where the composer would recurse until Python's limit."""
+    is ten, not octal eight, and `2024-01-01` is text, not a date. `!!binary` is refused. Nesting
+    is bounded (MAX_NESTING), where the composer would recurse until Python's limit."""
 
     def __init__(self, stream: str) -> None:
         super().__init__(stream)
@@ -451,7 +454,16 @@ class _ConfigLoader(yaml.SafeLoader):
 
     def construct_core_int(self, node: yaml.ScalarNode) -> int:
         text = self.construct_scalar(node)
-        return int(text, 0) if text[:2] in ("0x", "0o") else int(text, 10)
+        try:
+            return int(text, 0) if text[:2] in ("0x", "0o") else int(text, 10)
+        except ValueError:  # Python reads no integer of more than 4,300 digits from text
+            raise ConfigError(
+                f"invalid experiment config: a whole number of {len(text):,} characters ({_line_and_column(node.start_mark)})"
+            ) from None
+
+    def construct_binary(self, node: yaml.ScalarNode) -> bytes:
+        # pydantic would take the bytes as text, NUL and all (PostgreSQL refuses NUL in text).
+        raise ConfigError(f"invalid experiment config: !!binary data has no place in a config ({_line_and_column(node.start_mark)})")
 
 
 _REPLACED_TAGS = {"tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float", "tag:yaml.org,2002:timestamp"}
@@ -467,6 +479,7 @@ for _tag, _pattern, _first in (
 ):
     _ConfigLoader.add_implicit_resolver(f"tag:yaml.org,2002:{_tag}", re.compile(f"^(?:{_pattern})$"), list(_first))
 _ConfigLoader.add_constructor("tag:yaml.org,2002:int", _ConfigLoader.construct_core_int)
+_ConfigLoader.add_constructor("tag:yaml.org,2002:binary", _ConfigLoader.construct_binary)
 
 
 def _line_and_column(mark: yaml.Mark) -> str:

@@ -92,6 +92,7 @@ def test_a_mixed_stage_ends_the_curriculum_with_its_own_settings():
         ({"conditions_per_image": [0, 2]}, "curriculum.mixed.conditions_per_image.0: Input should be greater than or equal to 1"),
         ({"draw_from": ["fb", "mb"], "conditions_per_image": [1, 3]}, "only 2 to draw from"),
         ({"difficulties": ["hard", "medium", "hard"]}, "curriculum.mixed: difficulties: a difficulty is listed twice"),
+        ({"draw_from": ["fb", "mb", "fb"]}, "curriculum.mixed: draw_from: a condition is listed twice"),
         ({"draw_from": ["fb", "zz"]}, "draw_from[1]: unknown condition 'zz'"),
         ({"difficulties": ["brutal"]}, "unknown difficulty 'brutal'"),
         ({"negatives": 0.95}, "curriculum.mixed.negatives"),
@@ -195,6 +196,13 @@ def test_shared_aliases_are_measured_once():
         parse_config_text(text)
 
 
+@pytest.mark.parametrize("text", ["name: !!binary AA==\n", "name: x\nassets: {objects: !!binary L3NydgBh}\n"])
+def test_binary_data_is_refused(text):
+    # pydantic took the bytes as text: a NUL reached PostgreSQL through `!!binary AA==`.
+    with pytest.raises(ConfigError, match=r"!!binary data has no place in a config \(line \d, column \d+\)"):
+        parse_config_text(text)
+
+
 def test_yaml_scalars_read_as_yaml_1_2_core():
     config = parse_config_text(
         "name: no\nseed: 010\ndetector: {learning_rate: 1e-3, weight_decay: 5E-4, grad_clip_norm: 1_000}\n"
@@ -242,3 +250,57 @@ def test_the_bounds_are_in_the_schema():
     assert detector["grad_clip_norm"]["maximum"] == 1e6
     per_image = definitions["MixedStageConfig"]["properties"]["conditions_per_image"]["prefixItems"]
     assert [item["maximum"] for item in per_image] == [9, 9]
+
+
+def _numeric_fields(model, prefix=""):
+    """(dotted key, field) of every number in the config schema, sections walked."""
+    from pydantic import BaseModel
+
+    for name, field in model.model_fields.items():
+        sections = [t for t in _types(field.annotation) if isinstance(t, type) and issubclass(t, BaseModel)]
+        if sections:
+            yield from _numeric_fields(sections[0], f"{prefix}{name}.")
+        elif _types(field.annotation) & {int, float}:
+            yield f"{prefix}{name}", field
+
+
+def _types(annotation):
+    from typing import get_args
+
+    arguments = get_args(annotation)
+    return {t for argument in arguments for t in _types(argument)} if arguments else {annotation}
+
+
+NUMERIC_FIELDS = dict(_numeric_fields(__import__("foldwise.config", fromlist=["ExperimentConfig"]).ExperimentConfig))
+
+
+def test_every_number_in_the_config_has_an_upper_bound_in_the_schema():
+    from foldwise.config import ExperimentConfig
+
+    assert len(NUMERIC_FIELDS) > 40
+    schema = ExperimentConfig.model_json_schema()
+
+    def has_maximum(node) -> bool:
+        node = schema["$defs"][node["$ref"].split("/")[-1]] if "$ref" in node else node
+        if "maximum" in node or "exclusiveMaximum" in node:
+            return True
+        options = [o for o in node.get("anyOf", []) if o.get("type") != "null"]
+        return bool(options) and all(has_maximum(o) for o in options)
+
+    def property_of(key):
+        *sections, name = key.split(".")
+        node = schema
+        for section in sections:
+            ref = node["properties"][section]
+            ref = next((o for o in ref.get("anyOf", [ref]) if "$ref" in o), ref)
+            node = schema["$defs"][ref["$ref"].split("/")[-1]]
+        return node["properties"][name]
+
+    # anchor_size_range is bounded by its validator (0 < low < high <= 4), tested above.
+    unbounded = []
+    for key in NUMERIC_FIELDS:
+        node = property_of(key)
+        items = node.get("prefixItems")
+        if key != "detector.anchor_size_range" and not (all(has_maximum(i) for i in items) if items else has_maximum(node)):
+            unbounded.append(key)
+    assert unbounded == []

@@ -118,6 +118,9 @@ DEEP = 10_000
         ("application/yaml", "name: x\nactive_learning:\n  m: 5\n  m: 6\n", "duplicate key 'm' (line 4, column 3)"),
         ("application/yaml", "name: x\nactive_learning: {m: '50'}\n", "active_learning.m: expected a number"),
         ("application/yaml", "name: x\ncurriculum: &c {conditions: [*c]}\n", "refers to the mapping or list that contains it"),
+        # pydantic took !!binary bytes as text: a NUL name, 201 on SQLite and a 500 on PostgreSQL.
+        ("application/yaml", "name: !!binary AA==\n", "!!binary data has no place in a config (line 1, column 7)"),
+        ("application/yaml", "name: x\nseed: " + "1" * 5000 + "\n", "a whole number of 5,000 characters (line 2, column 7)"),
     ],
     ids=lambda value: value[:40] if isinstance(value, str) else value,
 )
@@ -306,4 +309,35 @@ def test_a_misnamed_or_clashing_object_image_is_422_naming_the_files(client, dat
     response = client.post("/experiments", json={"name": "x", "assets": {"objects": str(objects)}}, headers=AUTH)
     assert response.status_code == 422
     assert f"'{objects / 'a.jpg'}' and '{objects / 'a.png'}' both name the class 'a'" in response.json()["detail"]
+    assert _experiments(database_url) == 0
+
+
+# Every number of the config schema, each sent every kind of bad value (as JSON, and the
+# unbounded integers as YAML too, whose loader reads them itself).
+BAD_NUMBERS = [2**31, 2**63, -(2**63) - 1, 10**400, 1e308, -1e308, "7", True, [], {}]
+
+
+def _nested(key: str, value) -> dict:
+    *sections, name = key.split(".")
+    body: dict = {name: value}
+    for section in reversed(sections):
+        body = {section: body}
+    return {"name": "x", **body}
+
+
+def test_every_number_in_the_config_refuses_every_bad_value(client, database_url):
+    from tests.foldwise.test_config import NUMERIC_FIELDS
+
+    wrong = {}
+    for key in NUMERIC_FIELDS:
+        values = [[v, v] if key.endswith(("conditions_per_image", "anchor_size_range")) else v for v in BAD_NUMBERS]
+        for value in values:
+            response = client.post("/experiments", json=_nested(key, value), headers=AUTH)
+            if response.status_code != 422 or key not in response.json()["detail"]:
+                wrong[f"{key}={str(value)[:20]}"] = f"{response.status_code}: {response.text[:150]}"
+    for yaml_body in ("name: x\nseed: " + "1" * 5000, "name: x\nactive_learning: {m: " + "9" * 30 + "}"):
+        response = client.post("/experiments", content=yaml_body, headers={**AUTH, "Content-Type": "application/yaml"})
+        if response.status_code != 422:
+            wrong[yaml_body[:40]] = f"{response.status_code}: {response.text[:150]}"
+    assert wrong == {}
     assert _experiments(database_url) == 0
