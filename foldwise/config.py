@@ -274,6 +274,14 @@ class DetectorConfig(_Section):
     box_score_threshold: float = Field(default=0.05, ge=0.0, lt=1.0)
     augmentation: AugmentationConfig = AugmentationConfig()
 
+    @model_validator(mode="after")
+    def _buildable(self) -> "DetectorConfig":
+        from foldwise.weights import backbone_problem
+
+        if problem := backbone_problem(self.family, self.backbone):
+            raise ValueError(problem.removeprefix("detector."))
+        return self
+
     @field_validator("anchor_size_range")
     @classmethod
     def _anchor_range(cls, value: tuple[float, float]) -> tuple[float, float]:

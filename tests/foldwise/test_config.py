@@ -304,3 +304,27 @@ def test_every_number_in_the_config_has_an_upper_bound_in_the_schema():
         if key != "detector.anchor_size_range" and not (all(has_maximum(i) for i in items) if items else has_maximum(node)):
             unbounded.append(key)
     assert unbounded == []
+
+
+@pytest.mark.parametrize(
+    ("family", "backbone", "known"),
+    [
+        ("faster_rcnn", "vgg16", "known: mobilenet_v3_large_fpn, mobilenet_v3_large_320_fpn, resnet50_fpn_v2"),
+        ("fast_rcnn", "resnet18", "known: mobilenet_v3_large_fpn"),
+        ("yolo", "vgg16_fpn", "known: mobilenet_v3_large, mobilenet_v3_small, resnet101"),
+    ],
+)
+def test_a_backbone_the_family_cannot_build_is_refused_before_any_work(family, backbone, known):
+    # It was found at the first training step, after the renders.
+    with pytest.raises(ConfigError) as caught:
+        parse_config({"name": "x", "detector": {"family": family, "backbone": backbone}})
+    assert f"detector: backbone {backbone!r} is not supported by the {family} detector" in str(caught.value)
+    assert known in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    ("family", "backbone"),
+    [("faster_rcnn", "resnet50_fpn_v2"), ("fast_rcnn", "mobilenet_v3_large_320_fpn"), ("yolo", "resnet18"), ("yolo", "mobilenet_v3_large_fpn")],
+)
+def test_every_backbone_a_family_builds_is_accepted(family, backbone):
+    assert parse_config({"name": "x", "detector": {"family": family, "backbone": backbone}}).detector.backbone == backbone
