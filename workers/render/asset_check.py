@@ -1,9 +1,10 @@
 """User asset folders checked once, before any work: by `foldwise run` and `POST /experiments`.
 
-Reads image headers with Pillow and never decodes pixels, so it is cheap for thousands of
-files and safe on hostile ones: a PNG whose header claims 100,000 × 100,000 pixels is refused
-by its size instead of taking gigabytes to decode. Imports neither numba, OpenCV nor torch (the
-API calls it).
+Reads each image's header with Pillow first, so it is safe on hostile files: a PNG whose
+header claims 100,000 × 100,000 pixels is refused by its size instead of taking gigabytes to
+decode. Only then is the file decoded, once: a whole header over corrupt or truncated data
+(which Pillow's structural check passes for JPEG, BMP and TIFF) failed every θ that drew it.
+Imports neither numba, OpenCV nor torch (the API calls it).
 """
 
 from __future__ import annotations
@@ -44,20 +45,21 @@ def image_files(folder: Path, what: str) -> list[Path]:
     return files
 
 
-def check_image_header(path: Path, what: str) -> tuple[int, int]:
-    """(width, height) from the file's header; AssetError if it is not an image or its size is out of bounds."""
-    from PIL import Image, UnidentifiedImageError
+def check_image_file(path: Path, what: str) -> tuple[int, int]:
+    """(width, height) of an image file; AssetError if it is not an image of the format its name
+    says, its size is out of bounds, or its pixels do not decode."""
+    from PIL import Image
 
     try:
         with Image.open(path) as image:
             width, height = image.size
             content = image.format
             image.verify()  # structure and checksums (PNG CRCs), without decoding the pixels
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as error:
-        raise AssetError(f"assets.{what}: {str(path)!r} is not a readable image ({type(error).__name__}: {error})") from None
     except Image.DecompressionBombError:
         width = height = None
         content = None
+    except Exception as error:  # UnidentifiedImageError, OSError, SyntaxError; a hostile file may raise anything
+        raise AssetError(f"assets.{what}: {str(path)!r} is not a readable image ({type(error).__name__}: {error})") from None
     expected = SUFFIX_FORMATS[path.suffix.lower()]
     if content is not None and content not in expected:
         # The renderer decodes with OpenCV, which reads no GIF and trusts no name: a file that is
@@ -69,6 +71,11 @@ def check_image_header(path: Path, what: str) -> tuple[int, int]:
         raise AssetError(
             f"assets.{what}: {str(path)!r} is {width}x{height} pixels; {what} need at least {MIN_SIDE[what]} on each side"
         )
+    try:
+        with Image.open(path) as image:  # verify() leaves the image unusable: open it again
+            image.load()
+    except Exception as error:  # a hostile file may raise anything from a decoder
+        raise AssetError(f"assets.{what}: {str(path)!r} does not decode ({type(error).__name__}: {error})") from None
     return width, height
 
 
@@ -113,4 +120,4 @@ def validate_assets(config) -> None:
         if what == "objects":
             check_class_names(files)
         for path in files:
-            check_image_header(path, what)
+            check_image_file(path, what)

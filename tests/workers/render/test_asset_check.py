@@ -42,7 +42,12 @@ def _saved_as(path: Path, image_format: str, width: int = 32, height: int = 32) 
     from PIL import Image
 
     path.parent.mkdir(parents=True, exist_ok=True)
-    Image.new("RGB", (width, height), (200, 40, 40)).save(path, format=image_format)
+    Image.effect_noise((width, height), 60).convert("RGB").save(path, format=image_format)
+    return path
+
+
+def _truncated(path: Path) -> Path:
+    path.write_bytes(path.read_bytes()[: path.stat().st_size * 6 // 10])
     return path
 
 
@@ -79,6 +84,10 @@ def test_good_folders_and_the_defaults_pass(folders):
         ("backgrounds", lambda d: (_png(d / "a.png", 32, 32), _saved_as(d / "photo.png", "JPEG"), d)[-1], "photo.png' holds a JPEG image, not PNG"),
         ("occluders", lambda d: (_saved_as(d / "leaf.jpg", "PNG"), d)[-1], "leaf.jpg' holds a PNG image, not JPEG/MPO"),
         ("backgrounds", lambda d: (_saved_as(d / "scan.tif", "BMP"), d)[-1], "scan.tif' holds a BMP image, not TIFF"),
+        # Pillow's structural check passes these (whole headers): their pixels do not decode.
+        ("backgrounds", lambda d: (_truncated(_saved_as(d / "cut.jpg", "JPEG", 64, 64)), d)[-1], "cut.jpg' does not decode (OSError: image file is truncated"),
+        ("objects", lambda d: (_truncated(_saved_as(d / "cut.bmp", "BMP", 64, 64)), d)[-1], "cut.bmp' does not decode"),
+        ("occluders", lambda d: (_truncated(_saved_as(d / "cut.tif", "TIFF", 64, 64)), d)[-1], "cut.tif' does not decode"),
         ("objects", lambda d: (_png(d / "poster.png", 32, 32), _saved_as(d / "poster.jpg", "JPEG"), d)[-1],
          "'{d}/poster.jpg' and '{d}/poster.png' both name the class 'poster'"),
         ("objects", lambda d: (_png(d / "a" / "mug.png", 32, 32), _png(d / "b" / "mug.png", 32, 32), d)[-1],
