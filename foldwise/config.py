@@ -39,6 +39,8 @@ MAX_CONDITIONS_PER_IMAGE = 9
 # Control characters (NUL above all) in a text field: PostgreSQL refuses NUL in text, and
 # no name or path needs any of them.
 CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f]")
+# JSON's "\ud800" decodes to half a UTF-16 pair, which no file system or database can store.
+LONE_SURROGATES = re.compile(r"[\ud800-\udfff]")
 
 
 class _Section(BaseModel):
@@ -59,6 +61,8 @@ class _Section(BaseModel):
             _check_number(value, _scalar_types(annotation), "")
         if isinstance(value, str) and CONTROL_CHARACTERS.search(value):
             raise ValueError(f"control character {CONTROL_CHARACTERS.search(value).group()!r} in text")
+        if isinstance(value, str) and LONE_SURROGATES.search(value):
+            raise ValueError(f"text is not valid Unicode (lone surrogate {LONE_SURROGATES.search(value).group()!r})")
         return value
 
 

@@ -118,6 +118,9 @@ DEEP = 10_000
         ("application/yaml", "name: x\nactive_learning:\n  m: 5\n  m: 6\n", "duplicate key 'm' (line 4, column 3)"),
         ("application/yaml", "name: x\nactive_learning: {m: '50'}\n", "active_learning.m: expected a number"),
         ("application/yaml", "name: x\ncurriculum: &c {conditions: [*c]}\n", "refers to the mapping or list that contains it"),
+        # Half a UTF-16 pair: no file system takes it (the asset-root check raised: 500).
+        ("application/json", '{"name": "x", "assets": {"objects": "/srv/\\ud800"}}', "assets.objects: text is not valid Unicode (lone surrogate '\\ud800')"),
+        ("application/json", '{"name": "\\udfff"}', "name: "),
         # pydantic took !!binary bytes as text: a NUL name, 201 on SQLite and a 500 on PostgreSQL.
         ("application/yaml", "name: !!binary AA==\n", "!!binary data has no place in a config (line 1, column 7)"),
         ("application/yaml", "name: x\nseed: " + "1" * 5000 + "\n", "a whole number of 5,000 characters (line 2, column 7)"),
@@ -341,3 +344,18 @@ def test_every_number_in_the_config_refuses_every_bad_value(client, database_url
             wrong[yaml_body[:40]] = f"{response.status_code}: {response.text[:150]}"
     assert wrong == {}
     assert _experiments(database_url) == 0
+
+
+READS_OF_AN_EXPERIMENT = [
+    "/experiments/{id}", "/experiments/{id}/config", "/experiments/{id}/stages", "/experiments/{id}/history",
+    "/experiments/{id}/images", "/experiments/{id}/images?split=test", "/experiments/{id}/coco?split=train",
+    "/experiments/{id}/coco", "/experiments/{id}/report.png", "/experiments/{id}/report.csv", "/?experiment={id}",
+    *[f"/experiments/{{id}}/figures/fig{n}.{extension}" for n in range(4, 9) for extension in ("png", "svg", "csv")],
+]  # fmt: skip
+
+
+def test_every_read_of_an_experiment_that_has_not_started_answers(sweep_client):
+    # Fig. 4 of an experiment without stages was a matplotlib ValueError: a 500.
+    experiment = _existing_experiment(sweep_client)
+    answers = {route: sweep_client.get(route.format(id=experiment)).status_code for route in READS_OF_AN_EXPERIMENT}
+    assert {route: code for route, code in answers.items() if code != 200} == {}
