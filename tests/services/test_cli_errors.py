@@ -137,3 +137,15 @@ def test_a_bad_config_leaves_experiments_untouched(tmp_path, database_file):
     with engine.connect() as connection:
         assert connection.scalar(select(func.count()).select_from(Experiment)) == 1
     engine.dispose()
+
+
+@pytest.mark.parametrize("experiment_id", ["0", "2147483648", "99999999999999999999"])
+def test_foldwise_report_of_an_id_past_the_columns_is_one_line(tmp_path, database_file, experiment_id):
+    # Past 2**63 - 1 SQLite raised OverflowError (a 197-line traceback); past 2**31 - 1 PostgreSQL a DataError.
+    env = {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "FOLDWISE_DATA_DIR": str(tmp_path / "data"),
+           "FOLDWISE_DATABASE_URL": f"sqlite:///{database_file}"}  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-m", "services.cli", "report", experiment_id, "--figures"], cwd=REPO_ROOT, capture_output=True,
+        text=True, env=env, timeout=120,
+    )  # fmt: skip
+    assert (done.returncode, done.stdout, done.stderr) == (2, "", f"error: experiment {experiment_id} does not exist\n")
