@@ -11,10 +11,10 @@ from pathlib import Path
 from types import UnionType
 from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from foldwise.conditions import load_condition_table
+from foldwise.documents import DocumentError, check_nesting, load_yaml
 
 
 class ConfigError(ValueError):
@@ -388,132 +388,25 @@ def _format_validation_error(error: ValidationError) -> str:
     return "invalid experiment config:\n  " + "\n  ".join(lines)
 
 
-# Levels of mappings and lists a config may nest (the deepest key, curriculum.mixed.
-# active_learning.m, is at 5): deeper is a mistake or an attack, and Python's parsers and
-# validators recurse, so 10,000 levels would be a RecursionError instead of an error message.
-MAX_NESTING = 32
-TOO_DEEP = f"invalid experiment config: nested deeper than {MAX_NESTING} levels"
-
-
-def _nesting(data: Any) -> int:
-    """Levels of dicts and lists in ``data``, without recursion; a structure shared through YAML
-    aliases is measured once, and one that contains itself is an error."""
-    heights: dict[int, int] = {}
-    in_progress: set[int] = set()
-    stack: list[Any] = [data]
-    while stack:
-        node = stack[-1]
-        if id(node) in heights:
-            stack.pop()
-            continue
-        children = [c for c in (node.values() if isinstance(node, dict) else node) if isinstance(c, (dict, list, tuple))]
-        pending = [c for c in children if id(c) not in heights]
-        if id(node) in in_progress or not pending:
-            if any(id(c) in in_progress and id(c) not in heights for c in pending):
-                raise ConfigError("invalid experiment config: a YAML alias refers to the mapping or list that contains it")
-            heights[id(node)] = 1 + max((heights[id(c)] for c in children), default=0)
-            in_progress.discard(id(node))
-            stack.pop()
-        else:
-            in_progress.add(id(node))
-            stack.extend(pending)
-    return heights[id(data)]
-
-
 def parse_config(data: Any) -> ExperimentConfig:
     if not isinstance(data, dict):
         raise ConfigError(f"invalid experiment config: expected a mapping at the top level, got {type(data).__name__}")
-    if _nesting(data) > MAX_NESTING:
-        raise ConfigError(TOO_DEEP)
+    try:
+        check_nesting(data)
+    except DocumentError as error:
+        raise ConfigError(f"invalid experiment config: {error}") from None
     try:
         return ExperimentConfig.model_validate(data)
     except ValidationError as error:
         raise ConfigError(_format_validation_error(error)) from None
 
 
-class _ConfigLoader(yaml.SafeLoader):
-    """PyYAML's safe loader with YAML 1.1's surprises taken out. A key given twice is an
-    error (PyYAML keeps the last one silently). Scalars resolve as YAML 1.2's core schema does:
-    `1e-3` is a float (1.1 wants a dot: `1.0e-3`), `no`, `on`, `off` and `yes` are text, `010`
-    is ten, not octal eight, and `2024-01-01` is text, not a date. `!!binary` is refused. Nesting
-    is bounded (MAX_NESTING), where the composer would recurse until Python's limit."""
-
-    def __init__(self, stream: str) -> None:
-        super().__init__(stream)
-        self._depth = 0
-
-    def compose_node(self, parent: Any, index: Any) -> Any:
-        self._depth += 1
-        try:
-            if self._depth > MAX_NESTING:
-                raise ConfigError(f"{TOO_DEEP} ({_line_and_column(self.peek_event().start_mark)})")
-            return super().compose_node(parent, index)
-        finally:
-            self._depth -= 1
-
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-        seen: set[Any] = set()
-        for key_node, _ in node.value:
-            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
-                continue
-            key = self.construct_object(key_node)
-            if key in seen:
-                raise ConfigError(
-                    f"invalid experiment config: duplicate key {key!r} ({_line_and_column(key_node.start_mark)})"
-                )
-            seen.add(key)
-        return super().construct_mapping(node, deep=deep)
-
-    def construct_core_int(self, node: yaml.ScalarNode) -> int:
-        text = self.construct_scalar(node)
-        try:
-            return int(text, 0) if text[:2] in ("0x", "0o") else int(text, 10)
-        except ValueError:  # Python reads no integer of more than 4,300 digits from text
-            raise ConfigError(
-                f"invalid experiment config: a whole number of {len(text):,} characters ({_line_and_column(node.start_mark)})"
-            ) from None
-
-    def construct_binary(self, node: yaml.ScalarNode) -> bytes:
-        # pydantic would take the bytes as text, NUL and all (PostgreSQL refuses NUL in text).
-        raise ConfigError(f"invalid experiment config: !!binary data has no place in a config ({_line_and_column(node.start_mark)})")
-
-
-_REPLACED_TAGS = {"tag:yaml.org,2002:bool", "tag:yaml.org,2002:int", "tag:yaml.org,2002:float", "tag:yaml.org,2002:timestamp"}
-_ConfigLoader.yaml_implicit_resolvers = {
-    first: [(tag, pattern) for tag, pattern in resolvers if tag not in _REPLACED_TAGS]
-    for first, resolvers in yaml.SafeLoader.yaml_implicit_resolvers.items()
-}
-for _tag, _pattern, _first in (
-    ("bool", r"true|True|TRUE|false|False|FALSE", "tTfF"),
-    # Decimal (underscores between digits, as PyYAML read them), 0o octal, 0x hexadecimal.
-    ("int", r"[-+]?[0-9]+(?:_[0-9]+)*|0o[0-7]+|0x[0-9a-fA-F]+", "-+0123456789"),
-    ("float", r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)", "-+0123456789."),
-):
-    _ConfigLoader.add_implicit_resolver(f"tag:yaml.org,2002:{_tag}", re.compile(f"^(?:{_pattern})$"), list(_first))
-_ConfigLoader.add_constructor("tag:yaml.org,2002:int", _ConfigLoader.construct_core_int)
-_ConfigLoader.add_constructor("tag:yaml.org,2002:binary", _ConfigLoader.construct_binary)
-
-
-def _line_and_column(mark: yaml.Mark) -> str:
-    return f"line {mark.line + 1}, column {mark.column + 1}"
-
-
-def _yaml_problem(error: yaml.YAMLError) -> str:
-    """A YAML error on one line: what is wrong and where."""
-    if isinstance(error, yaml.MarkedYAMLError) and error.problem:
-        mark = error.problem_mark
-        where = f" ({_line_and_column(mark)})" if mark else ""
-        context = f"{error.context}: " if error.context else ""
-        return f"{context}{error.problem}{where}"
-    return " ".join(str(error).split())
-
-
 def parse_config_text(text: str) -> ExperimentConfig:
     """YAML (or JSON, which is YAML) text to a validated config."""
     try:
-        data = yaml.load(text, Loader=_ConfigLoader)  # noqa: S506 (a SafeLoader)
-    except yaml.YAMLError as error:
-        raise ConfigError(f"invalid experiment config: not YAML: {_yaml_problem(error)}") from None
+        data = load_yaml(text)  # YAML 1.2 scalars (1e-3 is a float), no repeated key, bounded nesting
+    except DocumentError as error:
+        raise ConfigError(f"invalid experiment config: {error}") from None
     return parse_config(data)
 
 

@@ -4,7 +4,8 @@ from pathlib import Path
 
 import pytest
 
-from foldwise.config import MAX_NESTING, ConfigError, load_config, parse_config, parse_config_text
+from foldwise.config import ConfigError, load_config, parse_config, parse_config_text
+from foldwise.documents import MAX_NESTING
 from foldwise.settings import REPO_ROOT
 
 CONFIGS = sorted((REPO_ROOT / "configs").glob("*.yaml"))

@@ -10,7 +10,8 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
 
 from db.models import ExperimentStatus
-from foldwise.config import TOO_DEEP, ConfigError, ExperimentConfig, parse_config, parse_config_text
+from foldwise.config import ConfigError, ExperimentConfig, parse_config, parse_config_text
+from foldwise.documents import TOO_DEEP
 from services import queries
 from services.api.deps import ExperimentId, SessionDep, TokenRequired
 from services.api.schemas import (
@@ -91,7 +92,7 @@ async def read_config(request: Request) -> ExperimentConfig:
             try:
                 data = json.loads(document, parse_constant=_reject_constant, object_pairs_hook=_unique_keys)
             except RecursionError:  # the decoder recurses once per level; parse_config bounds the rest
-                raise ConfigError(TOO_DEEP) from None
+                raise ConfigError(f"invalid experiment config: {TOO_DEEP}") from None
             except ConfigError:
                 raise
             except (json.JSONDecodeError, ValueError) as error:
