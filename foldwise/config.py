@@ -9,12 +9,12 @@ from __future__ import annotations
 import re
 from pathlib import Path
 from types import UnionType
-from typing import Any, Literal, Union, get_args, get_origin
+from typing import Annotated, Any, Literal, Union, get_args, get_origin
 
-import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, ValidationInfo, field_validator, model_validator
 
 from foldwise.conditions import load_condition_table
+from foldwise.documents import DocumentError, check_nesting, load_yaml
 
 
 class ConfigError(ValueError):
@@ -29,9 +29,18 @@ MAX_WINDOW = 1_000
 MAX_INCREMENTS = 10_000
 MAX_TEST_IMAGES_PER_STAGE = 100_000
 MAX_BATCH = 4_096
+# Past these a run only diverges or does nothing: SGD at a learning rate above 10, a weight
+# decay above 1 (shrinking weights by more than the step), a gradient clip that clips nothing.
+MAX_LEARNING_RATE = 10.0
+MAX_WEIGHT_DECAY = 1.0
+MAX_GRAD_CLIP_NORM = 1e6
+# Conditions one mixed image draws at once (foldwise.sampling); more is a clutter of effects.
+MAX_CONDITIONS_PER_IMAGE = 9
 # Control characters (NUL above all) in a text field: PostgreSQL refuses NUL in text, and
 # no name or path needs any of them.
 CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f]")
+# JSON's "\ud800" decodes to half a UTF-16 pair, which no file system or database can store.
+LONE_SURROGATES = re.compile(r"[\ud800-\udfff]")
 
 
 class _Section(BaseModel):
@@ -41,20 +50,42 @@ class _Section(BaseModel):
     @field_validator("*", mode="before")
     @classmethod
     def _strict_numbers_and_clean_text(cls, value: Any, info: ValidationInfo) -> Any:
-        """A boolean is not a count (pydantic reads `true` as 1) and text holds no control characters."""
-        if isinstance(value, bool) and bool not in _scalar_types(cls.model_fields[info.field_name].annotation):
-            raise ValueError("expected a number, got a boolean")
+        """Numbers are numbers: pydantic would read `true` as 1, "50" as 50 and 50.0 as a count
+        of 50. Text holds no control characters."""
+        annotation = cls.model_fields[info.field_name].annotation
+        if get_origin(annotation) in (tuple, list) and isinstance(value, (list, tuple)):
+            element_types = {t for argument in get_args(annotation) for t in _scalar_types(argument)}
+            for index, element in enumerate(value):
+                _check_number(element, element_types, f"[{index}]: ")
+        else:
+            _check_number(value, _scalar_types(annotation), "")
         if isinstance(value, str) and CONTROL_CHARACTERS.search(value):
             raise ValueError(f"control character {CONTROL_CHARACTERS.search(value).group()!r} in text")
+        if isinstance(value, str) and LONE_SURROGATES.search(value):
+            raise ValueError(f"text is not valid Unicode (lone surrogate {LONE_SURROGATES.search(value).group()!r})")
         return value
 
 
 def _scalar_types(annotation: Any) -> set[Any]:
     """The types an annotation admits at its top level (int | None -> {int, NoneType})."""
     arguments = get_args(annotation)
+    if get_origin(annotation) is Annotated:
+        return _scalar_types(arguments[0])
     if get_origin(annotation) in (Union, UnionType):
         return {t for argument in arguments for t in _scalar_types(argument)}
     return {annotation}
+
+
+def _check_number(value: Any, types: set[Any], where: str) -> None:
+    """Refuse a value of the wrong kind for a field that takes numbers (and no text)."""
+    if not types & {int, float} or types & {str, Path}:
+        return
+    if isinstance(value, bool) and bool not in types:
+        raise ValueError(f"{where}expected a number, got a boolean")
+    if isinstance(value, str):
+        raise ValueError(f"{where}expected a number, got the text {value!r}")
+    if isinstance(value, float) and float not in types:
+        raise ValueError(f"{where}expected a whole number, got {value!r}")
 
 
 class AssetsConfig(_Section):
@@ -99,6 +130,9 @@ class StageOverrides(_Section):
     training_set: Literal["reset", "grow"] | None = None
 
 
+ConditionsPerImage = Annotated[int, Field(ge=1, le=MAX_CONDITIONS_PER_IMAGE)]
+
+
 class MixedStageConfig(_Section):
     """The mixed stage(s) that end a curriculum: each image draws several conditions at
     random difficulties up to the stage's (the paper's future work; foldwise.sampling)."""
@@ -106,7 +140,7 @@ class MixedStageConfig(_Section):
     # One mixed stage per difficulty listed, in this order, after every single-condition stage.
     difficulties: list[str] = Field(default_factory=lambda: ["hard"], min_length=1)
     # How many conditions each image draws: [low, high], inclusive.
-    conditions_per_image: tuple[int, int] = (2, 4)
+    conditions_per_image: tuple[ConditionsPerImage, ConditionsPerImage] = (2, 4)
     # Which conditions it draws from (empty: every condition of the table).
     draw_from: list[str] = Field(default_factory=list)
     # The share of its images that show no object at all.
@@ -124,8 +158,14 @@ class MixedStageConfig(_Section):
         for i, code in enumerate(self.draw_from):
             if code not in table.conditions:
                 raise ValueError(f"draw_from[{i}]: unknown condition {code!r}; known: {', '.join(table.codes)}")
+        if len(set(self.draw_from)) != len(self.draw_from):
+            # An image draws distinct entries: a condition listed twice could appear twice in one image.
+            raise ValueError("draw_from: a condition is listed twice")
         if high > len(pool):
             raise ValueError(f"conditions_per_image: {high} conditions per image, but only {len(pool)} to draw from")
+        if len(set(self.difficulties)) != len(self.difficulties):
+            # Two mixed stages of one difficulty would draw the same test set twice.
+            raise ValueError("difficulties: a difficulty is listed twice")
         for i, difficulty in enumerate(self.difficulties):
             if difficulty not in table.difficulties:
                 raise ValueError(
@@ -209,9 +249,9 @@ class DetectorConfig(_Section):
     input_size: int = Field(default=128, ge=32, le=2048)
     pretrained: Literal["none", "imagenet"] = "none"
     batch_size: int = Field(default=4, ge=1, le=512)
-    learning_rate: float = Field(default=0.01, gt=0)
+    learning_rate: float = Field(default=0.01, gt=0, le=MAX_LEARNING_RATE)
     momentum: float = Field(default=0.9, ge=0, lt=1)
-    weight_decay: float = Field(default=1e-4, ge=0)
+    weight_decay: float = Field(default=1e-4, ge=0, le=MAX_WEIGHT_DECAY)
     # Non-finite losses tolerated (each skipped, learning rate lowered) before the task fails.
     max_nonfinite_steps: int = Field(default=5, ge=0, le=MAX_ITERATIONS)
     device: Literal["auto", "cpu", "cuda"] = "auto"
@@ -223,7 +263,7 @@ class DetectorConfig(_Section):
     lr_schedule: Literal["constant", "cosine"] = "cosine"
     min_lr_fraction: float = Field(default=0.05, ge=0.0, le=1.0)
     # Gradient norm clip (0 disables); random initialisation is unstable without it.
-    grad_clip_norm: float = Field(default=10.0, ge=0.0)
+    grad_clip_norm: float = Field(default=10.0, ge=0.0, le=MAX_GRAD_CLIP_NORM)
     # R-CNN anchors (and proposal scale) span this range, as fractions of input_size:
     # at 128 px, 10 px objects up to the whole image.
     anchor_size_range: tuple[float, float] = (0.08, 1.0)
@@ -243,6 +283,14 @@ class DetectorConfig(_Section):
     detections_per_image: int = Field(default=20, ge=1, le=1_000)
     box_score_threshold: float = Field(default=0.05, ge=0.0, lt=1.0)
     augmentation: AugmentationConfig = AugmentationConfig()
+
+    @model_validator(mode="after")
+    def _buildable(self) -> "DetectorConfig":
+        from foldwise.weights import backbone_problem
+
+        if problem := backbone_problem(self.family, self.backbone):
+            raise ValueError(problem.removeprefix("detector."))
+        return self
 
     @field_validator("anchor_size_range")
     @classmethod
@@ -326,6 +374,10 @@ class ExperimentConfig(_Section):
         return self.curriculum.mixed.draw() if self.curriculum.mixed is not None else MixedDraw()
 
 
+# A config error lists at most this many keys (a document of thousands of bad entries is one mistake).
+MAX_ERRORS_LISTED = 20
+
+
 def _format_validation_error(error: ValidationError) -> str:
     lines = []
     for item in error.errors():
@@ -335,13 +387,20 @@ def _format_validation_error(error: ValidationError) -> str:
             message = "unknown key"
         elif item["type"] == "value_error":
             message = message.removeprefix("Value error, ")
-        lines.append(f"{key}: {message}")
+        # A message about one element of a list ("[1]: ...") reads as the element's key.
+        lines.append(f"{key}{'' if message.startswith('[') else ': '}{message}")
+    if len(lines) > MAX_ERRORS_LISTED:
+        lines[MAX_ERRORS_LISTED:] = [f"... and {len(lines) - MAX_ERRORS_LISTED} more errors"]
     return "invalid experiment config:\n  " + "\n  ".join(lines)
 
 
 def parse_config(data: Any) -> ExperimentConfig:
     if not isinstance(data, dict):
         raise ConfigError(f"invalid experiment config: expected a mapping at the top level, got {type(data).__name__}")
+    try:
+        check_nesting(data)
+    except DocumentError as error:
+        raise ConfigError(f"invalid experiment config: {error}") from None
     try:
         return ExperimentConfig.model_validate(data)
     except ValidationError as error:
@@ -351,14 +410,21 @@ def parse_config(data: Any) -> ExperimentConfig:
 def parse_config_text(text: str) -> ExperimentConfig:
     """YAML (or JSON, which is YAML) text to a validated config."""
     try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as error:
-        raise ConfigError(f"invalid experiment config: not YAML: {error}") from None
+        data = load_yaml(text)  # YAML 1.2 scalars (1e-3 is a float), no repeated key, bounded nesting
+    except DocumentError as error:
+        raise ConfigError(f"invalid experiment config: {error}") from None
     return parse_config(data)
 
 
 def load_config(path: str | Path) -> ExperimentConfig:
     path = Path(path)
     if not path.is_file():
-        raise ConfigError(f"experiment config {str(path)!r} does not exist")
-    return parse_config_text(path.read_text())
+        what_it_is = "is not a file" if path.exists() else "does not exist"
+        raise ConfigError(f"experiment config {str(path)!r} {what_it_is}")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except OSError as error:
+        raise ConfigError(f"experiment config {str(path)!r} cannot be read: {error.strerror or error}") from None
+    except UnicodeDecodeError as error:
+        raise ConfigError(f"experiment config {str(path)!r} is not UTF-8 text (byte {error.start})") from None
+    return parse_config_text(text)

@@ -5,11 +5,15 @@ classifier. foldwise never downloads: the file must already be in the torch hub 
 run that lacks it must say so before it renders a single image, not at its first training
 step. This module knows the files without importing torch (the CLI checks a config in
 milliseconds); a test pins the table to torchvision's own weight enums.
+
+It also knows which backbone names each detector family builds on, so that a config naming
+one it cannot build is refused at once (foldwise.config), not at the first training step.
 """
 
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 # torchvision classifier -> (weights enum entry, file name of its ImageNet weights).
@@ -21,6 +25,34 @@ IMAGENET_WEIGHTS = {
     "resnet50": ("ResNet50_Weights.IMAGENET1K_V1", "resnet50-0676ba61.pth"),
     "resnet101": ("ResNet101_Weights.IMAGENET1K_V1", "resnet101-63fe2227.pth"),
 }
+
+
+# Backbone names accepted by the two R-CNN families, mapped to the torchvision classifier
+# they start from. The "_320" variant differs in torchvision only by its input size, which
+# here comes from ``config.input_size``, so it shares the mobilenet backbone.
+RCNN_BACKBONES = {
+    "mobilenet_v3_large_fpn": "mobilenet_v3_large",
+    "mobilenet_v3_large_320_fpn": "mobilenet_v3_large",
+    "resnet50_fpn_v2": "resnet50",
+}
+# yolo builds on any classifier of IMAGENET_WEIGHTS; detection-style names
+# ("mobilenet_v3_large_fpn", "mobilenet_v3_large_320_fpn", "resnet50_fpn_v2") name the same one.
+YOLO_BACKBONE_NAME = re.compile(r"^(?P<base>[a-z0-9_]+?)(?:_320)?(?:_fpn)?(?:_v[12])?$")
+
+
+def backbone_problem(family: str, backbone: str) -> str | None:
+    """Why the ``family`` detector cannot be built on ``backbone`` (None when it can)."""
+    if family == "yolo":
+        match = YOLO_BACKBONE_NAME.match(backbone.strip().lower())
+        if match and match.group("base") in IMAGENET_WEIGHTS:
+            return None
+        return (
+            f"detector.backbone {backbone!r} is not supported by the yolo detector; known: "
+            f"{', '.join(sorted(IMAGENET_WEIGHTS))} (optionally with a detection suffix such as _fpn, _320_fpn or _fpn_v2)"
+        )
+    if backbone in RCNN_BACKBONES:
+        return None
+    return f"detector.backbone {backbone!r} is not supported by the {family} detector; known: {', '.join(RCNN_BACKBONES)}"
 
 
 def torch_hub_dir() -> Path:

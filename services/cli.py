@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 
 import typer
+from rich.markup import escape
 from rich.table import Table
 
 from foldwise.progress import CommandProgress, command_console
@@ -21,10 +22,21 @@ app = typer.Typer(no_args_is_help=True, add_completion=False, help="foldwise: te
 db_app = typer.Typer(no_args_is_help=True, help="Database migrations.")
 app.add_typer(db_app, name="db")
 console = command_console()
+error_console = command_console(stderr=True)
+
+
+def one_line(message: str) -> str:
+    """A message of several lines (a config error lists each bad key) as one line."""
+    first, *rest = [line.strip() for line in message.strip().splitlines() if line.strip()] or [""]
+    if not rest:
+        return first
+    return f"{first} {'; '.join(rest)}" if first.endswith(":") else " ".join([first, *rest])
 
 
 def _fail(message: str, code: int = 2) -> None:
-    console.print(f"[bold red]error:[/] {message}", highlight=False)
+    # One line on stderr, never wrapped (a script greps it, a person reads it whole); the
+    # message is text, not markup: a path may hold brackets.
+    error_console.print(f"[bold red]error:[/] {escape(one_line(message))}", highlight=False, soft_wrap=True)
     raise typer.Exit(code)
 
 
@@ -171,7 +183,7 @@ def study(
             try:
                 variants.append(parse_config(data))
             except ConfigError as error:
-                _fail(str(error).replace("\n  ", " "))
+                _fail(str(error))
     console.print(f"study {study_id}: {len(variants)} experiments", highlight=False)
     finished = []
     for variant in variants:

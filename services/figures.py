@@ -114,7 +114,14 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
         written[name] = paths
 
     keys = _stage_keys(runs)
-    if "fig4" in names:
+    if "fig4" in names and not keys:
+        # No stage has started: one panel that says so (matplotlib draws no grid of 0 x 0).
+        figure, ax = plt.subplots(figsize=(4.8, 2.4), constrained_layout=True)
+        ax.set_axis_off()
+        ax.text(0.5, 0.5, "no stage has started yet", ha="center", va="center")
+        figure.suptitle(f"Fig. 4: mAP on the standard test set after each increment; {protocol}", fontsize=9)
+        save("fig4", figure, ["experiment", "condition", "difficulty", "k", "map"], [])
+    elif "fig4" in names:
         conditions = list(dict.fromkeys(c for c, _ in keys))
         difficulties = list(dict.fromkeys(d for _, d in keys))
         figure, axes = plt.subplots(

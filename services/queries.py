@@ -31,6 +31,10 @@ from services.api.schemas import EvaluationDetail, ExperimentListItem, ModelDeta
 
 log = logging.getLogger(__name__)
 
+# Ids are 32-bit INTEGER columns: a number outside 1..MAX_ID names no row, and the databases
+# raise on one instead of finding nothing (PostgreSQL past 2**31 - 1, SQLite past 2**63 - 1).
+MAX_ID = 2**31 - 1
+
 
 class NotFound(LookupError):
     pass
@@ -105,7 +109,7 @@ def _revoke(task_ids: list[str]) -> None:
 
 
 def get_experiment(session: Session, experiment_id: int) -> Experiment:
-    experiment = session.get(Experiment, experiment_id)
+    experiment = session.get(Experiment, experiment_id) if 1 <= experiment_id <= MAX_ID else None
     if experiment is None:
         raise NotFound(f"experiment {experiment_id} does not exist")
     return experiment
@@ -315,7 +319,7 @@ def list_experiments(session: Session) -> list[ExperimentListItem]:
 
 
 def model_detail(session: Session, model_id: int) -> ModelDetail:
-    model = session.get(Model, model_id)
+    model = session.get(Model, model_id) if 1 <= model_id <= MAX_ID else None
     if model is None:
         raise NotFound(f"model {model_id} does not exist")
     stage = session.get(Stage, model.stage_id)

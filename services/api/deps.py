@@ -17,11 +17,12 @@ from sqlalchemy.orm import Session
 from db.session import get_sessionmaker
 from foldwise.settings import Settings
 from services.api.probes import BrokerProbe, SchemaCheck
+from services.queries import MAX_ID
 
-# Database ids are 32-bit INTEGER columns (PostgreSQL refuses a larger number with an error, not
-# an empty result): an id outside 1..MAX_ID names nothing, and the app answers 404 for it
-# (services.api.app.id_out_of_range).
-MAX_ID = 2**31 - 1
+# Ids, stage orders and increments k are 32-bit INTEGER columns (MAX_ID, services.queries). An
+# id outside 1..MAX_ID names nothing: the app answers 404 for it (services.api.app.id_out_of_range);
+# a stage or k filter past it is a 422. Either way the database, which would raise, never sees it.
+MAX_INT_COLUMN = MAX_ID
 
 ExperimentId = Annotated[int, Path(ge=1, le=MAX_ID, description="experiment id")]
 ModelId = Annotated[int, Path(ge=1, le=MAX_ID, description="model id (ω)")]

@@ -5,6 +5,7 @@ from pathlib import Path
 import pytest
 
 from foldwise.config import ConfigError, load_config, parse_config, parse_config_text
+from foldwise.documents import MAX_NESTING
 from foldwise.settings import REPO_ROOT
 
 CONFIGS = sorted((REPO_ROOT / "configs").glob("*.yaml"))
@@ -88,7 +89,11 @@ def test_a_mixed_stage_ends_the_curriculum_with_its_own_settings():
     ("mixed", "key"),
     [
         ({"conditions_per_image": [3, 2]}, "conditions_per_image: needs 1 <= low <= high"),
-        ({"conditions_per_image": [1, 40]}, "only 17 to draw from"),
+        ({"conditions_per_image": [1, 10]}, "curriculum.mixed.conditions_per_image.1: Input should be less than or equal to 9"),
+        ({"conditions_per_image": [0, 2]}, "curriculum.mixed.conditions_per_image.0: Input should be greater than or equal to 1"),
+        ({"draw_from": ["fb", "mb"], "conditions_per_image": [1, 3]}, "only 2 to draw from"),
+        ({"difficulties": ["hard", "medium", "hard"]}, "curriculum.mixed: difficulties: a difficulty is listed twice"),
+        ({"draw_from": ["fb", "mb", "fb"]}, "curriculum.mixed: draw_from: a condition is listed twice"),
         ({"draw_from": ["fb", "zz"]}, "draw_from[1]: unknown condition 'zz'"),
         ({"difficulties": ["brutal"]}, "unknown difficulty 'brutal'"),
         ({"negatives": 0.95}, "curriculum.mixed.negatives"),
@@ -115,3 +120,212 @@ def test_a_mixed_stage_may_grow_its_training_set_while_the_others_reset():
     assert config.stage_active_learning("fb").training_set == "reset"
     with pytest.raises(ConfigError, match="training_set"):
         parse_config({"name": "g", "curriculum": {"mixed": {"active_learning": {"training_set": "keep"}}}})
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"active_learning": {"m": "50"}}, "active_learning.m: expected a number, got the text '50'"),
+        ({"active_learning": {"m": 50.0}}, "active_learning.m: expected a whole number, got 50.0"),
+        ({"active_learning": {"m": True}}, "active_learning.m: expected a number, got a boolean"),
+        ({"active_learning": {"tau": "0.02"}}, "active_learning.tau: expected a number, got the text '0.02'"),
+        ({"detector": {"learning_rate": False}}, "detector.learning_rate: expected a number, got a boolean"),
+        ({"render": {"smooth_steps": 2.5}}, "render.smooth_steps: expected a whole number, got 2.5"),
+        ({"seed": "7"}, "seed: expected a number, got the text '7'"),
+        ({"detector": {"anchor_size_range": [0.1, "1"]}}, "detector.anchor_size_range[1]: expected a number, got the text '1'"),
+        ({"curriculum": {"mixed": {"conditions_per_image": [2, 4.0]}}}, "conditions_per_image[1]: expected a whole number, got 4.0"),
+        ({"curriculum": {"mixed": {"active_learning": {"t": "100"}}}}, "curriculum.mixed.active_learning.t: expected a number"),
+    ],
+)
+def test_numbers_are_numbers(data, message):
+    # pydantic alone reads "50" and 50.0 as the count 50, and true as 1.
+    with pytest.raises(ConfigError) as caught:
+        parse_config({"name": "x", **data})
+    assert message in str(caught.value)
+
+
+def test_a_whole_number_is_a_valid_float_and_none_stays_allowed():
+    config = parse_config({"name": "x", "detector": {"learning_rate": 1}, "render": {"smooth_steps": None}})
+    assert config.detector.learning_rate == 1.0 and config.render.smooth_steps is None
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("name: x\nname: y\n", "duplicate key 'name' (line 2, column 1)"),
+        ("name: x\nactive_learning:\n  m: 5\n  t: 9\n  m: 6\n", "duplicate key 'm' (line 5, column 3)"),
+        ("name: x\ncurriculum: {mixed: {negatives: 0.1, negatives: 0.2}}\n", "duplicate key 'negatives'"),
+    ],
+)
+def test_a_key_given_twice_is_an_error_naming_it(text, message):
+    # PyYAML keeps the last value of a repeated key without a word.
+    with pytest.raises(ConfigError) as caught:
+        parse_config_text(text)
+    assert message in str(caught.value) and "\n" not in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    "text",
+    [
+        "name: x\nbogus: " + "[" * 10_000 + "]" * 10_000 + "\n",
+        "name: x\nbogus: " + "{a: " * 10_000 + "1" + "}" * 10_000 + "\n",
+        "name: x\nbogus:\n" + "".join(" " * i + "- \n" for i in range(1, 2_000)),
+    ],
+    ids=["flow lists", "flow mappings", "block lists"],
+)
+def test_deep_nesting_is_a_clear_error_not_a_recursion_error(text):
+    with pytest.raises(ConfigError) as caught:
+        parse_config_text(text)
+    assert str(caught.value).startswith(f"invalid experiment config: nested deeper than {MAX_NESTING} levels (line ")
+
+
+def test_deep_nesting_through_aliases_and_aliases_that_contain_themselves():
+    # Each line is shallow; the aliases chain them 40 levels deep.
+    chain = "name: x\ncurriculum:\n  l0: &l0 [1]\n" + "".join(f"  l{i}: &l{i} [*l{i - 1}]\n" for i in range(1, 40))
+    with pytest.raises(ConfigError, match="nested deeper than"):
+        parse_config_text(chain)
+    with pytest.raises(ConfigError, match="refers to the mapping or list that contains it"):
+        parse_config_text("name: x\ncurriculum: &loop {conditions: [*loop]}\n")
+
+
+def test_shared_aliases_are_measured_once():
+    # "Billion laughs": 10**9 leaves if walked, 100 distinct lists.
+    text = "name: x\nassets:\n  l0: &l0 [a, a, a, a, a, a, a, a, a, a]\n" + "".join(
+        f"  l{i}: &l{i} [{', '.join([f'*l{i - 1}'] * 10)}]\n" for i in range(1, 9)
+    )
+    with pytest.raises(ConfigError, match="assets.l8: unknown key"):
+        parse_config_text(text)
+
+
+@pytest.mark.parametrize("text", ["name: !!binary AA==\n", "name: x\nassets: {objects: !!binary L3NydgBh}\n"])
+def test_binary_data_is_refused(text):
+    # pydantic took the bytes as text: a NUL reached PostgreSQL through `!!binary AA==`.
+    with pytest.raises(ConfigError, match=r"!!binary data has no place in a config \(line \d, column \d+\)"):
+        parse_config_text(text)
+
+
+def test_yaml_scalars_read_as_yaml_1_2_core():
+    config = parse_config_text(
+        "name: no\nseed: 010\ndetector: {learning_rate: 1e-3, weight_decay: 5E-4, grad_clip_norm: 1_000}\n"
+        "evaluation: {coco: false}\nactive_learning: {t: 1_000}\n"
+    )
+    # YAML 1.1 reads 1e-3 as text, `no` as false and 010 as octal 8.
+    assert config.detector.learning_rate == 0.001 and config.detector.weight_decay == 0.0005
+    assert config.name == "no" and config.seed == 10
+    assert config.detector.grad_clip_norm == 1000.0 and config.active_learning.t == 1000
+    assert parse_config_text("name: 2024-01-01\n").name == "2024-01-01"  # text, not a date
+    with pytest.raises(ConfigError, match="active_learning.m: expected a whole number, got 1000.0"):
+        parse_config_text("name: x\nactive_learning: {m: 1e3}\n")
+
+
+def test_a_long_list_of_errors_is_cut_short():
+    with pytest.raises(ConfigError) as caught:
+        parse_config({"name": "x", **{f"bogus{i}": 1 for i in range(100)}})
+    assert str(caught.value).count("unknown key") == 20 and "and 80 more errors" in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    ("detector", "message"),
+    [
+        ({"learning_rate": 10.5}, "detector.learning_rate: Input should be less than or equal to 10"),
+        ({"weight_decay": 1.5}, "detector.weight_decay: Input should be less than or equal to 1"),
+        ({"grad_clip_norm": 1e7}, "detector.grad_clip_norm: Input should be less than or equal to 1000000"),
+    ],
+)
+def test_optimiser_settings_have_sane_upper_bounds(detector, message):
+    with pytest.raises(ConfigError) as caught:
+        parse_config({"name": "x", "detector": detector})
+    assert message in str(caught.value)
+    # At the bound itself the setting is accepted.
+    (key, _), bound = next(iter(detector.items())), {"learning_rate": 10, "weight_decay": 1, "grad_clip_norm": 1e6}
+    assert getattr(parse_config({"name": "x", "detector": {key: bound[key]}}).detector, key) == bound[key]
+
+
+def test_the_bounds_are_in_the_schema():
+    # Clients read the bounds from the schema (GET /openapi.json) before they send a config.
+    from foldwise.config import ExperimentConfig
+
+    definitions = ExperimentConfig.model_json_schema()["$defs"]
+    detector = definitions["DetectorConfig"]["properties"]
+    assert (detector["learning_rate"]["maximum"], detector["weight_decay"]["maximum"]) == (10.0, 1.0)
+    assert detector["grad_clip_norm"]["maximum"] == 1e6
+    per_image = definitions["MixedStageConfig"]["properties"]["conditions_per_image"]["prefixItems"]
+    assert [item["maximum"] for item in per_image] == [9, 9]
+
+
+def _numeric_fields(model, prefix=""):
+    """(dotted key, field) of every number in the config schema, sections walked."""
+    from pydantic import BaseModel
+
+    for name, field in model.model_fields.items():
+        sections = [t for t in _types(field.annotation) if isinstance(t, type) and issubclass(t, BaseModel)]
+        if sections:
+            yield from _numeric_fields(sections[0], f"{prefix}{name}.")
+        elif _types(field.annotation) & {int, float}:
+            yield f"{prefix}{name}", field
+
+
+def _types(annotation):
+    from typing import get_args
+
+    arguments = get_args(annotation)
+    return {t for argument in arguments for t in _types(argument)} if arguments else {annotation}
+
+
+NUMERIC_FIELDS = dict(_numeric_fields(__import__("foldwise.config", fromlist=["ExperimentConfig"]).ExperimentConfig))
+
+
+def test_every_number_in_the_config_has_an_upper_bound_in_the_schema():
+    from foldwise.config import ExperimentConfig
+
+    assert len(NUMERIC_FIELDS) > 40
+    schema = ExperimentConfig.model_json_schema()
+
+    def has_maximum(node) -> bool:
+        node = schema["$defs"][node["$ref"].split("/")[-1]] if "$ref" in node else node
+        if "maximum" in node or "exclusiveMaximum" in node:
+            return True
+        options = [o for o in node.get("anyOf", []) if o.get("type") != "null"]
+        return bool(options) and all(has_maximum(o) for o in options)
+
+    def property_of(key):
+        *sections, name = key.split(".")
+        node = schema
+        for section in sections:
+            ref = node["properties"][section]
+            ref = next((o for o in ref.get("anyOf", [ref]) if "$ref" in o), ref)
+            node = schema["$defs"][ref["$ref"].split("/")[-1]]
+        return node["properties"][name]
+
+    # anchor_size_range is bounded by its validator (0 < low < high <= 4), tested above.
+    unbounded = []
+    for key in NUMERIC_FIELDS:
+        node = property_of(key)
+        items = node.get("prefixItems")
+        if key != "detector.anchor_size_range" and not (all(has_maximum(i) for i in items) if items else has_maximum(node)):
+            unbounded.append(key)
+    assert unbounded == []
+
+
+@pytest.mark.parametrize(
+    ("family", "backbone", "known"),
+    [
+        ("faster_rcnn", "vgg16", "known: mobilenet_v3_large_fpn, mobilenet_v3_large_320_fpn, resnet50_fpn_v2"),
+        ("fast_rcnn", "resnet18", "known: mobilenet_v3_large_fpn"),
+        ("yolo", "vgg16_fpn", "known: mobilenet_v3_large, mobilenet_v3_small, resnet101"),
+    ],
+)
+def test_a_backbone_the_family_cannot_build_is_refused_before_any_work(family, backbone, known):
+    # It was found at the first training step, after the renders.
+    with pytest.raises(ConfigError) as caught:
+        parse_config({"name": "x", "detector": {"family": family, "backbone": backbone}})
+    assert f"detector: backbone {backbone!r} is not supported by the {family} detector" in str(caught.value)
+    assert known in str(caught.value)
+
+
+@pytest.mark.parametrize(
+    ("family", "backbone"),
+    [("faster_rcnn", "resnet50_fpn_v2"), ("fast_rcnn", "mobilenet_v3_large_320_fpn"), ("yolo", "resnet18"), ("yolo", "mobilenet_v3_large_fpn")],
+)
+def test_every_backbone_a_family_builds_is_accepted(family, backbone):
+    assert parse_config({"name": "x", "detector": {"family": family, "backbone": backbone}}).detector.backbone == backbone

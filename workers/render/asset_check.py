@@ -1,16 +1,28 @@
 """User asset folders checked once, before any work: by `foldwise run` and `POST /experiments`.
 
-Reads image headers with Pillow and never decodes pixels, so it is cheap for thousands of
-files and safe on hostile ones: a PNG whose header claims 100,000 × 100,000 pixels is refused
-by its size instead of taking gigabytes to decode. Imports neither numba, OpenCV nor torch (the
-API calls it).
+Reads each image's header with Pillow first, so it is safe on hostile files: a PNG whose
+header claims 100,000 × 100,000 pixels is refused by its size instead of taking gigabytes to
+decode. Only then is the file decoded, once: a whole header over corrupt or truncated data
+(which Pillow's structural check passes for JPEG, BMP and TIFF) failed every θ that drew it.
+Imports neither numba, OpenCV nor torch (the API calls it).
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
+# What each accepted file name says its content is, as Pillow names the formats (MPO: the
+# multi-picture JPEG some cameras write, a JPEG to every decoder).
+SUFFIX_FORMATS = {
+    ".png": {"PNG"},
+    ".jpg": {"JPEG", "MPO"},
+    ".jpeg": {"JPEG", "MPO"},
+    ".bmp": {"BMP"},
+    ".tif": {"TIFF"},
+    ".tiff": {"TIFF"},
+    ".webp": {"WEBP"},
+}
+IMAGE_SUFFIXES = tuple(SUFFIX_FORMATS)
 # Below these sides an asset cannot be drawn (a 1x1 background or occluder made every θ that
 # drew it fail, silently); above MAX_PIXELS it is refused rather than decoded.
 MIN_SIDE = {"objects": 16, "backgrounds": 16, "occluders": 8}
@@ -33,24 +45,37 @@ def image_files(folder: Path, what: str) -> list[Path]:
     return files
 
 
-def check_image_header(path: Path, what: str) -> tuple[int, int]:
-    """(width, height) from the file's header; AssetError if it is not an image or its size is out of bounds."""
-    from PIL import Image, UnidentifiedImageError
+def check_image_file(path: Path, what: str) -> tuple[int, int]:
+    """(width, height) of an image file; AssetError if it is not an image of the format its name
+    says, its size is out of bounds, or its pixels do not decode."""
+    from PIL import Image
 
     try:
         with Image.open(path) as image:
             width, height = image.size
+            content = image.format
             image.verify()  # structure and checksums (PNG CRCs), without decoding the pixels
-    except (UnidentifiedImageError, OSError, SyntaxError, ValueError) as error:
-        raise AssetError(f"assets.{what}: {str(path)!r} is not a readable image ({type(error).__name__}: {error})") from None
     except Image.DecompressionBombError:
         width = height = None
+        content = None
+    except Exception as error:  # UnidentifiedImageError, OSError, SyntaxError; a hostile file may raise anything
+        raise AssetError(f"assets.{what}: {str(path)!r} is not a readable image ({type(error).__name__}: {error})") from None
+    expected = SUFFIX_FORMATS[path.suffix.lower()]
+    if content is not None and content not in expected:
+        # The renderer decodes with OpenCV, which reads no GIF and trusts no name: a file that is
+        # not what its name says is a mistake to fix here, not a θ that fails later.
+        raise AssetError(f"assets.{what}: {str(path)!r} holds a {content} image, not {'/'.join(sorted(expected))} as its name says")
     if width is None or width * height > MAX_PIXELS:
         raise AssetError(f"assets.{what}: {str(path)!r} is larger than {MAX_PIXELS:,} pixels")
     if min(width, height) < MIN_SIDE[what]:
         raise AssetError(
             f"assets.{what}: {str(path)!r} is {width}x{height} pixels; {what} need at least {MIN_SIDE[what]} on each side"
         )
+    try:
+        with Image.open(path) as image:  # verify() leaves the image unusable: open it again
+            image.load()
+    except Exception as error:  # a hostile file may raise anything from a decoder
+        raise AssetError(f"assets.{what}: {str(path)!r} does not decode ({type(error).__name__}: {error})") from None
     return width, height
 
 
@@ -75,8 +100,24 @@ def check_asset_roots(config, roots: list[Path]) -> None:
             raise AssetError(f"assets.{what}: {str(folder)!r} is outside the asset roots of this server ({allowed})")
 
 
+def check_class_names(files: list[Path]) -> None:
+    """AssetError naming both files when two object images would name the same class (the
+    class of an object image is its file name without the extension: workers/render/assets.py)."""
+    first_with: dict[str, Path] = {}
+    for path in files:
+        if path.stem in first_with:
+            raise AssetError(
+                f"assets.objects: {str(first_with[path.stem])!r} and {str(path)!r} both name the class "
+                f"{path.stem!r}: rename one"
+            )
+        first_with[path.stem] = path
+
+
 def validate_assets(config) -> None:
     """Check every user folder of an ``AssetsConfig`` (None, or a default folder: nothing to check)."""
     for what, folder in _user_folders(config):
-        for path in image_files(folder, what):
-            check_image_header(path, what)
+        files = image_files(folder, what)
+        if what == "objects":
+            check_class_names(files)
+        for path in files:
+            check_image_file(path, what)

@@ -9,7 +9,7 @@ from fastapi.responses import FileResponse, JSONResponse
 from db.models import Split
 from foldwise import store
 from services import artifacts
-from services.api.deps import MAX_ID, ExperimentId, ModelId, SessionDep
+from services.api.deps import MAX_ID, MAX_INT_COLUMN, ExperimentId, ModelId, SessionDep
 from services.api.schemas import NOT_FOUND
 
 router = APIRouter(tags=["artifacts"])
@@ -22,8 +22,8 @@ def experiment_images(
     experiment_id: ExperimentId,
     session: SessionDep,
     split: Split = Split.train,
-    stage: Annotated[int | None, Query(ge=0, description="stage order (train split)")] = None,
-    k: Annotated[int | None, Query(ge=1, description="increment (train split)")] = None,
+    stage: Annotated[int | None, Query(ge=0, le=MAX_INT_COLUMN, description="stage order (train split)")] = None,
+    k: Annotated[int | None, Query(ge=1, le=MAX_INT_COLUMN, description="increment (train split)")] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
 ) -> dict[str, Any]:
     """Rendered images and their boxes: by default the newest increment's training images."""

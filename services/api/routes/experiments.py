@@ -11,6 +11,7 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response,
 
 from db.models import ExperimentStatus
 from foldwise.config import ConfigError, ExperimentConfig, parse_config, parse_config_text
+from foldwise.documents import TOO_DEEP
 from services import queries
 from services.api.deps import ExperimentId, SessionDep, TokenRequired
 from services.api.schemas import (
@@ -32,6 +33,10 @@ ACCEPTED_TYPES = "application/json, application/yaml or text/yaml"
 
 LIVE_STATUSES = (ExperimentStatus.pending, ExperimentStatus.running)
 
+# A study name is printed in tables and stored in a text column (PostgreSQL refuses NUL):
+# one line of printable text.
+STUDY_NAME = dict(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f]+$")
+
 router = APIRouter(prefix="/experiments", tags=["experiments"])
 
 
@@ -48,6 +53,17 @@ def _media_type(request: Request) -> str | None:
 def _reject_constant(name: str) -> None:
     # Python's json accepts NaN and Infinity; JSON does not, and PostgreSQL's JSON columns refuse them.
     raise ValueError(f"{name} is not a JSON number")
+
+
+def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+    # Python's json keeps the last of a key given twice; a config that says two things is refused,
+    # as its YAML reading refuses it (foldwise.config).
+    mapping: dict[str, Any] = {}
+    for key, value in pairs:
+        if key in mapping:
+            raise ConfigError(f"invalid experiment config: duplicate key {key!r}")
+        mapping[key] = value
+    return mapping
 
 
 async def read_config(request: Request) -> ExperimentConfig:
@@ -74,7 +90,11 @@ async def read_config(request: Request) -> ExperimentConfig:
     try:
         if is_json:
             try:
-                data = json.loads(document, parse_constant=_reject_constant)
+                data = json.loads(document, parse_constant=_reject_constant, object_pairs_hook=_unique_keys)
+            except RecursionError:  # the decoder recurses once per level; parse_config bounds the rest
+                raise ConfigError(f"invalid experiment config: {TOO_DEEP}") from None
+            except ConfigError:
+                raise
             except (json.JSONDecodeError, ValueError) as error:
                 raise ConfigError(f"invalid experiment config: not JSON: {error}") from None
             config = parse_config(data)
@@ -109,7 +129,7 @@ CONFIG_BODY_DOC = {
 def list_experiments(
     session: SessionDep,
     status_filter: Annotated[ExperimentStatus | None, Query(alias="status")] = None,
-    study: Annotated[str | None, Query(max_length=200, description="keep one study's experiments")] = None,
+    study: Annotated[str | None, Query(**STUDY_NAME, description="keep one study's experiments")] = None,
 ) -> list[ExperimentListItem]:
     """Every experiment, oldest first; ``?status=running`` keeps one status, ``?study=`` one study."""
     experiments = queries.list_experiments(session)
@@ -140,7 +160,7 @@ def create_experiment(
     config: ConfigBody,
     study: Annotated[
         str | None,
-        Query(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f]+$", description="group it with other experiments"),
+        Query(**STUDY_NAME, description="group it with other experiments"),
     ] = None,
 ) -> dict[str, Any]:
     """Record a new experiment (status pending); the scheduler starts it on its next pass.

@@ -101,6 +101,47 @@ def test_a_bad_config_is_422_naming_the_key_and_records_nothing(client, database
     assert _experiments(database_url) == 0
 
 
+DEEP = 10_000
+
+
+@pytest.mark.parametrize(
+    ("content_type", "body", "named"),
+    [
+        ("application/json", '{"name": "x", "active_learning": {"m": "50"}}', "active_learning.m: expected a number, got the text '50'"),
+        ("application/json", '{"name": "x", "active_learning": {"m": 50.0}}', "active_learning.m: expected a whole number, got 50.0"),
+        ("application/json", '{"name": "x", "name": "y"}', "duplicate key 'name'"),
+        ("application/json", '{"name": "x", "a": ' + "[" * DEEP + "]" * DEEP + "}", "nested deeper than 32 levels"),
+        ("application/json", '{"name": "x", "a": ' + '{"b": ' * DEEP + "1" + "}" * DEEP + "}", "nested deeper than 32 levels"),
+        ("application/json", '{"name": "x", "a": ' + "[" * 500 + "]" * 500 + "}", "nested deeper than 32 levels"),
+        ("application/yaml", "name: x\na: " + "[" * DEEP + "]" * DEEP, "nested deeper than 32 levels (line 2"),
+        ("application/yaml", "name: x\na: " + "{b: " * DEEP + "1" + "}" * DEEP, "nested deeper than 32 levels (line 2"),
+        ("application/yaml", "name: x\nactive_learning:\n  m: 5\n  m: 6\n", "duplicate key 'm' (line 4, column 3)"),
+        ("application/yaml", "name: x\nactive_learning: {m: '50'}\n", "active_learning.m: expected a number"),
+        ("application/yaml", "name: x\ncurriculum: &c {conditions: [*c]}\n", "refers to the mapping or list that contains it"),
+        # Half a UTF-16 pair: no file system takes it (the asset-root check raised: 500).
+        ("application/json", '{"name": "x", "assets": {"objects": "/srv/\\ud800"}}', "assets.objects: text is not valid Unicode (lone surrogate '\\ud800')"),
+        ("application/json", '{"name": "\\udfff"}', "name: "),
+        # pydantic took !!binary bytes as text: a NUL name, 201 on SQLite and a 500 on PostgreSQL.
+        ("application/yaml", "name: !!binary AA==\n", "!!binary data has no place in a config (line 1, column 7)"),
+        ("application/yaml", "name: x\nseed: " + "1" * 5000 + "\n", "a whole number of 5,000 characters (line 2, column 7)"),
+    ],
+    ids=lambda value: value[:40] if isinstance(value, str) else value,
+)
+def test_a_bad_document_is_422_on_one_line_and_records_nothing(client, database_url, content_type, body, named):
+    response = client.post("/experiments", content=body.encode(), headers={**AUTH, "Content-Type": content_type})
+    assert response.status_code == 422, response.text[:300]
+    assert named in response.json()["detail"]
+    assert _experiments(database_url) == 0
+
+
+def test_yaml_floats_without_a_dot_are_floats(client):
+    body = "name: small steps\ndetector: {learning_rate: 1e-3, weight_decay: 5e-4}\n"
+    created = client.post("/experiments", content=body, headers={**AUTH, "Content-Type": "application/yaml"})
+    assert created.status_code == 201, created.text
+    detector = client.get(f"/experiments/{created.json()['id']}/config").json()["detector"]
+    assert (detector["learning_rate"], detector["weight_decay"]) == (0.001, 0.0005)
+
+
 def test_bad_posts_leave_the_database_usable(client, database_url):
     # On PostgreSQL a NUL reaching the INSERT aborted the transaction with a 500.
     for name in ("a\x00", "line\nbreak", "tab\there"):
@@ -142,3 +183,179 @@ def test_without_asset_roots_the_api_takes_no_asset_folder(database_url, monkeyp
     assert response.status_code == 422
     assert response.json()["detail"] == "assets.backgrounds: this server takes asset folders only under FOLDWISE_ASSET_ROOTS, which is not set"
     assert client.post("/experiments", json={"name": "defaults need no folder"}, headers=AUTH).status_code == 201
+
+
+# --------------------------------------------------------------------------- the sweep
+# Every route's numbers and names, each sent every kind of bad value. Before this sweep,
+# ?stage= and ?k= past 2**31 - 1 were a 500 on PostgreSQL, and past 2**63 - 1 on SQLite too.
+
+OUT_OF_RANGE = ["2147483648", "9223372036854775808", "99999999999999999999999", "-1", "0"]
+NOT_INTEGERS = ["abc", "1.5", "1e3", "0x10", "%00", "1%00", "%0A", "nan"]
+BAD_TEXT = ["%00", "a%00b", "%07", "%0A", "%7F", "", "x" * 201]
+
+# Path ids: a whole number outside the ids' range names no row (404); anything else is 422.
+ID_ROUTES = [
+    ("get", "/experiments/{value}"),
+    ("get", "/experiments/{value}/config"),
+    ("get", "/experiments/{value}/stages"),
+    ("get", "/experiments/{value}/history"),
+    ("post", "/experiments/{value}/cancel"),
+    ("get", "/experiments/{value}/images"),
+    ("get", "/experiments/{value}/coco"),
+    ("get", "/experiments/{value}/report.png"),
+    ("get", "/experiments/{value}/figures/fig4.png"),
+    ("get", "/experiments/{experiment}/images/{value}.png"),
+    ("get", "/models/{value}"),
+    ("get", "/models/{value}/checkpoint"),
+    ("post", "/models/{value}/detect"),
+]
+
+# Query and path parameters other than ids: every bad value is a 422 naming the parameter.
+# (method, route, the parameter as FastAPI names it in the error, bad values)
+PARAMETERS = [
+    ("get", "/experiments/{experiment}/images?stage={value}", "stage", ["-1", *OUT_OF_RANGE[:3], *NOT_INTEGERS]),
+    ("get", "/experiments/{experiment}/images?k={value}", "k", OUT_OF_RANGE + NOT_INTEGERS),
+    ("get", "/experiments/{experiment}/images?stage=0&k={value}", "k", OUT_OF_RANGE + NOT_INTEGERS),
+    ("get", "/experiments/{experiment}/images?stage={value}&k=1", "stage", ["-1", *OUT_OF_RANGE[:3], *NOT_INTEGERS]),
+    ("get", "/experiments/{experiment}/images?limit={value}", "limit", ["1001", *OUT_OF_RANGE, *NOT_INTEGERS]),
+    ("get", "/experiments/{experiment}/images?split={value}", "split", ["validation", "%00", "", "1"]),
+    ("get", "/experiments/{experiment}/coco?split={value}", "split", ["validation", "%00", "", "1"]),
+    ("get", "/experiments/{experiment}/report.{value}", "extension", ["pdf", "png%00", "png%0A"]),
+    ("get", "/experiments/{experiment}/figures/{value}.png", "name", ["fig1", "fig4%00", "fig40"]),
+    ("get", "/experiments/{experiment}/figures/fig4.{value}", "extension", ["gif", "svg%00"]),
+    ("get", "/?experiment={value}", "experiment", OUT_OF_RANGE + NOT_INTEGERS),
+    ("get", "/experiments?status={value}", "status", ["done", "%00", "", "1"]),
+    ("get", "/experiments?study={value}", "study", BAD_TEXT),
+    ("post", "/experiments?study={value}", "study", BAD_TEXT),
+    ("post", "/models/1/detect?threshold={value}", "threshold", ["1.5", "-0.1", "nan", "inf", "abc", "%00", "1e9"]),
+]
+PNG_HEADER = b"\x89PNG\r\n\x1a\n" + b"\x00" * 16
+
+
+@pytest.fixture
+def sweep_client(database_url):
+    """A client that answers a server error with its 500 (and body) instead of raising."""
+    return TestClient(create_app(broker_timeout_s=0.3, ping_timeout_s=0.2), raise_server_exceptions=False)
+
+
+def _send(client, method: str, path: str):
+    if "/detect" in path:
+        return client.post(path, content=PNG_HEADER, headers={**AUTH, "Content-Type": "image/png"})
+    if method == "post" and path.startswith("/experiments?"):
+        return client.post(path, json={"name": "in a study"}, headers=AUTH)
+    return getattr(client, method)(path, headers=AUTH)
+
+
+def _wrong(response, status: int, named: str) -> str | None:
+    """Why ``response`` is not a clean ``status`` naming ``named`` (None when it is)."""
+    if response.status_code != status:
+        return f"{response.status_code} (want {status}): {response.text[:200]}"
+    detail = response.json()["detail"]
+    text = str(detail)
+    if "Traceback" in text or named not in text:
+        return f"{status} but the detail does not name {named!r}: {text[:200]}"
+    return None
+
+
+def _existing_experiment(client) -> int:
+    created = client.post("/experiments", json={"name": "target"}, headers=AUTH)
+    assert created.status_code == 201, created.text
+    return created.json()["id"]
+
+
+@pytest.mark.parametrize(("method", "route"), ID_ROUTES, ids=[f"{m} {r}" for m, r in ID_ROUTES])
+def test_every_id_route_refuses_every_bad_id(sweep_client, method, route):
+    experiment = _existing_experiment(sweep_client)
+    wrong = {}
+    for value in OUT_OF_RANGE:
+        response = _send(sweep_client, method, route.format(experiment=experiment, value=value))
+        wrong[value] = _wrong(response, 404, "does not exist")
+    for value in NOT_INTEGERS:
+        response = _send(sweep_client, method, route.format(experiment=experiment, value=value))
+        wrong[value] = _wrong(response, 422, "integer")
+    assert {value: why for value, why in wrong.items() if why} == {}
+
+
+@pytest.mark.parametrize(
+    ("method", "route", "parameter", "values"), PARAMETERS, ids=[f"{m} {r}" for m, r, _, _ in PARAMETERS]
+)
+def test_every_parameter_refuses_every_bad_value_naming_it(sweep_client, database_url, method, route, parameter, values):
+    experiment = _existing_experiment(sweep_client)
+    wrong = {}
+    for value in values:
+        response = _send(sweep_client, method, route.format(experiment=experiment, value=value))
+        wrong[value] = _wrong(response, 422, f"'{parameter}'")
+    assert {value: why for value, why in wrong.items() if why} == {}
+    assert _experiments(database_url) == 1  # only the target: a refused POST records nothing
+
+
+def test_stage_and_k_at_the_column_limit_are_an_empty_page(sweep_client):
+    # The largest value the columns hold is a valid filter that matches nothing, on both databases.
+    experiment = _existing_experiment(sweep_client)
+    response = sweep_client.get(f"/experiments/{experiment}/images?stage=2147483647&k=2147483647")
+    assert response.status_code == 200, response.text
+    assert response.json()["images"] == []
+
+
+def test_a_misnamed_or_clashing_object_image_is_422_naming_the_files(client, database_url, tmp_path):
+    from PIL import Image
+
+    objects = tmp_path / "assets" / "objects"
+    objects.mkdir(parents=True)
+    Image.new("RGB", (32, 32), (9, 9, 9)).save(objects / "flag.png", format="GIF")
+    response = client.post("/experiments", json={"name": "x", "assets": {"objects": str(objects)}}, headers=AUTH)
+    assert response.status_code == 422
+    assert response.json()["detail"] == f"assets.objects: '{objects / 'flag.png'}' holds a GIF image, not PNG as its name says"
+    (objects / "flag.png").unlink()
+    _folder_of_pngs(objects)
+    Image.new("RGB", (32, 32), (9, 9, 9)).save(objects / "a.jpg", format="JPEG")
+    response = client.post("/experiments", json={"name": "x", "assets": {"objects": str(objects)}}, headers=AUTH)
+    assert response.status_code == 422
+    assert f"'{objects / 'a.jpg'}' and '{objects / 'a.png'}' both name the class 'a'" in response.json()["detail"]
+    assert _experiments(database_url) == 0
+
+
+# Every number of the config schema, each sent every kind of bad value (as JSON, and the
+# unbounded integers as YAML too, whose loader reads them itself).
+BAD_NUMBERS = [2**31, 2**63, -(2**63) - 1, 10**400, 1e308, -1e308, "7", True, [], {}]
+
+
+def _nested(key: str, value) -> dict:
+    *sections, name = key.split(".")
+    body: dict = {name: value}
+    for section in reversed(sections):
+        body = {section: body}
+    return {"name": "x", **body}
+
+
+def test_every_number_in_the_config_refuses_every_bad_value(client, database_url):
+    from tests.foldwise.test_config import NUMERIC_FIELDS
+
+    wrong = {}
+    for key in NUMERIC_FIELDS:
+        values = [[v, v] if key.endswith(("conditions_per_image", "anchor_size_range")) else v for v in BAD_NUMBERS]
+        for value in values:
+            response = client.post("/experiments", json=_nested(key, value), headers=AUTH)
+            if response.status_code != 422 or key not in response.json()["detail"]:
+                wrong[f"{key}={str(value)[:20]}"] = f"{response.status_code}: {response.text[:150]}"
+    for yaml_body in ("name: x\nseed: " + "1" * 5000, "name: x\nactive_learning: {m: " + "9" * 30 + "}"):
+        response = client.post("/experiments", content=yaml_body, headers={**AUTH, "Content-Type": "application/yaml"})
+        if response.status_code != 422:
+            wrong[yaml_body[:40]] = f"{response.status_code}: {response.text[:150]}"
+    assert wrong == {}
+    assert _experiments(database_url) == 0
+
+
+READS_OF_AN_EXPERIMENT = [
+    "/experiments/{id}", "/experiments/{id}/config", "/experiments/{id}/stages", "/experiments/{id}/history",
+    "/experiments/{id}/images", "/experiments/{id}/images?split=test", "/experiments/{id}/coco?split=train",
+    "/experiments/{id}/coco", "/experiments/{id}/report.png", "/experiments/{id}/report.csv", "/?experiment={id}",
+    *[f"/experiments/{{id}}/figures/fig{n}.{extension}" for n in range(4, 9) for extension in ("png", "svg", "csv")],
+]  # fmt: skip
+
+
+def test_every_read_of_an_experiment_that_has_not_started_answers(sweep_client):
+    # Fig. 4 of an experiment without stages was a matplotlib ValueError: a 500.
+    experiment = _existing_experiment(sweep_client)
+    answers = {route: sweep_client.get(route.format(id=experiment)).status_code for route in READS_OF_AN_EXPERIMENT}
+    assert {route: code for route, code in answers.items() if code != 200} == {}

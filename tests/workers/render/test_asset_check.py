@@ -37,6 +37,20 @@ def _png_claiming(path: Path, width: int, height: int) -> Path:
     return path
 
 
+def _saved_as(path: Path, image_format: str, width: int = 32, height: int = 32) -> Path:
+    """An image of ``image_format`` (Pillow's name) under whatever name ``path`` has."""
+    from PIL import Image
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    Image.effect_noise((width, height), 60).convert("RGB").save(path, format=image_format)
+    return path
+
+
+def _truncated(path: Path) -> Path:
+    path.write_bytes(path.read_bytes()[: path.stat().st_size * 6 // 10])
+    return path
+
+
 @pytest.fixture
 def folders(tmp_path):
     objects = tmp_path / "objects"
@@ -65,6 +79,19 @@ def test_good_folders_and_the_defaults_pass(folders):
         ("backgrounds", lambda d: (_png(d / "dot.png", 1, 1), d)[-1], "dot.png' is 1x1 pixels; backgrounds need at least 16"),
         ("occluders", lambda d: (_png(d / "speck.png", 7, 30), d)[-1], "speck.png' is 7x30 pixels; occluders need at least 8"),
         ("objects", lambda d: (d.mkdir(), _png_claiming(d / "bomb.png", 100_000, 100_000), d)[-1], f"bomb.png' is larger than {MAX_PIXELS:,} pixels"),
+        # OpenCV, which renders, reads no GIF: a GIF named .png failed every θ that drew it.
+        ("objects", lambda d: (_saved_as(d / "flag.png", "GIF"), d)[-1], "flag.png' holds a GIF image, not PNG as its name says"),
+        ("backgrounds", lambda d: (_png(d / "a.png", 32, 32), _saved_as(d / "photo.png", "JPEG"), d)[-1], "photo.png' holds a JPEG image, not PNG"),
+        ("occluders", lambda d: (_saved_as(d / "leaf.jpg", "PNG"), d)[-1], "leaf.jpg' holds a PNG image, not JPEG/MPO"),
+        ("backgrounds", lambda d: (_saved_as(d / "scan.tif", "BMP"), d)[-1], "scan.tif' holds a BMP image, not TIFF"),
+        # Pillow's structural check passes these (whole headers): their pixels do not decode.
+        ("backgrounds", lambda d: (_truncated(_saved_as(d / "cut.jpg", "JPEG", 64, 64)), d)[-1], "cut.jpg' does not decode (OSError: image file is truncated"),
+        ("objects", lambda d: (_truncated(_saved_as(d / "cut.bmp", "BMP", 64, 64)), d)[-1], "cut.bmp' does not decode"),
+        ("occluders", lambda d: (_truncated(_saved_as(d / "cut.tif", "TIFF", 64, 64)), d)[-1], "cut.tif' does not decode"),
+        ("objects", lambda d: (_png(d / "poster.png", 32, 32), _saved_as(d / "poster.jpg", "JPEG"), d)[-1],
+         "'{d}/poster.jpg' and '{d}/poster.png' both name the class 'poster'"),
+        ("objects", lambda d: (_png(d / "a" / "mug.png", 32, 32), _png(d / "b" / "mug.png", 32, 32), d)[-1],
+         "'{d}/a/mug.png' and '{d}/b/mug.png' both name the class 'mug'"),
     ],
 )
 def test_each_bad_folder_or_file_is_named(tmp_path, folders, what, spoil, message):
@@ -106,3 +133,10 @@ def test_foldwise_run_with_a_bad_asset_folder_is_one_line_and_records_nothing(tm
     assert done.returncode == 2, output
     assert output == f"error: assets.backgrounds: folder '{tmp_path / 'nowhere'}' does not exist"
     assert not (tmp_path / "data").exists()  # no database, no images: nothing started
+
+
+def test_every_accepted_format_under_its_own_name_passes(tmp_path):
+    folder = tmp_path / "backgrounds"
+    for name, image_format in [("a.png", "PNG"), ("b.jpg", "JPEG"), ("c.JPEG", "JPEG"), ("d.bmp", "BMP"), ("e.tiff", "TIFF"), ("f.webp", "WEBP")]:
+        _saved_as(folder / name, image_format)
+    validate_assets(AssetsConfig(backgrounds=folder))

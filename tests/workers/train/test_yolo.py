@@ -429,8 +429,9 @@ def test_unsupported_grid_stride_is_named():
 
 
 def test_unknown_backbone_is_named():
+    unvalidated = _config(64).model_copy(update={"backbone": "vgg16"})  # the config itself refuses it
     with pytest.raises(ValueError, match="'vgg16'.*known: mobilenet_v3_large"):
-        build_yolo(_config(64, backbone="vgg16"), 2, None)
+        build_yolo(unvalidated, 2, None)
 
 
 def test_imagenet_weights_missing_from_the_cache_fail_without_downloading(tmp_path, monkeypatch):

@@ -18,6 +18,8 @@ from urllib.parse import urlparse
 
 import numpy as np
 
+from foldwise.weights import RCNN_BACKBONES
+
 if TYPE_CHECKING:
     from torch import nn
 
@@ -25,14 +27,8 @@ if TYPE_CHECKING:
 
 FAMILIES = ("faster_rcnn", "fast_rcnn", "yolo")
 
-# Backbone names accepted by the two R-CNN families, mapped to the torchvision classifier
-# they start from. The "_320" variant differs in torchvision only by its input size, which
-# here comes from ``config.input_size``, so it shares the mobilenet backbone.
-RCNN_BACKBONES = {
-    "mobilenet_v3_large_fpn": "mobilenet_v3_large",
-    "mobilenet_v3_large_320_fpn": "mobilenet_v3_large",
-    "resnet50_fpn_v2": "resnet50",
-}
+# The backbone names each family accepts are in foldwise/weights.py: the config checks them
+# before any work, without torch; the builders check again (a config built without validation).
 
 
 class PretrainedWeightsMissing(FileNotFoundError):

@@ -44,7 +44,6 @@ torchvision parts so it trains from random initialisation on a CPU:
 from __future__ import annotations
 
 import math
-import re
 from pathlib import Path
 from typing import Any
 from urllib.parse import urlparse
@@ -56,7 +55,7 @@ import torchvision
 from torch import Tensor, nn
 from torchvision.ops import batched_nms, box_iou
 
-from foldwise.weights import IMAGENET_WEIGHTS
+from foldwise.weights import IMAGENET_WEIGHTS, YOLO_BACKBONE_NAME
 
 __all__ = [
     "DEFAULT_NUM_ANCHORS",
@@ -96,7 +95,7 @@ _BATCHNORM_MOMENTUM = 0.1
 _BACKBONES: dict[str, tuple[str, str]] = {name: (name, enum_entry) for name, (enum_entry, _file) in IMAGENET_WEIGHTS.items()}
 # Detection-style names ("mobilenet_v3_large_fpn", "mobilenet_v3_large_320_fpn",
 # "resnet50_fpn_v2") name the same feature extractor; the passthrough join plays the FPN's role.
-_BACKBONE_NAME = re.compile(r"^(?P<base>[a-z0-9_]+?)(?:_320)?(?:_fpn)?(?:_v[12])?$")
+_BACKBONE_NAME = YOLO_BACKBONE_NAME
 
 
 # --------------------------------------------------------------------------------------------
