@@ -547,8 +547,28 @@ def _send(send: Send) -> None:
         )
 
 
-def reconcile_once(experiment_id: int) -> list[Decision]:
-    """Plan and apply one step for one experiment; returns the decisions taken."""
+def _not_sent_yet(decisions: list[Decision], sent: set[tuple[str, int]]) -> list[Decision]:
+    """The decisions without the messages this pass already sent (one message per task per pass)."""
+    kept: list[Decision] = []
+    for decision in decisions:
+        match decision:
+            case EnqueueRender(ids, requeue):
+                fresh = tuple(i for i in ids if ("render", i) not in sent)
+                if fresh:
+                    kept.append(EnqueueRender(fresh, requeue))
+            case EnqueueTraining(model_id, _) if ("train", model_id) in sent:
+                pass
+            case _:
+                kept.append(decision)
+    return kept
+
+
+def reconcile_once(experiment_id: int, sent: set[tuple[str, int]] | None = None) -> list[Decision]:
+    """Plan and apply one step for one experiment; returns the decisions taken.
+
+    ``sent`` holds the ("render" | "train", id) of the messages sent earlier in this pass: they
+    are not sent again, and are added to it. A step left with nothing else to do decides nothing.
+    """
     with session_scope() as session:
         query = select(Experiment).where(Experiment.id == experiment_id)
         if session.get_bind().dialect.name == "postgresql":
@@ -558,10 +578,14 @@ def reconcile_once(experiment_id: int) -> list[Decision]:
             return []
         snapshot = load_snapshot(session, experiment)
         decisions = plan(snapshot)
+        if sent is not None:
+            decisions = _not_sent_yet(decisions, sent)
         if not decisions:
             return []
         sends = apply(session, experiment, decisions, snapshot.config)
     for send in sends:
         _send(send)
         _mark_sent(send)
+        if sent is not None:
+            sent.update((send.kind, i) for i in send.ids)
     return decisions
