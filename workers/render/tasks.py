@@ -141,7 +141,7 @@ def claim_batch(parameter_set_ids: list[int], task_id: str) -> tuple[list[int], 
         rows = {
             row.id: row
             for row in session.scalars(
-                select(ParameterSet).where(ParameterSet.id.in_(parameter_set_ids)).with_for_update()
+                select(ParameterSet).where(ParameterSet.id.in_(parameter_set_ids)).order_by(ParameterSet.id).with_for_update()
             )
         }
         for parameter_set_id in parameter_set_ids:

@@ -217,3 +217,28 @@ def test_a_render_batch_skips_theta_another_live_delivery_holds_and_takes_over_l
         assert session.get(ParameterSet, b).task_id == "live"
     # The same delivery redelivered (its worker lost after the claim) takes its own θ back.
     assert claim_batch([a], "mine") == ([a], [])
+
+
+def test_a_late_duplicate_of_a_rendered_batch_or_a_trained_model_does_nothing(monkeypatch, database):
+    from foldwise import store
+    from workers.render.tasks import render_batch
+    from workers.train.tasks import _claim
+
+    monkeypatch.setattr(reconcile, "_send", lambda send: None)
+    experiment_id = start_experiment(config())
+    _in_flight(experiment_id)
+    with session_scope() as session:
+        theta = session.scalar(select(ParameterSet).where(ParameterSet.status == RenderStatus.rendered))
+        theta.image_path = store.image_path(experiment_id, theta.id)
+        store.atomic_write_bytes(store.resolve(theta.image_path), b"the first render")
+        theta_id, before = theta.id, (theta.attempts, theta.task_id, theta.claimed_at)
+        model = session.scalar(select(Model).where(Model.experiment_id == experiment_id))
+        model.status, model_id = ModelStatus.evaluated, model.id
+    assert render_batch.apply(args=[[theta_id]]).get() == {"skipped": 1}
+    with session_scope() as session:
+        row = session.get(ParameterSet, theta_id)
+        assert (row.attempts, row.task_id, row.claimed_at) == before and row.status == RenderStatus.rendered
+    assert store.resolve(store.image_path(experiment_id, theta_id)).read_bytes() == b"the first render"
+    assert _claim(model_id, "late-duplicate") is False
+    with session_scope() as session:
+        assert session.get(Model, model_id).attempts == 0
