@@ -1,9 +1,9 @@
 """Which task messages someone holds, in the broker's own view: waiting in a Redis queue, or
 reserved/running in a live worker (Celery's ``inspect active`` and ``inspect reserved``).
 
-The scheduler asks only about messages that were sent and have shown no sign of life for a
-while (unclaimed past the grace, or a claim not renewed for a lease), and sends again exactly
-what nobody holds. Why not Celery's own redelivery alone: with ``task_acks_late`` a message a
+The scheduler asks only about work that was sent and has shown no sign of life for half a
+lease (not claimed since it was sent, or a claim that missed two beats of lease/4), and sends
+again exactly what nobody holds. Why not Celery's own redelivery alone: with ``task_acks_late`` a message a
 dead worker held stays in Redis's ``unacked`` hash until ``visibility_timeout`` (6 h, which must
 exceed the longest task), and a Redis restarted empty has nothing to redeliver at all. Why not
 worker events (``worker-offline``): a SIGKILLed worker never sends one, and missed heartbeats

@@ -119,9 +119,9 @@ class Snapshot:
 
     def quiet(self, model: ModelView) -> bool:
         """A sent model with no sign of life for a while: the broker is asked whether anyone holds it."""
-        if model.status == ModelStatus.training:
-            return self.lapsed(model)
-        return model.status == ModelStatus.queued and _quiet(model.enqueued_at, model.claimed_at, self.now, self.lease)
+        return model.status in (ModelStatus.queued, ModelStatus.training) and _quiet(
+            model.enqueued_at, model.claimed_at, self.now, self.lease
+        )
 
     def needs_broker_view(self) -> bool:
         return bool(self.quiet_theta_ids) or any(self.quiet(m) for m in self.models)
@@ -302,19 +302,16 @@ def _lost_too_much(s: Snapshot) -> str | None:
 
 
 def grace(lease: timedelta) -> timedelta:
-    """How long a sent, unclaimed message may show no sign of life before the broker is asked
-    about it: half a lease, so that a lost message is sent again well within a minute."""
+    """How long sent work may show no sign of life (not claimed since it was sent, or a claim
+    that missed two beats of lease/4) before the broker is asked whether anyone holds it: half
+    a lease, so that lost work is sent again well within a minute with the default lease."""
     return lease / 2
 
 
 def _quiet(enqueued_at: datetime | None, claimed_at: datetime | None, now: datetime, lease: timedelta) -> bool:
-    """No sign of life: unclaimed for the grace after it was sent, or a claim not renewed (and
-    no re-send) for a whole lease."""
-    if enqueued_at is None:
-        return False
-    if claimed_at is None:
-        return enqueued_at < now - grace(lease)
-    return _latest(enqueued_at, claimed_at) < now - lease
+    """No sign of life for the grace: neither sent nor claimed or renewed since."""
+    latest = _latest(enqueued_at, claimed_at)
+    return latest is not None and latest < now - grace(lease)
 
 
 def _latest(*moments: datetime | None) -> datetime | None:
@@ -517,6 +514,7 @@ def apply(
             case EnqueueRender(ids, requeue):
                 if requeue:
                     log.warning("experiment %s: sending θ %s again (nobody holds their message)", experiment.id, list(ids))
+                    _release_claims(session, ParameterSet, ids)
                 batch = config.render.batch_size
                 for start in range(0, len(ids), batch):
                     chunk = ids[start : start + batch]
@@ -542,6 +540,7 @@ def apply(
             case EnqueueTraining(model_id, requeue):
                 if requeue:
                     log.warning("experiment %s: sending model %s again (nobody holds its message)", experiment.id, model_id)
+                    _release_claims(session, Model, (model_id,))
                 sends.append(Send("train", (model_id,), config.tasks.train_time_limit_s))
             case CloseStage(stage_id, reason, best_model_id):
                 stage = stages[stage_id]
@@ -561,6 +560,26 @@ def apply(
                 log.error("experiment %s failed: %s", experiment.id, reason)
                 _discard_open_work(session, experiment.id)
     return sends
+
+
+def _release_claims(session: Session, table, ids: Sequence[int]) -> None:
+    """Work sent again because nobody holds it: its old claim is released (committed before the
+    new message goes out), so the new delivery takes it at once, and a worker that was only slow
+    (not dead) stops renewing it. A model goes back to ``queued``: it waits for a worker again."""
+    if table is Model:
+        session.execute(
+            update(Model)
+            .where(Model.id.in_(ids), Model.status == ModelStatus.training)
+            .values(status=ModelStatus.queued, task_id=None, claimed_at=None)
+            .execution_options(synchronize_session=False)
+        )
+    else:
+        session.execute(
+            update(ParameterSet)
+            .where(ParameterSet.id.in_(ids), ParameterSet.status.in_(_OPEN))
+            .values(task_id=None, claimed_at=None)
+            .execution_options(synchronize_session=False)
+        )
 
 
 def _discard_open_work(session: Session, experiment_id: int) -> None:

@@ -78,19 +78,52 @@ def test_unclaimed_theta_nobody_holds_is_sent_again_once_and_held_ones_are_left(
     assert _resent(messages) == [] and asked == [set(waiting_in_queue)]
 
 
-def test_a_live_claim_is_not_quiet_and_a_lapsed_one_nobody_holds_is_sent_again(monkeypatch, database):
+def test_a_live_claim_is_left_alone_and_a_dead_one_is_sent_again_with_its_claim_released(monkeypatch, database):
+    messages: list[reconcile.Send] = []
+    monkeypatch.setattr(reconcile, "_send", messages.append)
+    holder: set[int] = set()
+    monkeypatch.setattr(reconcile, "_broker_view", lambda snapshot: Held(frozenset(holder), frozenset()))
+    experiment_id = start_experiment(config())
+    _in_flight(experiment_id)
+    claimed = _age_queued(experiment_id, seconds=20, claimed=True)  # renewed 20 s ago: a beat missed, no more
+    messages.clear()
+    reconcile_once(experiment_id)
+    assert _resent(messages) == []
+    # Two beats (of lease/4 = 15 s) missed, but a live worker has the batch active: left alone.
+    holder.update(claimed)
+    _age_queued(experiment_id, seconds=31, claimed=True)
+    reconcile_once(experiment_id)
+    assert _resent(messages) == []
+    # Its worker is gone: sent again, and the dead claim released for the next delivery.
+    holder.clear()
+    reconcile_once(experiment_id)
+    assert _resent(messages) == sorted(claimed)
+    with session_scope() as session:
+        rows = session.scalars(select(ParameterSet).where(ParameterSet.id.in_(claimed))).all()
+        assert {(row.task_id, row.claimed_at, row.sends) for row in rows} == {(None, None, 2)}
+
+
+def test_a_training_model_whose_worker_is_gone_goes_back_to_queued_and_is_sent_again(monkeypatch, database):
+    from workers.train.tasks import _claim
+
     messages: list[reconcile.Send] = []
     monkeypatch.setattr(reconcile, "_send", messages.append)
     monkeypatch.setattr(reconcile, "_broker_view", lambda snapshot: Held(frozenset(), frozenset()))
     experiment_id = start_experiment(config())
     _in_flight(experiment_id)
-    claimed = _age_queued(experiment_id, seconds=40, claimed=True)  # renewed 40 s ago: within the lease
+    with session_scope() as session:
+        model_id = session.scalar(select(Model.id).where(Model.experiment_id == experiment_id))
+    assert _claim(model_id, "dead-worker")
+    with session_scope() as session:
+        session.get(Model, model_id).claimed_at = utcnow() - timedelta(seconds=31)
+        session.get(Model, model_id).enqueued_at = utcnow() - timedelta(seconds=31)
     messages.clear()
     reconcile_once(experiment_id)
-    assert _resent(messages) == []
-    _age_queued(experiment_id, seconds=61, claimed=True)  # the worker stopped beating a lease ago
-    reconcile_once(experiment_id)
-    assert _resent(messages) == sorted(claimed)
+    assert [send.ids for send in messages if send.kind == "train"] == [(model_id,)]
+    with session_scope() as session:
+        model = session.get(Model, model_id)
+        assert (model.status, model.task_id, model.claimed_at, model.sends) == (ModelStatus.queued, None, None, 2)
+    assert _claim(model_id, "next-worker")  # taken at once, 31 s after the last beat
 
 
 def test_without_a_broker_view_only_the_hour_old_are_sent_again(monkeypatch, database):
