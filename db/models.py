@@ -167,6 +167,11 @@ class ParameterSet(Base):
     # How often rendering it started: a θ that kills its worker on every delivery is given up
     # after tasks.max_deliveries instead of being redelivered forever.
     attempts: Mapped[int] = mapped_column(default=0, server_default="0")
+    # The render delivery working on it and when it last renewed its claim (every lease/4): a
+    # claim not renewed for a lease has lost its worker. sends counts the messages sent for it.
+    task_id: Mapped[str | None] = mapped_column(String(100))
+    claimed_at: Mapped[datetime | None]
+    sends: Mapped[int] = mapped_column(default=0, server_default="0")
 
 
 class Model(Base):
@@ -195,6 +200,8 @@ class Model(Base):
     enqueued_at: Mapped[datetime | None]
     claimed_at: Mapped[datetime | None]
     trained_at: Mapped[datetime | None]
+    # How many messages were sent for it (re-sends after a lost worker or broker included).
+    sends: Mapped[int] = mapped_column(default=0, server_default="0")
 
     evaluation: Mapped[Evaluation | None] = relationship(back_populates="model", uselist=False)
 

@@ -40,6 +40,7 @@ from foldwise.conditions import load_condition_table
 from foldwise.config import ExperimentConfig
 from foldwise.seeds import derive_seed
 from foldwise.settings import get_settings
+from services.scheduler.broker_view import Held
 from services.scheduler.stopping import best_index, stopping_rule
 
 log = logging.getLogger(__name__)
@@ -86,10 +87,17 @@ class Snapshot:
     # (split, stage_id, increment) -> status -> count
     theta_counts: dict[tuple[str, int | None, int | None], Counter]
     pending_theta_ids: tuple[int, ...]
+    # Queued θ to send again: those nobody holds (see held_model_ids), or without a broker view
+    # those queued longer than requeue_after.
     stale_theta_ids: tuple[int, ...]
     now: datetime
     requeue_after: timedelta
     lease: timedelta = timedelta(seconds=60)
+    # Queued θ with no sign of life for a while (see _quiet): what the broker is asked about.
+    quiet_theta_ids: tuple[int, ...] = ()
+    # The models whose message someone holds (in a queue, or in a live worker), from the broker's
+    # view; None when there is none (eager mode, RabbitMQ, broker unreachable, nothing asked).
+    held_model_ids: frozenset[int] | None = None
 
     def counts(self, split: Split, stage_id: int | None = None, increment: int | None = None) -> Counter:
         return self.theta_counts.get((split.value, stage_id, increment), Counter())
@@ -108,6 +116,25 @@ class Snapshot:
         """A claimed model whose worker stopped renewing its lease (and that was not re-sent
         within the lease either): its worker is gone."""
         return model.claimed_at is not None and _latest(model.claimed_at, model.enqueued_at) < self.now - self.lease
+
+    def quiet(self, model: ModelView) -> bool:
+        """A sent model with no sign of life for a while: the broker is asked whether anyone holds it."""
+        return model.status in (ModelStatus.queued, ModelStatus.training) and _quiet(
+            model.enqueued_at, model.claimed_at, self.now, self.lease
+        )
+
+    def needs_broker_view(self) -> bool:
+        return bool(self.quiet_theta_ids) or any(self.quiet(m) for m in self.models)
+
+    def lost(self, model: ModelView) -> bool:
+        """A sent model whose message nobody holds: send it again."""
+        if self.held_model_ids is not None:
+            return self.quiet(model) and model.id not in self.held_model_ids
+        # No broker view: a lapsed claim still proves its worker gone; an unclaimed message is
+        # called lost only after requeue_after (RabbitMQ redelivers what it loses itself).
+        if model.status == ModelStatus.training:
+            return self.lapsed(model)
+        return model.status == ModelStatus.queued and self.stale(model.enqueued_at)
 
 
 # ---------------------------------------------------------------------------------------
@@ -241,12 +268,10 @@ def plan(s: Snapshot) -> list[Decision]:
     else:
         if latest.status == ModelStatus.pending:
             decisions.append(EnqueueTraining(latest.id))
-        elif latest.status == ModelStatus.training and s.lapsed(latest):
-            # Its worker stopped renewing the claim: gone. Re-sent once per lease (the later of
-            # claim and re-send counts, or the old claim would re-send it on every pass).
-            decisions.append(EnqueueTraining(latest.id, requeue=True))
-        elif latest.status == ModelStatus.queued and s.stale(latest.enqueued_at):
-            # Sent and never claimed: the message was lost (a broker restarted empty).
+        elif latest.status in (ModelStatus.training, ModelStatus.queued) and s.lost(latest):
+            # Its worker stopped renewing the claim, or its message was lost (a broker restarted
+            # empty), and nobody holds a message for it. The later of claim and re-send counts,
+            # so a re-sent message waiting in the queue is not sent again.
             decisions.append(EnqueueTraining(latest.id, requeue=True))
         ensure_sampled(stage, latest.increment + 1)
 
@@ -276,6 +301,19 @@ def _lost_too_much(s: Snapshot) -> str | None:
     return None
 
 
+def grace(lease: timedelta) -> timedelta:
+    """How long sent work may show no sign of life (not claimed since it was sent, or a claim
+    that missed two beats of lease/4) before the broker is asked whether anyone holds it: half
+    a lease, so that lost work is sent again well within a minute with the default lease."""
+    return lease / 2
+
+
+def _quiet(enqueued_at: datetime | None, claimed_at: datetime | None, now: datetime, lease: timedelta) -> bool:
+    """No sign of life for the grace: neither sent nor claimed or renewed since."""
+    latest = _latest(enqueued_at, claimed_at)
+    return latest is not None and latest < now - grace(lease)
+
+
 def _latest(*moments: datetime | None) -> datetime | None:
     known = [moment for moment in moments if moment is not None]
     return max(known) if known else None
@@ -285,7 +323,11 @@ def _latest(*moments: datetime | None) -> datetime | None:
 # Reading the snapshot and applying decisions.
 
 
-def load_snapshot(session: Session, experiment: Experiment, now: datetime | None = None) -> Snapshot:
+def load_snapshot(
+    session: Session, experiment: Experiment, now: datetime | None = None, held: Held | None = None
+) -> Snapshot:
+    """The experiment's state; with ``held`` (the broker's view), the quiet θ and models nobody
+    holds are the ones to send again."""
     settings = get_settings()
     now = now or utcnow()
     requeue_after = timedelta(seconds=settings.requeue_after_s)
@@ -327,17 +369,33 @@ def load_snapshot(session: Session, experiment: Experiment, now: datetime | None
             .order_by(ParameterSet.id)
         )
     )
-    stale = tuple(
-        session.scalars(
-            select(ParameterSet.id)
+    quiet = tuple(
+        theta_id
+        for theta_id, enqueued_at, claimed_at in session.execute(
+            select(ParameterSet.id, ParameterSet.enqueued_at, ParameterSet.claimed_at)
             .where(
                 ParameterSet.experiment_id == experiment.id,
                 ParameterSet.status == RenderStatus.queued,
-                ParameterSet.enqueued_at < now - requeue_after,
+                ParameterSet.enqueued_at < now - grace(lease),
             )
             .order_by(ParameterSet.id)
         )
+        if _quiet(enqueued_at, claimed_at, now, lease)
     )
+    if held is not None:
+        stale = tuple(theta_id for theta_id in quiet if theta_id not in held.render)
+    else:
+        stale = tuple(
+            session.scalars(
+                select(ParameterSet.id)
+                .where(
+                    ParameterSet.experiment_id == experiment.id,
+                    ParameterSet.status == RenderStatus.queued,
+                    ParameterSet.enqueued_at < now - requeue_after,
+                )
+                .order_by(ParameterSet.id)
+            )
+        )
     return Snapshot(
         experiment_id=experiment.id,
         status=experiment.status,
@@ -351,6 +409,8 @@ def load_snapshot(session: Session, experiment: Experiment, now: datetime | None
         now=now,
         requeue_after=requeue_after,
         lease=lease,
+        quiet_theta_ids=quiet,
+        held_model_ids=held.train if held is not None else None,
     )
 
 
@@ -453,7 +513,8 @@ def apply(
                 )
             case EnqueueRender(ids, requeue):
                 if requeue:
-                    log.warning("experiment %s: %d θ queued too long, sending them again", experiment.id, len(ids))
+                    log.warning("experiment %s: sending θ %s again (nobody holds their message)", experiment.id, list(ids))
+                    _release_claims(session, ParameterSet, ids)
                 batch = config.render.batch_size
                 for start in range(0, len(ids), batch):
                     chunk = ids[start : start + batch]
@@ -478,7 +539,8 @@ def apply(
                 sends.append(Send("train", (model.id,), config.tasks.train_time_limit_s))
             case EnqueueTraining(model_id, requeue):
                 if requeue:
-                    log.warning("experiment %s: model %s queued too long, sending it again", experiment.id, model_id)
+                    log.warning("experiment %s: sending model %s again (nobody holds its message)", experiment.id, model_id)
+                    _release_claims(session, Model, (model_id,))
                 sends.append(Send("train", (model_id,), config.tasks.train_time_limit_s))
             case CloseStage(stage_id, reason, best_model_id):
                 stage = stages[stage_id]
@@ -500,6 +562,26 @@ def apply(
     return sends
 
 
+def _release_claims(session: Session, table, ids: Sequence[int]) -> None:
+    """Work sent again because nobody holds it: its old claim is released (committed before the
+    new message goes out), so the new delivery takes it at once, and a worker that was only slow
+    (not dead) stops renewing it. A model goes back to ``queued``: it waits for a worker again."""
+    if table is Model:
+        session.execute(
+            update(Model)
+            .where(Model.id.in_(ids), Model.status == ModelStatus.training)
+            .values(status=ModelStatus.queued, task_id=None, claimed_at=None)
+            .execution_options(synchronize_session=False)
+        )
+    else:
+        session.execute(
+            update(ParameterSet)
+            .where(ParameterSet.id.in_(ids), ParameterSet.status.in_(_OPEN))
+            .values(task_id=None, claimed_at=None)
+            .execution_options(synchronize_session=False)
+        )
+
+
 def _discard_open_work(session: Session, experiment_id: int) -> None:
     from services.queries import discard_open_work
 
@@ -511,7 +593,9 @@ def _discard_open_work(session: Session, experiment_id: int) -> None:
 
 def _mark_sent(send: Send) -> None:
     now = utcnow()
+    table = ParameterSet if send.kind == "render" else Model
     with session_scope() as session:
+        session.execute(update(table).where(table.id.in_(send.ids)).values(sends=table.sends + 1))
         if send.kind == "render":
             session.execute(
                 update(ParameterSet)
@@ -547,8 +631,40 @@ def _send(send: Send) -> None:
         )
 
 
-def reconcile_once(experiment_id: int) -> list[Decision]:
-    """Plan and apply one step for one experiment; returns the decisions taken."""
+def _not_sent_yet(decisions: list[Decision], sent: set[tuple[str, int]]) -> list[Decision]:
+    """The decisions without the messages this pass already sent (one message per task per pass)."""
+    kept: list[Decision] = []
+    for decision in decisions:
+        match decision:
+            case EnqueueRender(ids, requeue):
+                fresh = tuple(i for i in ids if ("render", i) not in sent)
+                if fresh:
+                    kept.append(EnqueueRender(fresh, requeue))
+            case EnqueueTraining(model_id, _) if ("train", model_id) in sent:
+                pass
+            case _:
+                kept.append(decision)
+    return kept
+
+
+def _broker_view(snapshot: Snapshot) -> Held | None:
+    """Which of the quiet θ and models someone holds; None in eager mode (nothing is ever in
+    flight) or where the broker cannot be seen."""
+    from services.scheduler.broker_view import held_messages
+    from workers.app import app
+
+    if app.conf.task_always_eager:
+        return None
+    quiet_models = {m.id for m in snapshot.models if snapshot.quiet(m)}
+    return held_messages(app, set(snapshot.quiet_theta_ids), quiet_models)
+
+
+def reconcile_once(experiment_id: int, sent: set[tuple[str, int]] | None = None) -> list[Decision]:
+    """Plan and apply one step for one experiment; returns the decisions taken.
+
+    ``sent`` holds the ("render" | "train", id) of the messages sent earlier in this pass: they
+    are not sent again, and are added to it. A step left with nothing else to do decides nothing.
+    """
     with session_scope() as session:
         query = select(Experiment).where(Experiment.id == experiment_id)
         if session.get_bind().dialect.name == "postgresql":
@@ -557,11 +673,20 @@ def reconcile_once(experiment_id: int) -> list[Decision]:
         if experiment is None:
             return []
         snapshot = load_snapshot(session, experiment)
+        if snapshot.needs_broker_view():
+            held = _broker_view(snapshot)
+            if held is not None:
+                # Read again after asking: what a worker finished meanwhile is not sent again.
+                snapshot = load_snapshot(session, experiment, held=held)
         decisions = plan(snapshot)
+        if sent is not None:
+            decisions = _not_sent_yet(decisions, sent)
         if not decisions:
             return []
         sends = apply(session, experiment, decisions, snapshot.config)
     for send in sends:
         _send(send)
         _mark_sent(send)
+        if sent is not None:
+            sent.update((send.kind, i) for i in send.ids)
     return decisions

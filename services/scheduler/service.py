@@ -35,11 +35,21 @@ def experiment_status(experiment_id: int) -> ExperimentStatus | None:
         return experiment.status if experiment else None
 
 
-def reconcile_until_idle(experiment_id: int, max_steps: int = 1000, on_decisions: Callable | None = None) -> int:
-    """Reconcile until a pass decides nothing (waiting on workers) or the experiment ends."""
+# Plan/apply steps in one pass over an experiment. A healthy pass needs a handful (start, open a
+# stage, sample, send); the bound keeps a decision that repeats itself from looping, and the
+# next pass (scheduler_poll_s later) goes on where this one stopped.
+MAX_STEPS_PER_PASS = 50
+
+
+def reconcile_until_idle(
+    experiment_id: int, max_steps: int = MAX_STEPS_PER_PASS, on_decisions: Callable | None = None
+) -> int:
+    """One pass: reconcile until a step decides nothing (waiting on workers), the experiment ends
+    or ``max_steps`` steps were taken. Each task gets at most one message per pass."""
     steps = 0
+    sent: set[tuple[str, int]] = set()
     while steps < max_steps:
-        decisions: list[Decision] = reconcile_once(experiment_id)
+        decisions: list[Decision] = reconcile_once(experiment_id, sent)
         if not decisions:
             break
         steps += 1

@@ -22,6 +22,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
@@ -202,6 +203,8 @@ class Stack:
     celery_control: Any  # a bare Celery client on the test broker: broadcast ping and stats
     processes: list[ServiceProcess] = field(default_factory=list)
     experiment_timeout_s: float = EXPERIMENT_TIMEOUT_S
+    # A broker of the test's own (tests/integration/test_faults.py); None: the compose URL on loopback, db 9.
+    broker_url: str | None = None
 
     @property
     def api_url(self) -> str:
@@ -257,7 +260,11 @@ class Stack:
         environment["FOLDWISE_BROKER_URL"] = localize_url(
             compose_environment["FOLDWISE_BROKER_URL"], path=f"/{REDIS_DB}"
         )
+        if self.broker_url is not None:
+            environment["FOLDWISE_BROKER_URL"] = self.broker_url
         environment["FOLDWISE_DATA_DIR"] = str(self.data_dir)
+        # The checkout under test, not the one the venv's editable install points to.
+        environment["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
         # Two cores for the whole suite: no process fans out over threads.
         environment.update(OMP_NUM_THREADS="1", MKL_NUM_THREADS="1", PYTHONUNBUFFERED="1")
         return environment
@@ -372,6 +379,13 @@ def services_reachable() -> None:
 @pytest.fixture(scope="session")
 def database_url(services_reachable) -> Iterator[str]:
     """A PostgreSQL database of this session's own, dropped afterwards."""
+    with scratch_database() as url:
+        yield url
+
+
+@contextmanager
+def scratch_database() -> Iterator[str]:
+    """A PostgreSQL database of its own, dropped afterwards."""
     import psycopg
     from psycopg import sql
 
@@ -428,11 +442,17 @@ def celery_control(broker):
 @pytest.fixture(scope="session")
 def stack(database_url, broker, celery_control, tmp_path_factory) -> Iterator[Stack]:
     """migrate, then api, scheduler, 2 × render-worker, train-worker, detect-worker, all from compose.yaml."""
+    with running_stack(database_url, celery_control, tmp_path_factory.mktemp("stack")) as started:
+        yield started
+
+
+@contextmanager
+def running_stack(database_url: str, celery_control: Any, root: Path, broker_url: str | None = None) -> Iterator[Stack]:
+    """The compose services as processes on ``database_url`` (and ``broker_url``, else db 9 of the shared Redis)."""
     token = secrets.token_urlsafe(16)
     # What a user's .env would say: the token, and a fast scheduler for a test.
     # A short lease, so that a killed train worker's increment is sent again within seconds.
     compose = load_compose({"FOLDWISE_API_TOKEN": token, "FOLDWISE_SCHEDULER_POLL_S": "0.2", "FOLDWISE_LEASE_S": "3"})
-    root = tmp_path_factory.mktemp("stack")
     stack = Stack(
         compose=compose,
         database_url=database_url,
@@ -441,6 +461,7 @@ def stack(database_url, broker, celery_control, tmp_path_factory) -> Iterator[St
         token=token,
         api_port=free_port(),
         celery_control=celery_control,
+        broker_url=broker_url,
     )
     stack.data_dir.mkdir()
     stack.log_dir.mkdir()

@@ -2,22 +2,28 @@
 
 Idempotent: the image of θ #i is always ``experiments/<e>/images/<i>.png`` and rendering is
 deterministic, so a redelivered batch skips what is done and rewrites the rest identically.
-Each θ is committed on its own, so a worker lost mid-batch keeps what it finished.
+Each θ is committed on its own, so a worker lost mid-batch keeps what it finished. A batch
+claims its θ and renews the claim every lease/4 while it renders (``workers.lease``): a whole
+worker killed mid-batch stops renewing, and the scheduler sends the rest again within a lease.
 """
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
+from datetime import timedelta
 
 from celery.exceptions import SoftTimeLimitExceeded
-from sqlalchemy import update
+from sqlalchemy import select, update
 
 from db.models import Experiment, ExperimentStatus, ParameterSet, RenderStatus, utcnow
 from db.session import session_scope
 from foldwise import store
 from foldwise.config import ExperimentConfig
+from foldwise.settings import get_settings
 from workers.app import RENDER_TASK, app
+from workers.lease import Heartbeat
 
 log = logging.getLogger(__name__)
 
@@ -124,8 +130,62 @@ def _back_to_pending(parameter_set_ids: list[int]) -> None:
         )
 
 
-@app.task(name=RENDER_TASK)
-def render_batch(parameter_set_ids: list[int]) -> dict[str, int]:
+def claim_batch(parameter_set_ids: list[int], task_id: str) -> tuple[list[int], list[int]]:
+    """Claim the batch's open θ for this delivery: (the θ this delivery goes on with, the θ another
+    live delivery holds, whose lease it renewed within ``lease_s``; those are skipped here)."""
+    stale_before = utcnow() - timedelta(seconds=get_settings().lease_s)
+    now = utcnow()
+    mine: list[int] = []
+    held: list[int] = []
+    with session_scope() as session:
+        rows = {
+            row.id: row
+            for row in session.scalars(
+                select(ParameterSet).where(ParameterSet.id.in_(parameter_set_ids)).order_by(ParameterSet.id).with_for_update()
+            )
+        }
+        for parameter_set_id in parameter_set_ids:
+            row = rows.get(parameter_set_id)
+            if row is not None and row.status in (RenderStatus.pending, RenderStatus.queued):
+                if row.task_id not in (None, task_id) and row.claimed_at is not None and row.claimed_at > stale_before:
+                    held.append(parameter_set_id)
+                    continue
+                row.task_id, row.claimed_at = task_id, now
+            # Rows already rendered, failed, discarded or gone: render_parameter_set says which.
+            mine.append(parameter_set_id)
+    return mine, held
+
+
+def _renew_claims(parameter_set_ids: list[int], task_id: str) -> None:
+    with session_scope() as session:
+        session.execute(
+            update(ParameterSet)
+            .where(
+                ParameterSet.id.in_(parameter_set_ids),
+                ParameterSet.task_id == task_id,
+                ParameterSet.status.in_((RenderStatus.pending, RenderStatus.queued)),
+            )
+            .values(claimed_at=utcnow())
+        )
+
+
+@app.task(name=RENDER_TASK, bind=True)
+def render_batch(self, parameter_set_ids: list[int]) -> dict[str, int]:
+    task_id = self.request.id or "direct"
+    mine, held = claim_batch(list(parameter_set_ids), task_id)
+    if held:
+        log.info("θ %s are rendered by another live delivery: skipped here", held)
+    if app.conf.task_always_eager:  # one process: no other worker to take over, nothing to renew
+        outcome = _render_claimed(mine)
+    else:
+        with Heartbeat(f"render-{task_id}", functools.partial(_renew_claims, mine, task_id), get_settings().lease_s / 4):
+            outcome = _render_claimed(mine)
+    if held:
+        outcome["held elsewhere"] = len(held)
+    return outcome
+
+
+def _render_claimed(parameter_set_ids: list[int]) -> dict[str, int]:
     outcome: dict[str, int] = {}
     for position, parameter_set_id in enumerate(parameter_set_ids):
         try:

@@ -8,9 +8,9 @@ takes over; the checkpoint path is derived from the model id, so a retry overwri
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
-import threading
 import time
 from datetime import timedelta
 
@@ -34,6 +34,7 @@ from foldwise import store
 from foldwise.config import ExperimentConfig
 from foldwise.seeds import derive_seed
 from foldwise.settings import get_settings
+from workers import lease
 from workers.app import TRAIN_TASK, app
 
 log = logging.getLogger(__name__)
@@ -95,34 +96,20 @@ def _samples(rows):
     return samples
 
 
-class Heartbeat:
-    """Renews this delivery's claim on a model every ``interval_s`` while the increment runs, so
-    the scheduler can tell a long task from a dead worker (a lapsed claim)."""
+def _renew_claim(model_id: int, task_id: str) -> None:
+    with session_scope() as session:
+        session.execute(
+            update(Model)
+            .where(Model.id == model_id, Model.task_id == task_id, Model.status == ModelStatus.training)
+            .values(claimed_at=utcnow())
+        )
+
+
+class Heartbeat(lease.Heartbeat):
+    """Renews this delivery's claim on a model every ``interval_s`` while the increment runs."""
 
     def __init__(self, model_id: int, task_id: str, interval_s: float) -> None:
-        self.model_id, self.task_id, self.interval_s = model_id, task_id, interval_s
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._beat, name=f"heartbeat-model-{model_id}", daemon=True)
-
-    def _beat(self) -> None:
-        while not self._stop.wait(self.interval_s):
-            try:
-                with session_scope() as session:
-                    session.execute(
-                        update(Model)
-                        .where(Model.id == self.model_id, Model.task_id == self.task_id, Model.status == ModelStatus.training)
-                        .values(claimed_at=utcnow())
-                    )
-            except Exception as error:  # a missed beat is not fatal; a lapsed lease re-sends the model
-                log.warning("heartbeat of model %s failed: %s", self.model_id, error)
-
-    def __enter__(self) -> Heartbeat:
-        self._thread.start()
-        return self
-
-    def __exit__(self, *_exc) -> None:
-        self._stop.set()
-        self._thread.join()
+        super().__init__(f"model-{model_id}", functools.partial(_renew_claim, model_id, task_id), interval_s)
 
 
 def run_increment(model_id: int, task_id: str = "direct") -> str:

@@ -1,0 +1,58 @@
+"""A scheduler pass is bounded: one message per task per pass, at most MAX_STEPS_PER_PASS steps.
+
+A lapsed claim once made every step of a pass re-send the same model (4,112 messages in 60 s)."""
+
+from __future__ import annotations
+
+from collections import Counter
+from datetime import timedelta
+
+from sqlalchemy import select
+
+from db.models import Model, ModelStatus, utcnow
+from db.session import session_scope
+from foldwise.settings import get_settings
+from services.embedded import start_experiment
+from services.scheduler import reconcile, service
+from services.scheduler.reconcile import OpenStage
+from services.scheduler.service import MAX_STEPS_PER_PASS, reconcile_until_idle
+from tests.services.scheduler.test_finish_cleanup import _in_flight
+from tests.services.scheduler.test_flow import config
+
+
+def test_a_pass_sends_each_task_at_most_once_even_when_every_step_asks_again(monkeypatch, database):
+    messages: list[reconcile.Send] = []
+    monkeypatch.setattr(reconcile, "_send", messages.append)
+    experiment_id = start_experiment(config())
+    _in_flight(experiment_id)
+    with session_scope() as session:
+        model = session.scalar(select(Model).where(Model.experiment_id == experiment_id))
+        model.status, model.task_id = ModelStatus.training, "dead-worker"
+        model.claimed_at = model.enqueued_at = utcnow() - timedelta(hours=1)
+        model_id = model.id
+    # A lease so short that the re-send of a step has lapsed again by the next step.
+    monkeypatch.setenv("FOLDWISE_LEASE_S", "0.000001")
+    get_settings.cache_clear()
+    try:
+        messages.clear()
+        steps = reconcile_until_idle(experiment_id)
+    finally:
+        monkeypatch.delenv("FOLDWISE_LEASE_S")
+        get_settings.cache_clear()
+    per_task = Counter((send.kind, i) for send in messages for i in send.ids)
+    assert per_task[("train", model_id)] == 1
+    assert max(per_task.values()) == 1, per_task
+    assert steps < MAX_STEPS_PER_PASS  # it stopped because nothing new was left, not at the bound
+
+
+def test_a_pass_stops_after_the_step_bound(monkeypatch):
+    calls: list[int] = []
+
+    def always_more(experiment_id, sent=None):
+        calls.append(experiment_id)
+        return [OpenStage(1, None)]  # a decision that (through some bug) repeats forever
+
+    monkeypatch.setattr(service, "reconcile_once", always_more)
+    monkeypatch.setattr(service, "experiment_status", lambda experiment_id: None)
+    assert reconcile_until_idle(7) == MAX_STEPS_PER_PASS == 50
+    assert len(calls) == 50
