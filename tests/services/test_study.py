@@ -56,7 +56,7 @@ def test_an_unknown_detector_is_one_line_before_any_work(fakes, tmp_path):  # no
 
 @pytest.mark.parametrize("name", ["", "a\x00b", "two\nlines", "x" * 201])
 def test_a_study_name_that_cannot_be_stored_is_one_line_before_any_work(fakes, tmp_path, name):  # noqa: F811
-    # A NUL reached PostgreSQL's INSERT (a DataError traceback); an empty name grouped nothing.
+    # The API refuses these names; the CLI recorded them (a NUL only reaches it from Python: argv has none).
     result = CliRunner().invoke(app, ["study", str(_config_file(tmp_path)), "--name", name])
     assert result.exit_code == 2
     assert result.output == f"error: --name: a study name is one line of 1 to 200 printable characters, got {name!r}\n"
