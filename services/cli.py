@@ -167,6 +167,10 @@ def study(
     from foldwise.settings import get_settings
     from services.figures import write_figures
 
+    from services.queries import STUDY_NAME
+
+    if name is not None and not STUDY_NAME.match(name):
+        _fail(f"--name: a study name is one line of 1 to 200 printable characters, got {name!r}")
     config = _load(config_path, preflight=True)
     known_families = get_args(DetectorConfig.model_fields["family"].annotation)
     known_sets = get_args(ActiveLearningConfig.model_fields["training_set"].annotation)

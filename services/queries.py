@@ -8,6 +8,7 @@ shape.
 from __future__ import annotations
 
 import logging
+import re
 from datetime import datetime, timezone
 from typing import Any
 
@@ -34,6 +35,9 @@ log = logging.getLogger(__name__)
 # Ids are 32-bit INTEGER columns: a number outside 1..MAX_ID names no row, and the databases
 # raise on one instead of finding nothing (PostgreSQL past 2**31 - 1, SQLite past 2**63 - 1).
 MAX_ID = 2**31 - 1
+# A study name is printed in tables and stored in a text column (PostgreSQL refuses NUL): one
+# line of 1 to 200 printable characters.
+STUDY_NAME = re.compile(r"^[^\x00-\x1f\x7f]{1,200}$")
 
 
 class NotFound(LookupError):

@@ -3,6 +3,7 @@ then the figures side by side; the API lists a study's experiments."""
 
 from __future__ import annotations
 
+import pytest
 import yaml
 from fastapi.testclient import TestClient
 from sqlalchemy import select
@@ -49,5 +50,15 @@ def test_an_unknown_detector_is_one_line_before_any_work(fakes, tmp_path):  # no
     result = CliRunner().invoke(app, ["study", str(_config_file(tmp_path)), "--detectors", "faster_rcnn,ssd"])
     assert result.exit_code == 2
     assert result.output.strip() == "error: --detectors: unknown value 'ssd'; known: faster_rcnn, fast_rcnn, yolo"
+    with session_scope() as session:
+        assert session.scalars(select(Experiment)).all() == []
+
+
+@pytest.mark.parametrize("name", ["", "a\x00b", "two\nlines", "x" * 201])
+def test_a_study_name_that_cannot_be_stored_is_one_line_before_any_work(fakes, tmp_path, name):  # noqa: F811
+    # The API refuses these names; the CLI recorded them (a NUL only reaches it from Python: argv has none).
+    result = CliRunner().invoke(app, ["study", str(_config_file(tmp_path)), "--name", name])
+    assert result.exit_code == 2
+    assert result.output == f"error: --name: a study name is one line of 1 to 200 printable characters, got {name!r}\n"
     with session_scope() as session:
         assert session.scalars(select(Experiment)).all() == []

@@ -33,8 +33,7 @@ ACCEPTED_TYPES = "application/json, application/yaml or text/yaml"
 
 LIVE_STATUSES = (ExperimentStatus.pending, ExperimentStatus.running)
 
-# A study name is printed in tables and stored in a text column (PostgreSQL refuses NUL):
-# one line of printable text.
+# queries.STUDY_NAME, with the length apart so that the error says which rule failed.
 STUDY_NAME = dict(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f]+$")
 
 router = APIRouter(prefix="/experiments", tags=["experiments"])
