@@ -3,6 +3,8 @@ the θ or model fails with its reason instead of being redelivered forever."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 from celery.exceptions import SoftTimeLimitExceeded
 from sqlalchemy import select
@@ -54,7 +56,12 @@ def test_a_model_killed_on_every_delivery_fails_after_the_cap(monkeypatch, datab
     _in_flight(experiment_id)
     with session_scope() as session:
         model_id = session.scalar(select(Model.id).where(Model.experiment_id == experiment_id))
-    assert _claim(model_id, "delivery-1") and _claim(model_id, "delivery-2")  # both die mid-increment
+    # Each delivery dies mid-increment; the next comes after the 1 ms lease lapsed (two claims in
+    # the same millisecond would see a live lease and stand back, which is right but not this test).
+    assert _claim(model_id, "delivery-1")
+    time.sleep(0.02)
+    assert _claim(model_id, "delivery-2")
+    time.sleep(0.02)
     assert not _claim(model_id, "delivery-3")
     with session_scope() as session:
         model = session.get(Model, model_id)
