@@ -152,8 +152,17 @@ def kill_whole(stack, process) -> None:
         except ProcessLookupError:
             pass
     process.process.wait(timeout=10)
-    for pid in victims[1:]:
-        assert not Path(f"/proc/{pid}").exists() or "zombie" in Path(f"/proc/{pid}/status").read_text(), pid
+
+    def running(pid: int) -> bool:
+        try:
+            return "zombie" not in Path(f"/proc/{pid}/status").read_text()
+        except OSError:
+            return False
+
+    deadline = time.monotonic() + 5  # SIGKILL is delivered asynchronously
+    while any(running(pid) for pid in victims) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not [pid for pid in victims if running(pid)], f"{process.name}: still running after SIGKILL"
 
 
 def check_done_once(stack, rows, experiment_id: int, lost: set[int], lost_models: set[int] = frozenset()) -> list:
