@@ -3,6 +3,8 @@ the θ or model fails with its reason instead of being redelivered forever."""
 
 from __future__ import annotations
 
+import time
+
 import pytest
 from celery.exceptions import SoftTimeLimitExceeded
 from sqlalchemy import select
@@ -54,7 +56,11 @@ def test_a_model_killed_on_every_delivery_fails_after_the_cap(monkeypatch, datab
     _in_flight(experiment_id)
     with session_scope() as session:
         model_id = session.scalar(select(Model.id).where(Model.experiment_id == experiment_id))
-    assert _claim(model_id, "delivery-1") and _claim(model_id, "delivery-2")  # both die mid-increment
+    # Both die mid-increment (each claim left to lapse: the lease is 1 ms).
+    assert _claim(model_id, "delivery-1")
+    time.sleep(0.01)
+    assert _claim(model_id, "delivery-2")
+    time.sleep(0.01)
     assert not _claim(model_id, "delivery-3")
     with session_scope() as session:
         model = session.get(Model, model_id)
