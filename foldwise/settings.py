@@ -24,7 +24,10 @@ class Settings(BaseSettings):
     scheduler_poll_s: float = 1.0
     # A task redelivered by the broker after this long is assumed lost with its worker.
     visibility_timeout_s: int = 6 * 3600
-    # Queued render/train work not finished after this long is enqueued again (idempotent).
+    # Where the broker cannot be seen (RabbitMQ, which redelivers what a dead worker held by
+    # itself; or Redis unreachable), queued work not started after this long is sent again.
+    # On Redis, sent work that shows no sign of life for lease_s / 2 and that neither a queue nor
+    # a live worker holds is sent again (services/scheduler/broker_view.py).
     requeue_after_s: float = 3600.0
     # A train worker renews its claim on a model (a heartbeat) every lease_s / 4 while it works;
     # a claim not renewed for lease_s has lost its worker, and the model is sent again. A task

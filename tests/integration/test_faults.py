@@ -30,7 +30,7 @@ from sqlalchemy.orm import Session, sessionmaker
 from db.models import Model, ModelStatus, ParameterSet, RenderStatus
 from foldwise import store
 from tests.integration.conftest import free_port, running_stack, scratch_database
-from tests.integration.test_distributed import SMOKE_CONFIG, summary, wait_until_finished
+from tests.integration.test_distributed import SMOKE_CONFIG, wait_until_finished
 
 pytestmark = pytest.mark.integration
 
@@ -131,7 +131,7 @@ def post(stack, api, name: str, **sections) -> int:
     return response.json()["id"]
 
 
-def kill_whole(stack, process) -> None:
+def kill_whole(process) -> None:
     """SIGKILL a worker's main process and every process below it, by PID, as a killed container."""
 
     def descendants(pid: int) -> list[int]:
@@ -152,8 +152,17 @@ def kill_whole(stack, process) -> None:
         except ProcessLookupError:
             pass
     process.process.wait(timeout=10)
-    for pid in victims[1:]:
-        assert not Path(f"/proc/{pid}").exists() or "zombie" in Path(f"/proc/{pid}/status").read_text(), pid
+
+    def running(pid: int) -> bool:
+        try:
+            return "zombie" not in Path(f"/proc/{pid}/status").read_text()
+        except OSError:
+            return False
+
+    deadline = time.monotonic() + 5  # SIGKILL is delivered asynchronously
+    while any(running(pid) for pid in victims) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not [pid for pid in victims if running(pid)], f"{process.name}: still running after SIGKILL"
 
 
 def check_done_once(stack, rows, experiment_id: int, lost: set[int], lost_models: set[int] = frozenset()) -> list:
@@ -191,7 +200,7 @@ def test_a_train_worker_killed_mid_increment_is_replaced_and_nothing_trains_twic
     time.sleep(0.5)  # inside the increment
     worker = stack.running("train-worker")
     killed_at = time.monotonic()
-    kill_whole(stack, worker)
+    kill_whole(worker)
 
     replacement = stack.start("train-worker")  # as `restart: unless-stopped` would
 
@@ -247,7 +256,7 @@ def test_a_render_worker_killed_mid_batch_loses_nothing_and_renders_nothing_twic
     active = stack.worker_replies("active", timeout_s=1.0)
     holder = next(name for name, tasks in active.items() for task in tasks if task["id"] == task_id)
     worker = next(p for p in stack.replicas("render-worker") if p.alive() and stack.worker_name(p) == holder)
-    kill_whole(stack, worker)
+    kill_whole(worker)
     killed_at = time.monotonic()
     with rows() as session:
         lost = set(
