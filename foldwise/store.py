@@ -29,6 +29,13 @@ def checkpoint_path(experiment_id: int, model_id: int) -> str:
     return f"experiments/{experiment_id}/models/{model_id}.pt"
 
 
+def uploaded_assets_root() -> Path:
+    """Where ``POST /assets/{kind}`` keeps uploaded asset folders, one per content hash. The API
+    takes configs naming a folder under it whatever FOLDWISE_ASSET_ROOTS says: every file in it
+    passed the asset check on arrival."""
+    return (data_dir() / "assets" / "uploads").resolve()
+
+
 def report_dir(experiment_id: int) -> str:
     return f"experiments/{experiment_id}/report"
 

@@ -20,10 +20,11 @@ from foldwise.config import ExperimentConfig
 from foldwise.settings import Settings, get_settings
 from services import queries
 from services.api.probes import BrokerProbe, SchemaCheck
-from services.api.routes import artifacts, dashboard, detect, experiments, health, models, queues
+from services.api.routes import artifacts, assets, dashboard, detect, experiments, health, models, queues
 
 ROUTERS = (
-    health.router, experiments.router, models.router, detect.router, artifacts.router, queues.router, dashboard.router,
+    health.router, experiments.router, models.router, detect.router, artifacts.router, assets.router, queues.router,
+    dashboard.router,
 )  # fmt: skip
 
 

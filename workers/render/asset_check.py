@@ -87,17 +87,21 @@ def _user_folders(config):
             yield what, folder
 
 
-def check_asset_roots(config, roots: list[Path]) -> None:
-    """AssetError unless every user folder of ``config`` lies under one of ``roots`` (links resolved)."""
+def check_asset_roots(config, roots: list[Path], uploads: Path | None = None) -> None:
+    """AssetError unless every user folder of ``config`` lies under one of ``roots`` or in
+    ``uploads`` (the store's uploaded folders, checked on arrival), links resolved."""
     for what, folder in _user_folders(config):
+        real = Path(folder).expanduser().resolve()
+        if uploads is not None and uploads in real.parents:
+            continue
+        upload_hint = f"; or upload the images with POST /assets/{what}" if uploads is not None else ""
         if not roots:
             raise AssetError(
-                f"assets.{what}: this server takes asset folders only under FOLDWISE_ASSET_ROOTS, which is not set"
+                f"assets.{what}: this server takes asset folders only under FOLDWISE_ASSET_ROOTS, which is not set{upload_hint}"
             )
-        real = Path(folder).expanduser().resolve()
         if not any(real == root or root in real.parents for root in roots):
             allowed = ", ".join(str(root) for root in roots)
-            raise AssetError(f"assets.{what}: {str(folder)!r} is outside the asset roots of this server ({allowed})")
+            raise AssetError(f"assets.{what}: {str(folder)!r} is outside the asset roots of this server ({allowed}){upload_hint}")
 
 
 def check_class_names(files: list[Path]) -> None:

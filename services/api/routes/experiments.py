@@ -167,7 +167,9 @@ def create_experiment(
     from workers.render.asset_check import AssetError, check_asset_roots, validate_assets  # Pillow only
 
     try:
-        check_asset_roots(config.assets, request.app.state.settings.asset_root_paths)
+        from foldwise import store
+
+        check_asset_roots(config.assets, request.app.state.settings.asset_root_paths, uploads=store.uploaded_assets_root())
         validate_assets(config.assets)  # asset folders on this server, checked once before anything is recorded
     except AssetError as error:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error)) from None

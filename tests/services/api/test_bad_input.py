@@ -181,7 +181,10 @@ def test_without_asset_roots_the_api_takes_no_asset_folder(database_url, monkeyp
     folder = _folder_of_pngs(tmp_path / "assets" / "backgrounds")
     response = client.post("/experiments", json={"name": "x", "assets": {"backgrounds": str(folder)}}, headers=AUTH)
     assert response.status_code == 422
-    assert response.json()["detail"] == "assets.backgrounds: this server takes asset folders only under FOLDWISE_ASSET_ROOTS, which is not set"
+    assert response.json()["detail"] == (
+        "assets.backgrounds: this server takes asset folders only under FOLDWISE_ASSET_ROOTS, which is not set; "
+        "or upload the images with POST /assets/backgrounds"
+    )
     assert client.post("/experiments", json={"name": "defaults need no folder"}, headers=AUTH).status_code == 201
 
 
