@@ -659,6 +659,17 @@ def _broker_view(snapshot: Snapshot) -> Held | None:
     return held_messages(app, set(snapshot.quiet_theta_ids), quiet_models)
 
 
+def _unreadable_config(experiment: Experiment) -> str | None:
+    """Why the experiment's stored config does not validate under this version (None when it does)."""
+    from foldwise.config import ConfigError, parse_config
+
+    try:
+        parse_config(experiment.config)
+    except ConfigError as error:
+        return f"its stored config is not valid in this version of foldwise: {error}"
+    return None
+
+
 def reconcile_once(experiment_id: int, sent: set[tuple[str, int]] | None = None) -> list[Decision]:
     """Plan and apply one step for one experiment; returns the decisions taken.
 
@@ -672,6 +683,14 @@ def reconcile_once(experiment_id: int, sent: set[tuple[str, int]] | None = None)
         experiment = session.scalar(query)
         if experiment is None:
             return []
+        unreadable = _unreadable_config(experiment)
+        if unreadable is not None:
+            # A stored config this version refuses (recorded before a bound existed) can never
+            # plan: the experiment fails with the reason instead of raising on every pass.
+            decisions = [Fail(unreadable)] if experiment.status in (ExperimentStatus.pending, ExperimentStatus.running) else []
+            if decisions:
+                apply(session, experiment, decisions, None)
+            return decisions
         snapshot = load_snapshot(session, experiment)
         if snapshot.needs_broker_view():
             held = _broker_view(snapshot)

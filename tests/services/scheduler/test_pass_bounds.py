@@ -56,3 +56,27 @@ def test_a_pass_stops_after_the_step_bound(monkeypatch):
     monkeypatch.setattr(service, "experiment_status", lambda experiment_id: None)
     assert reconcile_until_idle(7) == MAX_STEPS_PER_PASS == 50
     assert len(calls) == 50
+
+
+def test_a_stored_config_this_version_refuses_fails_the_experiment_once_with_the_reason(monkeypatch, database):
+    # Recorded before the bound on m existed: every pass raised, and the experiment stayed live.
+    from db.models import Experiment, ExperimentStatus
+
+    messages: list[reconcile.Send] = []
+    monkeypatch.setattr(reconcile, "_send", messages.append)
+    experiment_id = start_experiment(config())
+    _in_flight(experiment_id)
+    with session_scope() as session:
+        experiment = session.get(Experiment, experiment_id)
+        experiment.config = {**experiment.config, "active_learning": {**experiment.config["active_learning"], "m": 10**9}}
+    messages.clear()
+    assert reconcile_until_idle(experiment_id) == 1
+    with session_scope() as session:
+        experiment = session.get(Experiment, experiment_id)
+        assert experiment.status == ExperimentStatus.failed
+        assert "stored config" in experiment.error and "active_learning.m" in experiment.error
+        open_models = session.scalars(
+            select(Model).where(Model.experiment_id == experiment_id, Model.status.in_([ModelStatus.queued, ModelStatus.training]))
+        ).all()
+    assert open_models == [] and messages == []  # its open work discarded, nothing sent
+    assert reconcile_until_idle(experiment_id) == 0  # a failed experiment is left alone
