@@ -100,14 +100,28 @@ def _file_image(path: str, keep_alpha: bool) -> np.ndarray:
 
     image = cv2.imread(path, cv2.IMREAD_UNCHANGED)
     if image is None:
-        raise AssetError(f"cannot read image {path!r} (not an image OpenCV can decode, or unreadable)")
-    if image.ndim == 3 and image.shape[2] == 3:
+        # The asset check decodes with Pillow, which reads a few files OpenCV refuses (a PNG whose
+        # IEND checksum is broken, TIFFs with damaged tags): what the check passed must render.
+        image = _pillow_image(path)
+    elif image.ndim == 3 and image.shape[2] == 3:
         image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
     elif image.ndim == 3 and image.shape[2] == 4:
         image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGBA)
     image = _to_uint8_rgb(image, path, keep_alpha=keep_alpha)
     image.setflags(write=False)
     return image
+
+
+def _pillow_image(path: str) -> np.ndarray:
+    """RGB or RGBA pixels of a file OpenCV cannot decode, or AssetError."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:
+            has_alpha = "A" in image.getbands() or "transparency" in image.info
+            return np.asarray(image.convert("RGBA" if has_alpha else "RGB"))
+    except Exception as error:  # a hostile file may raise anything from a decoder
+        raise AssetError(f"cannot read image {path!r} ({type(error).__name__}: {error})") from None
 
 
 def _procedural_placeholder() -> np.ndarray:

@@ -140,3 +140,19 @@ def test_every_accepted_format_under_its_own_name_passes(tmp_path):
     for name, image_format in [("a.png", "PNG"), ("b.jpg", "JPEG"), ("c.JPEG", "JPEG"), ("d.bmp", "BMP"), ("e.tiff", "TIFF"), ("f.webp", "WEBP")]:
         _saved_as(folder / name, image_format)
     validate_assets(AssetsConfig(backgrounds=folder))
+
+
+def test_a_file_the_check_passes_but_opencv_refuses_still_renders(tmp_path, folders):
+    # A PNG whose IEND checksum is broken: Pillow decodes every pixel, OpenCV's libpng refuses it.
+    from workers.render.assets import _file_image
+
+    path = _png(folders["backgrounds"] / "wall.png", 40, 30)
+    data = bytearray(path.read_bytes())
+    data[-1] ^= 0xFF
+    path.write_bytes(bytes(data))
+    assert cv2.imread(str(path), cv2.IMREAD_UNCHANGED) is None
+    validate_assets(AssetsConfig(**folders))
+    pixels = _file_image(str(path), False)
+    intact = _png(tmp_path / "intact.png", 40, 30)  # the same pixels (seeded by the size)
+    expected = cv2.cvtColor(cv2.imread(str(intact)), cv2.COLOR_BGR2RGB)
+    assert pixels.shape == (30, 40, 3) and np.array_equal(pixels, expected)
