@@ -171,7 +171,7 @@ def run_fault(name: str, root: Path, echo: Callable[[str], None]) -> dict[str, A
     from tests.integration.test_distributed import wait_until_finished
 
     inject = getattr(fault_harness, FAULTS[name])
-    root.mkdir(parents=True)
+    (root / "stack").mkdir(parents=True)  # running_stack makes its data and log folders inside
     started = time.monotonic()
     with (
         scratch_database() as database_url,
@@ -208,6 +208,9 @@ def run_fault(name: str, root: Path, echo: Callable[[str], None]) -> dict[str, A
             problems=audit.problems,
             lost_thetas=len(recovery.lost_thetas),
             lost_models=len(recovery.lost_models),
+            # In hand when killed: these may start a second time without counting as duplicates.
+            cut_off_thetas=len(recovery.cut_off_thetas),
+            cut_off_models=len(recovery.cut_off_models),
             notes=recovery.notes,
             wall_seconds=round(time.monotonic() - started, 1),
         )
