@@ -21,7 +21,7 @@ import subprocess
 import sys
 import tempfile
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,6 +55,9 @@ EXPERIMENT_TIMEOUT_S = 240.0
 STOP_TIMEOUT_S = 10.0
 # How long a session waits for another one on this machine to release Redis db 9.
 LOCK_TIMEOUT_S = 300.0
+# What the tests' .env says: a fast scheduler, and a short lease, so that a killed worker's work
+# is sent again within seconds (bench/faults.py runs with compose's defaults instead).
+TEST_SETTINGS = {"FOLDWISE_SCHEDULER_POLL_S": "0.2", "FOLDWISE_LEASE_S": "3"}
 
 T = TypeVar("T")
 
@@ -70,7 +73,7 @@ def _unreachable(address: tuple[str, int], what: str) -> str | None:
         return f"{what} is not reachable on {address[0]}:{address[1]} ({error}); tests/integration needs it"
 
 
-def _redis_problem() -> str | None:
+def redis_problem() -> str | None:
     problem = _unreachable(REDIS_ADDRESS, "Redis")
     if problem:
         return problem
@@ -83,7 +86,7 @@ def _redis_problem() -> str | None:
     return None
 
 
-def _postgres_problem() -> str | None:
+def postgres_problem() -> str | None:
     problem = _unreachable(POSTGRES_ADDRESS, "PostgreSQL")
     if problem:
         return problem
@@ -290,6 +293,14 @@ class Stack:
                 check=False,
             )
 
+    def restart(self, process: ServiceProcess) -> ServiceProcess:
+        """The same service and replica in a new process, as `restart: unless-stopped` would."""
+        for name in self.compose["services"]:
+            suffix = process.name.removeprefix(name)
+            if suffix == "" or (suffix.startswith("-") and suffix[1:].isdigit()):
+                return self.start(name, replica=int(suffix[1:]) if suffix else 1)
+        raise LookupError(f"{process.name} is no replica of a compose service")
+
     def running(self, label: str) -> ServiceProcess:
         matches = [p for p in self.processes if p.name == label and p.alive()]
         if not matches:
@@ -371,7 +382,7 @@ def pytest_runtest_makereport(item, call):
 
 @pytest.fixture(scope="session")
 def services_reachable() -> None:
-    for problem in (_redis_problem(), _postgres_problem()):
+    for problem in (redis_problem(), postgres_problem()):
         if problem:
             pytest.skip(problem)
 
@@ -447,12 +458,17 @@ def stack(database_url, broker, celery_control, tmp_path_factory) -> Iterator[St
 
 
 @contextmanager
-def running_stack(database_url: str, celery_control: Any, root: Path, broker_url: str | None = None) -> Iterator[Stack]:
-    """The compose services as processes on ``database_url`` (and ``broker_url``, else db 9 of the shared Redis)."""
+def running_stack(
+    database_url: str,
+    celery_control: Any,
+    root: Path,
+    broker_url: str | None = None,
+    settings: Mapping[str, str] = TEST_SETTINGS,
+) -> Iterator[Stack]:
+    """The compose services as processes on ``database_url`` (and ``broker_url``, else db 9 of the
+    shared Redis), with ``settings`` as a user's .env would give them ({}: compose's defaults)."""
     token = secrets.token_urlsafe(16)
-    # What a user's .env would say: the token, and a fast scheduler for a test.
-    # A short lease, so that a killed train worker's increment is sent again within seconds.
-    compose = load_compose({"FOLDWISE_API_TOKEN": token, "FOLDWISE_SCHEDULER_POLL_S": "0.2", "FOLDWISE_LEASE_S": "3"})
+    compose = load_compose({**settings, "FOLDWISE_API_TOKEN": token})
     stack = Stack(
         compose=compose,
         database_url=database_url,
