@@ -194,7 +194,8 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
         ax.set_ylabel("mAP on the standard test set")
         ax.set_ylim(-0.02, 1.02)
         ax.set_title(f"Fig. 6: mAP against training time (reset against grow: one run each); {protocol}", fontsize=9)
-        ax.legend(fontsize=7, loc="lower right")
+        if ax.get_legend_handles_labels()[0]:  # no run has a finite mAP yet: nothing to name
+            ax.legend(fontsize=7, loc="lower right")
         ax.grid(alpha=0.3)
         save("fig6", figure, ["experiment", "condition", "difficulty", "k", "cumulative_train_seconds", "map"], rows)
 
