@@ -31,7 +31,8 @@ scores foldwise's landings, and nothing in foldwise is tuned to it.
 A third score, ``in_domain_reframed``, puts the in-domain images in 4:3 and 3:4 frames (mirrored
 borders): the same objects, other frames.
 
-JSON out: both mAPs, their ratio (the goal is ≥ 0.8), the out-of-domain breakdown by scene
+JSON out: both mAPs, their ratio (the goal is ≥ 0.8), each set's class-agnostic mAP (any
+class at a target counts: finding the sheet apart from naming it), the out-of-domain breakdown by scene
 kind (negatives, small / medium / large / frame-filling sheets, occluded, several targets),
 the time each part took and the machine.
 """
@@ -682,16 +683,39 @@ def make_reframed_set(source: Path, out: Path) -> Path:
     return out
 
 
+def class_agnostic(predictions: list[dict], ground_truth: list[dict]) -> tuple[list[dict], list[dict]]:
+    """The same detections and boxes with every class merged into one ("the object"): a box of
+    any class at a target counts, and boxes of several classes at one place are suppressed to
+    the best (IoU 0.5) so that they are not counted as false positives of each other. Scored
+    beside the class-aware mAP, it splits "does not find the sheet" from "names it wrong"."""
+    import torch
+    from torchvision.ops import nms
+
+    merged = []
+    for prediction in predictions:
+        boxes, scores = torch.as_tensor(prediction["boxes"]), torch.as_tensor(prediction["scores"])
+        keep = nms(boxes, scores, 0.5).numpy() if len(boxes) else np.zeros(0, np.int64)
+        merged.append({"boxes": prediction["boxes"][keep], "scores": prediction["scores"][keep], "labels": np.zeros(len(keep), np.int64)})
+    truth = [{"boxes": item["boxes"], "labels": np.zeros(len(item["labels"]), np.int64)} for item in ground_truth]
+    return merged, truth
+
+
 def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: float) -> dict:
-    from workers.train.checkpoint import load_detector
+    from workers.train.checkpoint import detect_object, load_detector
     from workers.train.data import load_coco_dataset
-    from workers.train.evaluation import evaluate_detector
+    from workers.train.evaluation import evaluate_predictions
 
     samples, classes = load_coco_dataset(data)
     detector = load_detector(checkpoint, device="cpu")
     started = time.perf_counter()
-    result = evaluate_detector(detector, samples, classes, score_threshold=score_threshold, iou_threshold=iou_threshold, coco=False)
-    payload = result.to_dict()
+    model_classes = [str(name) for name in detector.meta["classes"]]
+    to_model = np.array([model_classes.index(name) for name in classes], dtype=np.int64)
+    predictions = detect_object(detector, [sample.image_path for sample in samples], batch_size=16)
+    truth = [{"boxes": s.boxes, "labels": to_model[np.asarray(s.labels, dtype=np.int64)]} for s in samples]
+    groups = [{"condition": sample.condition, "difficulty": sample.difficulty} for sample in samples]
+    protocol = {"score_threshold": score_threshold, "iou_threshold": iou_threshold, "coco": False}
+    payload = evaluate_predictions(predictions, truth, model_classes, groups=groups, **protocol).to_dict()
+    agnostic = evaluate_predictions(*class_agnostic(predictions, truth), ["object"], **protocol).to_dict()
     by_kind = {
         name: {"map": group.get("map"), "map_unthresholded": group.get("map_unthresholded"), "images": group.get("num_images")}
         for name, group in payload.get("breakdown", {}).get("difficulty", {}).items()
@@ -700,6 +724,7 @@ def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: f
         "images": len(samples),
         "map": payload["map"],
         "map_unthresholded": payload["map_unthresholded"],
+        "class_agnostic": {"map": agnostic["map"], "map_unthresholded": agnostic["map_unthresholded"]},
         "per_class": {name: entry.get("ap") for name, entry in payload["per_class"].items()},
         "by_kind": by_kind,
         "seconds": time.perf_counter() - started,

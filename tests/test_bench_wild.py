@@ -101,6 +101,8 @@ def test_the_benchmark_trains_scores_both_sets_and_reports_the_ratio(tmp_path):
     assert report["ratio"] == (None if not in_map else ood_map / in_map)
     assert report["goal"]["ratio_at_least"] == 0.8
     assert report["machine"]["cpu"]
+    for part in ("in_domain", "out_of_domain"):  # finding the sheet is never harder than naming it too
+        assert report[part]["class_agnostic"]["map_unthresholded"] >= report[part]["map_unthresholded"] - 1e-9
 
 
 def test_a_plain_scene_is_a_flat_sheet_seen_from_above_at_half_the_frame():
@@ -143,3 +145,19 @@ def test_reframing_pads_to_four_by_three_and_moves_the_boxes(tmp_path):
         assert pixels.shape[:2] == (image["height"], image["width"])
         x, y, w, h = annotation["bbox"]
         assert pixels[int(y) : int(y + h), int(x) : int(x + w)].min() == 255  # the white square moved with its box
+
+
+def test_the_class_agnostic_score_counts_a_found_sheet_whatever_class_it_is_given():
+    from workers.train.evaluation import evaluate_predictions
+
+    target = np.array([[10, 10, 50, 40]], np.float32)
+    # The sheet is class 0; the detector puts class 1 on it (0.9), and class 0 beside it, shifted (0.6).
+    predictions = [{"boxes": np.array([[11, 10, 50, 41], [12, 11, 51, 40]], np.float32),
+                    "scores": np.array([0.9, 0.6], np.float32), "labels": np.array([1, 0])}]
+    truth = [{"boxes": target, "labels": np.array([0])}]
+    aware = evaluate_predictions(predictions, truth, ["a", "b"], coco=False)
+    merged, merged_truth = wild.class_agnostic(predictions, truth)
+    assert len(merged[0]["boxes"]) == 1 and merged[0]["scores"][0] == np.float32(0.9)  # one box per place
+    agnostic = evaluate_predictions(merged, merged_truth, ["object"], coco=False)
+    assert agnostic.map == 1.0  # found, at the paper's cut
+    assert aware.map == 0.0 and aware.map_unthresholded == 1.0  # its right class only at 0.6, under the cut
