@@ -162,7 +162,13 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
                     ax.set_xlabel("increment k")
                 if j == 0:
                     ax.set_ylabel("mAP")
-        axes[0][0].legend(fontsize=6, loc="lower right")
+        # One legend for every run, wherever it has points (a run of one condition plots in
+        # its own row only, and the first panel's legend would leave it out).
+        handles = {}
+        for ax in axes.flat:
+            for handle, label in zip(*ax.get_legend_handles_labels()):
+                handles.setdefault(label, handle)
+        axes[0][0].legend(handles.values(), handles.keys(), fontsize=6, loc="lower right")
         figure.suptitle(f"Fig. 4: mAP on {_test_set(runs)} after each increment; {protocol}", fontsize=9)
         save("fig4", figure, ["experiment", "condition", "difficulty", "k", "map"], rows)
 
@@ -184,7 +190,7 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
         ax.set_xticklabels([table.name(c) for c in conditions], rotation=30, ha="right", fontsize=8)
         ax.set_ylabel(f"best {MAP_LABEL.format(cut=runs[0].score_threshold, iou=runs[0].iou_threshold) if runs else 'mAP'}")
         ax.set_ylim(0, 1.02)
-        ax.set_title(f"Fig. 5: the best mAP per condition (any difficulty, any increment); {protocol}", fontsize=9)
+        ax.set_title(f"Fig. 5: the best mAP per condition (any difficulty, any increment);\n{protocol}", fontsize=9)
         ax.legend(fontsize=7)
         ax.grid(axis="y", alpha=0.3)
         save("fig5", figure, ["experiment", "condition", "name", "best_map"], rows)

@@ -90,3 +90,21 @@ def test_a_learnability_run_trains_kappa_increments_from_the_last_model(database
     for name in ("fig4", "fig5"):
         png = report_dir / f"{name}-experiments-{experiment.id}.png"
         assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+
+    # ... and the API serves the same order; an Algorithm 1 experiment has none (409)
+    from fastapi.testclient import TestClient
+
+    from foldwise.config import parse_config
+    from services import queries
+    from services.api.app import create_app
+
+    with session_scope() as session:
+        other = queries.create_experiment(session, parse_config({"name": "active"})).id
+    client = TestClient(create_app(broker_timeout_s=0.5, ping_timeout_s=0.3))
+    answer = client.get(f"/experiments/{experiment.id}/learnability")
+    assert answer.status_code == 200, answer.text
+    body = answer.json()
+    assert [row["condition"] for row in body["conditions"]] == [row["condition"] for row in rows]
+    assert body["compared"] == [row["condition"] for row in rows] and body["paper_order"][0] == "fb"
+    assert client.get(f"/experiments/{other}/learnability").status_code == 409
+
