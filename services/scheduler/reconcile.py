@@ -202,7 +202,11 @@ Decision = Start | SampleTraining | EnqueueRender | OpenStage | CreateModel | En
 
 
 def plan(s: Snapshot) -> list[Decision]:
-    """What must happen next for this experiment, from its state alone."""
+    """What must happen next for this experiment, from its state alone.
+
+    One plan for both kinds: ``learnability`` (Algorithm 2) differs from Algorithm 1 only in
+    when a stage ends (after κ increments, no stopping rule) and in which model opens the next
+    stage (the last of the condition's previous difficulty; none at a new condition)."""
     if s.status == ExperimentStatus.pending:
         return [Start()]
     if s.status != ExperimentStatus.running:

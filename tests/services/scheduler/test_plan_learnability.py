@@ -25,9 +25,9 @@ def stages(*statuses):
     return tuple(StageView(10 + i, i, c, d, status, None, None) for i, ((c, d), status) in enumerate(zip(keys, statuses)))
 
 
-def snapshot(stage_views, models=(), counts=None):
+def snapshot(stage_views, models=(), counts=None, config=CONFIG):
     return Snapshot(
-        experiment_id=1, status=ExperimentStatus.running, seed=0, config=CONFIG, stages=stage_views, models=tuple(models),
+        experiment_id=1, status=ExperimentStatus.running, seed=0, config=config, stages=stage_views, models=tuple(models),
         theta_counts={("test", None, None): RENDERED, **(counts or {})},
         pending_theta_ids=(), stale_theta_ids=(), now=NOW, requeue_after=timedelta(hours=1),
     )  # fmt: skip
@@ -41,12 +41,16 @@ def scored(stage_id, scores, first_id):
 
 
 def test_a_flat_history_that_algorithm_1_would_stop_goes_on_to_kappa():
+    # The paper's stopping rule (M = 3, N = 8, τ = 0.02, the defaults) ends a flat stage at k = 11.
+    long = parse_config({**CONFIG.model_dump(mode="json"), "learnability": {"kappa": 14}})
     running = stages(StageStatus.running, StageStatus.pending, StageStatus.pending, StageStatus.pending)
-    flat = scored(10, [0.5] * (KAPPA - 1), first_id=1)
-    counts = {("train", 10, KAPPA): RENDERED}
-    decisions = plan(snapshot(running, flat, counts))
+    flat = scored(10, [0.5] * 13, first_id=1)
+    counts = {("train", 10, 14): RENDERED}
+    algorithm_1 = parse_config({**long.model_dump(mode="json"), "kind": "active_learning", "learnability": {}})
+    assert CloseStage(10, StageEndReason.plateau, 1) in plan(snapshot(running, flat, counts, algorithm_1))
+    decisions = plan(snapshot(running, flat, counts, long))
     assert not any(isinstance(d, CloseStage) for d in decisions)
-    assert CreateModel(10, KAPPA, flat[-1].id) in decisions
+    assert CreateModel(10, 14, flat[-1].id) in decisions
 
 
 def test_the_stage_closes_at_kappa_with_its_best_model_recorded():
