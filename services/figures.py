@@ -168,7 +168,8 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
         for ax in axes.flat:
             for handle, label in zip(*ax.get_legend_handles_labels()):
                 handles.setdefault(label, handle)
-        axes[0][0].legend(handles.values(), handles.keys(), fontsize=6, loc="lower right")
+        # Below the panels, where it hides no curve.
+        figure.legend(handles.values(), handles.keys(), fontsize=7, loc="outside lower center", ncol=min(3, len(handles) or 1))
         figure.suptitle(f"Fig. 4: mAP on {_test_set(runs)} after each increment; {protocol}", fontsize=9)
         save("fig4", figure, ["experiment", "condition", "difficulty", "k", "map"], rows)
 
