@@ -56,8 +56,11 @@ class StageStatus(str, enum.Enum):
 
 
 class StageEndReason(str, enum.Enum):
-    plateau = "plateau"
-    cap = "cap"
+    plateau = "plateau"  # Algorithm 1: |P_M - P_N| <= τ
+    cap = "cap"  # Algorithm 1: active_learning.max_increments reached
+    # Algorithm 2 (kind: learnability): its fixed κ increments done. A new value of a
+    # non-native enum column (a VARCHAR(20) without a CHECK constraint): no migration.
+    kappa = "kappa"
 
 
 class Split(str, enum.Enum):

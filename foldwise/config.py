@@ -222,6 +222,33 @@ class ActiveLearningConfig(_Section):
     training_set: Literal["reset", "grow"] = "reset"
 
 
+class LearnabilityConfig(_Section):
+    """Algorithm 2 (paper §4.3, §5.2): how well each condition can be learned.
+
+    Every (condition, difficulty) trains exactly ``kappa`` increments, with no stopping rule, so
+    that every difficulty of every condition gets the same κ·t iterations (a fair comparison).
+    Each model is scored on its own condition's test set (its n images per difficulty), and a
+    difficulty starts from the LAST model ω_κ of the difficulty before it, not the best.
+
+    Each condition's first difficulty starts from the detector's initial weights (ImageNet
+    when ``detector.pretrained: imagenet``, else random), as in §5.2 where every detector
+    "was initialized with the pre-trained models available for them": the conditions are then
+    independent, and neither their order in the curriculum nor a condition trained before
+    them changes their scores. (Algorithm 2's pseudo-code never resets ω_in between
+    conditions; followed literally, each condition would inherit every earlier one's training
+    and the order of C would bias the comparison that the algorithm exists to make.)
+
+    An increment's m, t and training_set come from ``active_learning``, as in Algorithm 1;
+    its stopping-rule keys (M, N, tau, max_increments) have no meaning here and are refused.
+    """
+
+    kappa: int = Field(default=10, ge=1, le=MAX_INCREMENTS, description="increments per (condition, difficulty): κ")
+
+
+# Keys of `active_learning` that only the stopping rule of Algorithm 1 reads.
+STOPPING_RULE_KEYS = ("M", "N", "tau", "max_increments")
+
+
 class AugmentationConfig(_Section):
     """Train-time augmentation (workers/train/augment.py): the probability of each transform
     per image per step. Off by default: the paper trains without augmentation."""
@@ -323,6 +350,9 @@ class TaskLimitsConfig(_Section):
 
 class ExperimentConfig(_Section):
     name: str = Field(min_length=1, max_length=200)
+    # active_learning: Algorithm 1 (stopping rule, ω_be opens the next stage); learnability:
+    # Algorithm 2 (κ increments per stage, ω_κ opens the next difficulty; see LearnabilityConfig).
+    kind: Literal["active_learning", "learnability"] = "active_learning"
     seed: int = Field(default=0, ge=0, lt=2**31)
     assets: AssetsConfig = AssetsConfig()
     render: RenderConfig = RenderConfig()
@@ -332,6 +362,7 @@ class ExperimentConfig(_Section):
     detector: DetectorConfig = DetectorConfig()
     evaluation: EvaluationConfig = EvaluationConfig()
     tasks: TaskLimitsConfig = TaskLimitsConfig()
+    learnability: LearnabilityConfig = LearnabilityConfig()
 
     @field_validator("name")
     @classmethod
@@ -339,6 +370,36 @@ class ExperimentConfig(_Section):
         if not value.strip():
             raise ValueError("must not be blank")
         return value
+
+    @model_validator(mode="after")
+    def _kind_fits(self) -> "ExperimentConfig":
+        """Keys the chosen kind would silently ignore are errors (each message starts with its
+        key). A value equal to its default is let through: a stored config holds every key."""
+        if self.kind != "learnability":
+            if self.learnability != LearnabilityConfig():
+                raise ValueError(f"learnability: only read by kind: learnability (this config's kind is {self.kind})")
+            return self
+        if self.curriculum.mixed is not None:
+            raise ValueError("curriculum.mixed: kind: learnability has no mixed stage (it measures one condition at a time)")
+        if self.test_set.covers != "curriculum":
+            raise ValueError(
+                f"test_set.covers: kind: learnability tests each condition on its own test set; "
+                f"it must be 'curriculum', got {self.test_set.covers!r}"
+            )
+        defaults = ActiveLearningConfig()
+        for key in STOPPING_RULE_KEYS:
+            if getattr(self.active_learning, key) != getattr(defaults, key):
+                raise ValueError(
+                    f"active_learning.{key}: kind: learnability has no stopping rule; "
+                    "learnability.kappa sets the increments per stage"
+                )
+        return self
+
+    def stage_increments_cap(self, condition: str) -> int:
+        """The most increments a stage of ``condition`` trains: κ for learnability, else the cap."""
+        if self.kind == "learnability":
+            return self.learnability.kappa
+        return self.stage_active_learning(condition).max_increments
 
     def stage_order(self) -> list[tuple[str, str]]:
         """(condition, difficulty) in curriculum order: for c in C, for δ in Δ; then the mixed
@@ -374,6 +435,8 @@ class ExperimentConfig(_Section):
         return self.curriculum.mixed.draw() if self.curriculum.mixed is not None else MixedDraw()
 
 
+# A message that begins with the dotted key it is about ("active_learning.M: ...").
+KEYED_MESSAGE = re.compile(r"^[a-z_]+(\.[A-Za-z_]+)*: ")
 # A config error lists at most this many keys (a document of thousands of bad entries is one mistake).
 MAX_ERRORS_LISTED = 20
 
@@ -387,6 +450,10 @@ def _format_validation_error(error: ValidationError) -> str:
             message = "unknown key"
         elif item["type"] == "value_error":
             message = message.removeprefix("Value error, ")
+            # A check across sections (ExperimentConfig._kind_fits) names its key itself.
+            if not item["loc"] and KEYED_MESSAGE.match(message):
+                lines.append(message)
+                continue
         # A message about one element of a list ("[1]: ...") reads as the element's key.
         lines.append(f"{key}{'' if message.startswith('[') else ': '}{message}")
     if len(lines) > MAX_ERRORS_LISTED:

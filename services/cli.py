@@ -133,7 +133,35 @@ def _run_experiment(config, report_dir: Path | None, study: str | None = None) -
         console.print(f"[red]failed:[/] {info['error']}", highlight=False)
     files = write_report(experiment_id, report_dir or settings.data_dir / f"experiments/{experiment_id}/report")
     console.print(f"report: {files.png}  {files.csv}", highlight=False)
+    _print_learnability(experiment_id, files)
     return experiment_id, status
+
+
+def _print_learnability(experiment_id: int, files) -> None:
+    """A learnability experiment's order of conditions beside the paper's, with Spearman's ρ."""
+    order = files.learnability
+    if order is None:
+        return
+    table = Table(title=f"experiment {experiment_id}: learnability (mean mAP over every increment), most learnable first")
+    for column in ("rank", "condition", "score", "best mAP", "increments", "paper rank"):
+        table.add_column(column, justify="left" if column == "condition" else "right")
+    for row in order.rows:
+        table.add_row(
+            f"{row.rank:g}",
+            row.name,
+            f"{row.score:.3f}",
+            "—" if row.best_map is None else f"{row.best_map:.3f}",
+            str(row.increments),
+            "—" if row.paper_rank is None else str(row.paper_rank),
+        )
+    console.print(table)
+    rho = order.spearman_rho
+    rho = "undefined (fewer than two ranked conditions, or all tied)" if rho is None else f"{rho:.3f}"
+    console.print(
+        f"Spearman's ρ against the paper's order ({', '.join(order.compared) or 'no condition in common'}): {rho}",
+        highlight=False,
+    )
+    console.print(f"learnability: {files.learnability_csv}", highlight=False)
 
 
 def _choices(option: str, text: str, known: tuple[str, ...]) -> list[str]:
@@ -255,6 +283,7 @@ def report(
         for experiment_id in experiment_ids:
             files = write_report(experiment_id, out)
             console.print(f"{len(files.rows)} evaluations → {files.png}  {files.csv}", highlight=False)
+            _print_learnability(experiment_id, files)
         if figures:
             for name, paths in write_figures(experiment_ids, out).items():
                 console.print(f"{name} → {'  '.join(str(p) for p in paths)}", highlight=False)

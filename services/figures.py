@@ -41,6 +41,7 @@ class Run:
     iou_threshold: float
     history: list[dict]
     stages: list[dict]
+    kind: str = "active_learning"  # learnability: each model is scored on its condition's own test set
 
 
 def load_runs(experiment_ids: list[int]) -> list[Run]:
@@ -57,6 +58,7 @@ def load_runs(experiment_ids: list[int]) -> list[Run]:
                     iou_threshold=config.evaluation.iou_threshold,
                     history=queries.history(session, experiment_id),
                     stages=queries.stages(session, experiment_id),
+                    kind=config.kind,
                 )
             )
     return runs
@@ -65,6 +67,16 @@ def load_runs(experiment_ids: list[int]) -> list[Run]:
 def _protocol(runs: list[Run]) -> str:
     cuts = sorted({(run.score_threshold, run.iou_threshold) for run in runs})
     return "; ".join(MAP_LABEL.format(cut=cut, iou=iou) for cut, iou in cuts)
+
+
+def _test_set(runs: list[Run]) -> str:
+    """Which test set the runs' mAP is on, for the titles."""
+    kinds = {run.kind for run in runs}
+    if kinds == {"learnability"}:
+        return "the condition's own test set (learnability)"
+    if "learnability" in kinds:
+        return "the standard test set (learnability runs: the condition's own)"
+    return "the standard test set"
 
 
 def _stage_keys(runs: list[Run]) -> list[tuple[str, str]]:
@@ -119,7 +131,7 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
         figure, ax = plt.subplots(figsize=(4.8, 2.4), constrained_layout=True)
         ax.set_axis_off()
         ax.text(0.5, 0.5, "no stage has started yet", ha="center", va="center")
-        figure.suptitle(f"Fig. 4: mAP on the standard test set after each increment; {protocol}", fontsize=9)
+        figure.suptitle(f"Fig. 4: mAP on {_test_set(runs)} after each increment; {protocol}", fontsize=9)
         save("fig4", figure, ["experiment", "condition", "difficulty", "k", "map"], [])
     elif "fig4" in names:
         conditions = list(dict.fromkeys(c for c, _ in keys))
@@ -150,8 +162,15 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
                     ax.set_xlabel("increment k")
                 if j == 0:
                     ax.set_ylabel("mAP")
-        axes[0][0].legend(fontsize=6, loc="lower right")
-        figure.suptitle(f"Fig. 4: mAP on the standard test set after each increment; {protocol}", fontsize=9)
+        # One legend for every run, wherever it has points (a run of one condition plots in
+        # its own row only, and the first panel's legend would leave it out).
+        handles = {}
+        for ax in axes.flat:
+            for handle, label in zip(*ax.get_legend_handles_labels()):
+                handles.setdefault(label, handle)
+        # Below the panels, where it hides no curve.
+        figure.legend(handles.values(), handles.keys(), fontsize=7, loc="outside lower center", ncol=min(3, len(handles) or 1))
+        figure.suptitle(f"Fig. 4: mAP on {_test_set(runs)} after each increment; {protocol}", fontsize=9)
         save("fig4", figure, ["experiment", "condition", "difficulty", "k", "map"], rows)
 
     if "fig5" in names:
@@ -172,7 +191,7 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
         ax.set_xticklabels([table.name(c) for c in conditions], rotation=30, ha="right", fontsize=8)
         ax.set_ylabel(f"best {MAP_LABEL.format(cut=runs[0].score_threshold, iou=runs[0].iou_threshold) if runs else 'mAP'}")
         ax.set_ylim(0, 1.02)
-        ax.set_title(f"Fig. 5: the best mAP per condition (any difficulty, any increment); {protocol}", fontsize=9)
+        ax.set_title(f"Fig. 5: the best mAP per condition (any difficulty, any increment);\n{protocol}", fontsize=9)
         ax.legend(fontsize=7)
         ax.grid(axis="y", alpha=0.3)
         save("fig5", figure, ["experiment", "condition", "name", "best_map"], rows)

@@ -3,6 +3,9 @@
 One colour per stage (c/δ). The lower panel tells render, train and evaluation time apart:
 the seconds each has consumed so far, so a reader sees what the accuracy cost and where the
 time went (in distributed mode renders overlap training, so their sum can exceed wall time).
+
+A learnability experiment (Algorithm 2) also gets ``learnability-{id}.csv``: each condition's
+learnability score, its rank, the paper's rank and Spearman's ρ (services/learnability.py).
 """
 
 from __future__ import annotations
@@ -12,7 +15,9 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from db.session import session_scope
+from foldwise.config import ExperimentConfig
 from services import queries
+from services.learnability import LearnabilityOrder, experiment_learnability, write_learnability_csv
 
 CSV_COLUMNS = [
     "stage",
@@ -38,6 +43,9 @@ class ReportFiles:
     png: Path
     csv: Path
     rows: list[dict]
+    # kind: learnability only: the learnability order beside the paper's, and its CSV.
+    learnability: LearnabilityOrder | None = None
+    learnability_csv: Path | None = None
 
 
 def report_rows(experiment_id: int) -> list[dict]:
@@ -74,7 +82,9 @@ def write_report(experiment_id: int, out_dir: Path) -> ReportFiles:
     import matplotlib.pyplot as plt
 
     with session_scope() as session:
-        name = queries.get_experiment(session, experiment_id).name
+        experiment = queries.get_experiment(session, experiment_id)
+        name = experiment.name
+        kind = ExperimentConfig.model_validate(experiment.config).kind
     rows = report_rows(experiment_id)
     out_dir.mkdir(parents=True, exist_ok=True)
     csv_path = out_dir / f"experiment-{experiment_id}.csv"
@@ -115,4 +125,8 @@ def write_report(experiment_id: int, out_dir: Path) -> ReportFiles:
     png_path = out_dir / f"experiment-{experiment_id}.png"
     figure.savefig(png_path, dpi=120)
     plt.close(figure)
-    return ReportFiles(png=png_path, csv=csv_path, rows=rows)
+    if kind != "learnability":
+        return ReportFiles(png=png_path, csv=csv_path, rows=rows)
+    order = experiment_learnability(experiment_id)
+    learnability_csv = write_learnability_csv(order, out_dir / f"learnability-{experiment_id}.csv")
+    return ReportFiles(png=png_path, csv=csv_path, rows=rows, learnability=order, learnability_csv=learnability_csv)

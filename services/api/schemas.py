@@ -75,9 +75,14 @@ class StageSummary(_Shape):
     condition: str = Field(description="c")
     difficulty: str = Field(description="δ")
     status: StageStatus
-    end_reason: StageEndReason | None = Field(description="plateau (|P_M − P_N| ≤ τ) or cap (max increments)")
+    end_reason: StageEndReason | None = Field(
+        description="plateau (|P_M − P_N| ≤ τ) or cap (max increments); kappa: a learnability stage's κ increments"
+    )
     increments: int = Field(description="evaluated increments k")
-    init_model_id: int | None = Field(description="ω_in of the first increment: the previous stage's ω_be")
+    init_model_id: int | None = Field(
+        description="ω_in of the first increment: the previous stage's ω_be (learnability: the last ω_k of the "
+        "condition's previous difficulty; none at its first)"
+    )
     best_model_id: int | None = Field(description="ω_be")
     best_map: float | None
     failed_images: int = Field(default=0, description="θ of this stage that could not be rendered")

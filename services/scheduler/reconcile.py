@@ -202,7 +202,11 @@ Decision = Start | SampleTraining | EnqueueRender | OpenStage | CreateModel | En
 
 
 def plan(s: Snapshot) -> list[Decision]:
-    """What must happen next for this experiment, from its state alone."""
+    """What must happen next for this experiment, from its state alone.
+
+    One plan for both kinds: ``learnability`` (Algorithm 2) differs from Algorithm 1 only in
+    when a stage ends (after κ increments, no stopping rule) and in which model opens the next
+    stage (the last of the condition's previous difficulty; none at a new condition)."""
     if s.status == ExperimentStatus.pending:
         return [Start()]
     if s.status != ExperimentStatus.running:
@@ -228,6 +232,8 @@ def plan(s: Snapshot) -> list[Decision]:
         return decisions + [Finish(last.best_model_id if last else None)]
     if stage.status == StageStatus.pending:
         previous = [st for st in s.stages if st.order < stage.order]
+        if s.config.kind == "learnability":
+            return decisions + [OpenStage(stage.id, _learnability_init(s, stage, previous[-1] if previous else None))]
         init = previous[-1].best_model_id if previous else None
         return decisions + [OpenStage(stage.id, init)]
 
@@ -237,7 +243,7 @@ def plan(s: Snapshot) -> list[Decision]:
     where = f"stage {stage.order} ({stage.condition}/{stage.difficulty})"
 
     def ensure_sampled(st: StageView, k: int) -> None:
-        if k <= s.config.stage_active_learning(st.condition).max_increments and not s.counts(Split.train, st.id, k):
+        if k <= s.config.stage_increments_cap(st.condition) and not s.counts(Split.train, st.id, k):
             decisions.append(SampleTraining(st.id, k))
 
     if latest is not None and latest.status == ModelStatus.failed:
@@ -246,12 +252,19 @@ def plan(s: Snapshot) -> list[Decision]:
     if latest is None or latest.status == ModelStatus.evaluated:
         scores = [m.score for m in models]
         if latest is not None:
-            decision = stopping_rule(scores, al.M, al.N, al.tau, al.max_increments)
-            if decision.stop:
+            if s.config.kind == "learnability":
+                # Algorithm 2: exactly κ increments and no stopping rule, so that every stage
+                # trains as long as every other (ω_be is still recorded, for Fig. 5 and 8).
+                kappa = s.config.learnability.kappa
+                stop, reason = len(scores) >= kappa, StageEndReason.kappa
+            else:
+                decision = stopping_rule(scores, al.M, al.N, al.tau, al.max_increments)
+                stop, reason = decision.stop, StageEndReason(decision.reason) if decision.stop else None
+            if stop:
                 best = best_index(scores)
                 if best is None:
-                    return decisions + [Fail(f"{where} ended ({decision.reason}) without a single finite mAP")]
-                return decisions + [CloseStage(stage.id, StageEndReason(decision.reason), models[best].id)]
+                    return decisions + [Fail(f"{where} ended ({reason.value}) without a single finite mAP")]
+                return decisions + [CloseStage(stage.id, reason, models[best].id)]
         k = latest.increment + 1 if latest else 1
         counts = s.counts(Split.train, stage.id, k)
         if not counts:
@@ -280,6 +293,16 @@ def plan(s: Snapshot) -> list[Decision]:
     if following is not None:
         ensure_sampled(following, 1)
     return decisions
+
+
+def _learnability_init(s: Snapshot, stage: StageView, previous: StageView | None) -> int | None:
+    """ω_in of a learnability stage: the LAST model ω_κ of the condition's previous difficulty
+    (Algorithm 2: ω_in ← ω_k), or, at a condition's first difficulty, none: the detector's
+    initial weights, so that every condition starts alike (config.LearnabilityConfig says why)."""
+    if previous is None or previous.condition != stage.condition:
+        return None
+    trained = [m for m in s.models if m.stage_id == previous.id and m.status == ModelStatus.evaluated]
+    return max(trained, key=lambda m: m.increment).id if trained else None
 
 
 # Below this many finished renders a share says little (one failure in four is not a trend).

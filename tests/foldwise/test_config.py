@@ -329,3 +329,46 @@ def test_a_backbone_the_family_cannot_build_is_refused_before_any_work(family, b
 )
 def test_every_backbone_a_family_builds_is_accepted(family, backbone):
     assert parse_config({"name": "x", "detector": {"family": family, "backbone": backbone}}).detector.backbone == backbone
+
+
+LEARNABILITY = {"name": "l", "kind": "learnability"}
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({"name": "x", "kind": "learnabilty"}, "kind: Input should be 'active_learning' or 'learnability'"),
+        ({**LEARNABILITY, "learnability": {"kappa": 0}}, "learnability.kappa: Input should be greater than or equal to 1"),
+        ({**LEARNABILITY, "learnability": {"kappa": 10**6}}, "learnability.kappa: Input should be less than or equal to"),
+        ({**LEARNABILITY, "learnability": {"kapa": 3}}, "learnability.kapa: unknown key"),
+        ({**LEARNABILITY, "learnability": {"kappa": True}}, "learnability.kappa: expected a number, got a boolean"),
+        ({"name": "x", "learnability": {"kappa": 3}}, "learnability: only read by kind: learnability"),
+        ({**LEARNABILITY, "active_learning": {"M": 2}}, "active_learning.M: kind: learnability has no stopping rule"),
+        ({**LEARNABILITY, "active_learning": {"max_increments": 5}}, "active_learning.max_increments: kind: learnability"),
+        ({**LEARNABILITY, "curriculum": {"mixed": {}}}, "curriculum.mixed: kind: learnability has no mixed stage"),
+        ({**LEARNABILITY, "test_set": {"covers": "table3"}}, "test_set.covers: kind: learnability tests each condition"),
+    ],
+)
+def test_kind_and_learnability_errors_name_the_key(data, message):
+    with pytest.raises(ConfigError) as error:
+        parse_config(data)
+    assert f"\n  {message}" in str(error.value)
+
+
+def test_kind_defaults_to_active_learning_and_learnability_keeps_its_kappa_through_json():
+    assert parse_config({"name": "x"}).kind == "active_learning"
+    config = parse_config({**LEARNABILITY, "learnability": {"kappa": 3}, "active_learning": {"m": 7, "t": 5}})
+    assert config.stage_increments_cap("fb") == 3
+    # the stored form holds every key, the stopping rule's defaults included: it must load again
+    assert parse_config(config.model_dump(mode="json")) == config
+    assert parse_config({"name": "x", "active_learning": {"max_increments": 6}}).stage_increments_cap("fb") == 6
+
+
+def test_learnability_quick_covers_the_papers_seven_conditions_at_three_difficulties():
+    from foldwise.conditions import load_condition_table
+
+    config = load_config(REPO_ROOT / "configs/learnability_quick.yaml")
+    assert config.kind == "learnability"
+    assert config.curriculum.conditions == list(load_condition_table().table3)
+    assert config.curriculum.difficulties == ["easy", "medium", "hard"]
+    assert len(config.test_pairs()) == 21

@@ -1,4 +1,4 @@
-"""Celery task of the train worker: one increment of Algorithm 1.
+"""Celery task of the train worker: one increment of Algorithm 1 (or of Algorithm 2, `kind: learnability`).
 
 ``train_increment(model_id)``: ω_k ← train_detector(S_tr, ω_in, t), then
 P_k ← evaluate_predictions(detect_object(ω_k, I_te), B_te). The model row is claimed by the
@@ -151,15 +151,15 @@ def _run_claimed_increment(model_id: int) -> str:
             )
             .order_by(ParameterSet.id)
         ).all()
-        test_rows = session.scalars(
-            select(ParameterSet)
-            .where(
-                ParameterSet.experiment_id == experiment.id,
-                ParameterSet.split == Split.test,
-                ParameterSet.status == RenderStatus.rendered,
-            )
-            .order_by(ParameterSet.id)
-        ).all()
+        test_query = select(ParameterSet).where(
+            ParameterSet.experiment_id == experiment.id,
+            ParameterSet.split == Split.test,
+            ParameterSet.status == RenderStatus.rendered,
+        )
+        if config.kind == "learnability":
+            # Algorithm 2 scores a condition on its own test set (every difficulty of it) only.
+            test_query = test_query.where(ParameterSet.condition == stage.condition)
+        test_rows = session.scalars(test_query.order_by(ParameterSet.id)).all()
         test_ids = [row.id for row in test_rows]
         seed = derive_seed(experiment.seed, 7, stage.order, model.increment)
         relative = store.checkpoint_path(experiment.id, model.id)

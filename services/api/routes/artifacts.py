@@ -1,14 +1,16 @@
 """What an experiment produced, for reading and download: rendered images with their boxes,
 COCO documents, the report, checkpoints. Read-only and open, like the other reads."""
 
+from dataclasses import asdict
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Path, Query
+from fastapi import APIRouter, HTTPException, Path, Query, status
 from fastapi.responses import FileResponse, JSONResponse
 
 from db.models import Split
 from foldwise import store
-from services import artifacts
+from foldwise.config import ExperimentConfig
+from services import artifacts, learnability, queries
 from services.api.deps import MAX_ID, MAX_INT_COLUMN, ExperimentId, ModelId, SessionDep
 from services.api.schemas import NOT_FOUND
 
@@ -95,3 +97,25 @@ def experiment_figure(
     paths = write_figures([experiment_id], store.resolve(store.report_dir(experiment_id)), names=(name,))[name]
     path = next(p for p in paths if p.suffix == f".{extension}")
     return FileResponse(path, media_type=FIGURE_MEDIA[extension], filename=path.name)
+
+
+@router.get(
+    "/experiments/{experiment_id}/learnability",
+    responses={**NOT_FOUND, 409: {"description": "the experiment is not of kind learnability"}},
+)
+def experiment_learnability(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
+    """A learnability experiment's (Algorithm 2) order of conditions beside the paper's, with
+    Spearman's ρ, from the scores so far (services/learnability.py defines the score)."""
+    config = ExperimentConfig.model_validate(queries.get_experiment(session, experiment_id).config)
+    if config.kind != "learnability":
+        raise HTTPException(
+            status.HTTP_409_CONFLICT, f"experiment {experiment_id} is of kind {config.kind}, not learnability"
+        )
+    order = learnability.experiment_learnability(experiment_id)
+    return {
+        "score": "mean mAP over every increment of the condition, each on its own test set",
+        "spearman_rho": order.spearman_rho,
+        "compared": list(order.compared),
+        "paper_order": list(learnability.PAPER_ORDER),
+        "conditions": [asdict(row) for row in order.rows],
+    }

@@ -39,10 +39,11 @@ const fixed = (value, digits = 3) => (value === null || value === undefined ? "â
 
 // ---------------------------------------------------------------- summary and ETA
 
-// Time left at the pace so far: finished stages plus the current stage's share of its cap.
+// Time left at the pace so far: finished stages plus the current stage's share of its cap
+// (a learnability experiment trains exactly learnability.kappa increments per stage).
 function eta(summary, stages) {
   if (summary.status !== "running" || !summary.elapsed_seconds) return null;
-  const cap = config.active_learning.max_increments;
+  const cap = config.kind === "learnability" ? config.learnability.kappa : config.active_learning.max_increments;
   let done = stages.filter((s) => s.status === "done").length;
   const current = stages.find((s) => s.status === "running");
   if (current) done += Math.min(current.increments / cap, 0.99);

@@ -207,6 +207,7 @@ ID_ROUTES = [
     ("get", "/experiments/{value}/coco"),
     ("get", "/experiments/{value}/report.png"),
     ("get", "/experiments/{value}/figures/fig4.png"),
+    ("get", "/experiments/{value}/learnability"),
     ("get", "/experiments/{experiment}/images/{value}.png"),
     ("get", "/models/{value}"),
     ("get", "/models/{value}/checkpoint"),

@@ -1,0 +1,82 @@
+"""``plan`` for ``kind: learnability`` (Algorithm 2): κ increments, no stopping rule, ω_in ← ω_κ."""
+
+from collections import Counter
+from datetime import datetime, timedelta, timezone
+
+from db.models import ExperimentStatus, ModelStatus, RenderStatus, StageEndReason, StageStatus
+from foldwise.config import parse_config
+from services.scheduler.reconcile import CloseStage, CreateModel, ModelView, OpenStage, SampleTraining, Snapshot, StageView, plan
+
+NOW = datetime(2026, 1, 1, tzinfo=timezone.utc)
+KAPPA = 4
+CONFIG = parse_config(
+    {
+        "name": "l",
+        "kind": "learnability",
+        "learnability": {"kappa": KAPPA},
+        "curriculum": {"conditions": ["fb", "po"], "difficulties": ["easy", "hard"]},
+    }
+)
+RENDERED = Counter({RenderStatus.rendered: 4})
+
+
+def stages(*statuses):
+    keys = [("fb", "easy"), ("fb", "hard"), ("po", "easy"), ("po", "hard")]
+    return tuple(StageView(10 + i, i, c, d, status, None, None) for i, ((c, d), status) in enumerate(zip(keys, statuses)))
+
+
+def snapshot(stage_views, models=(), counts=None, config=CONFIG):
+    return Snapshot(
+        experiment_id=1, status=ExperimentStatus.running, seed=0, config=config, stages=stage_views, models=tuple(models),
+        theta_counts={("test", None, None): RENDERED, **(counts or {})},
+        pending_theta_ids=(), stale_theta_ids=(), now=NOW, requeue_after=timedelta(hours=1),
+    )  # fmt: skip
+
+
+def scored(stage_id, scores, first_id):
+    return [
+        ModelView(first_id + k, stage_id, k + 1, None, ModelStatus.evaluated, score, None, NOW, None)
+        for k, score in enumerate(scores)
+    ]
+
+
+def test_a_flat_history_that_algorithm_1_would_stop_goes_on_to_kappa():
+    # The paper's stopping rule (M = 3, N = 8, τ = 0.02, the defaults) ends a flat stage at k = 11.
+    long = parse_config({**CONFIG.model_dump(mode="json"), "learnability": {"kappa": 14}})
+    running = stages(StageStatus.running, StageStatus.pending, StageStatus.pending, StageStatus.pending)
+    flat = scored(10, [0.5] * 13, first_id=1)
+    counts = {("train", 10, 14): RENDERED}
+    algorithm_1 = parse_config({**long.model_dump(mode="json"), "kind": "active_learning", "learnability": {}})
+    assert CloseStage(10, StageEndReason.plateau, 1) in plan(snapshot(running, flat, counts, algorithm_1))
+    decisions = plan(snapshot(running, flat, counts, long))
+    assert not any(isinstance(d, CloseStage) for d in decisions)
+    assert CreateModel(10, 14, flat[-1].id) in decisions
+
+
+def test_the_stage_closes_at_kappa_with_its_best_model_recorded():
+    running = stages(StageStatus.running, StageStatus.pending, StageStatus.pending, StageStatus.pending)
+    models = scored(10, [0.1, 0.7, 0.3, 0.2], first_id=1)
+    assert CloseStage(10, StageEndReason.kappa, 2) in plan(snapshot(running, models))
+
+
+def test_nothing_is_sampled_past_kappa():
+    running = stages(StageStatus.running, StageStatus.pending, StageStatus.pending, StageStatus.pending)
+    models = scored(10, [0.1] * (KAPPA - 1), first_id=1) + [
+        ModelView(9, 10, KAPPA, 3, ModelStatus.training, None, None, NOW, NOW)
+    ]
+    counts = {("train", 10, k): RENDERED for k in range(1, KAPPA + 1)}
+    decisions = plan(snapshot(running, models, counts))
+    assert not any(isinstance(d, SampleTraining) and d.stage_id == 10 for d in decisions)
+    assert SampleTraining(11, 1) in decisions  # the next stage's first increment is prefetched
+
+
+def test_the_next_difficulty_opens_from_the_last_model_not_the_best():
+    views = stages(StageStatus.done, StageStatus.pending, StageStatus.pending, StageStatus.pending)
+    models = scored(10, [0.1, 0.9, 0.3, 0.2], first_id=1)  # the best is model 2, the last model 4
+    assert plan(snapshot(views, models)) == [OpenStage(11, 4)]
+
+
+def test_the_next_condition_opens_from_the_initial_weights():
+    views = stages(StageStatus.done, StageStatus.done, StageStatus.pending, StageStatus.pending)
+    models = scored(10, [0.1, 0.9, 0.3, 0.2], first_id=1) + scored(11, [0.5, 0.6, 0.7, 0.8], first_id=5)
+    assert plan(snapshot(views, models)) == [OpenStage(12, None)]
