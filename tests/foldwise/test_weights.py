@@ -64,3 +64,22 @@ def test_foldwise_run_stops_before_any_work_without_the_weights(tmp_path):
     assert done.returncode == 2 and output.count("\n") == 0, output
     assert output.startswith("error: detector.pretrained: 'imagenet' needs ") and "mobilenet_v3_large-8738ca79.pth" in output
     assert not (tmp_path / "data").exists()  # nothing rendered, nothing recorded
+
+
+def test_foldwise_train_stops_before_reading_the_data_without_the_weights(tmp_path):
+    env = {"TORCH_HOME": str(tmp_path / "torch"), "PATH": "/usr/bin:/bin", "COLUMNS": "300"}
+    done = subprocess.run([sys.executable, "-m", "services.cli", "train", "--detector", "faster_rcnn", "--data",
+                           str(tmp_path / "no-such-set"), "--iterations", "1", "--out", str(tmp_path / "m.pt"),
+                           "--config", str(_imagenet_config(tmp_path))], cwd=REPO_ROOT, capture_output=True, text=True,
+                          env=env)  # fmt: skip
+    output = (done.stdout + done.stderr).strip()
+    assert done.returncode != 0 and "detector.pretrained: 'imagenet' needs " in output, output
+    assert "no-such-set" not in output  # refused on the weights, before the data was looked at
+
+
+def _imagenet_config(tmp_path):
+    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
+    config["detector"] = {**config.get("detector", {}), "pretrained": "imagenet"}
+    path = tmp_path / "imagenet.yaml"
+    path.write_text(yaml.safe_dump(config))
+    return path

@@ -116,6 +116,11 @@ def train(
         _fail(f"invalid detector settings: {error}")
     if init is not None and not init.is_file():
         _fail(f"--init checkpoint {init} does not exist")
+    if init is None and detector_config.pretrained == "imagenet":
+        from foldwise.weights import missing_imagenet_weights
+
+        if problem := missing_imagenet_weights(detector_config.backbone):
+            _fail(problem)  # before the dataset is read, not at the first training step
     samples, classes = _load_samples(data)
     if not any(len(sample.boxes) for sample in samples):
         _fail(f"dataset {data} has no annotated box: nothing to train on")

@@ -173,6 +173,12 @@ def create_experiment(
         validate_assets(config.assets)  # asset folders on this server, checked once before anything is recorded
     except AssetError as error:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error)) from None
+    from foldwise.weights import missing_imagenet_weights  # no torch: file names only
+
+    # Every service runs one image (compose.yaml), so the weights the train workers will read are
+    # the ones this process sees: a run that lacks them is refused now, not at its first step.
+    if config.detector.pretrained == "imagenet" and (problem := missing_imagenet_weights(config.detector.backbone)):
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, problem)
     experiment = queries.create_experiment(session, config, study=study)
     session.commit()
     response.headers["Location"] = request.scope.get("root_path", "") + request.app.url_path_for(

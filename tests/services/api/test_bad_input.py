@@ -363,3 +363,15 @@ def test_every_read_of_an_experiment_that_has_not_started_answers(sweep_client):
     experiment = _existing_experiment(sweep_client)
     answers = {route: sweep_client.get(route.format(id=experiment)).status_code for route in READS_OF_AN_EXPERIMENT}
     assert {route: code for route, code in answers.items() if code != 200} == {}
+
+
+def test_an_imagenet_run_without_the_weights_is_a_422_naming_the_file_and_records_nothing(client, database_url, tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    body = {"name": "imagenet", "detector": {"pretrained": "imagenet"}}
+    refused = client.post("/experiments", json=body, headers=AUTH)
+    assert refused.status_code == 422 and "mobilenet_v3_large-8738ca79.pth" in refused.json()["detail"]
+    assert _experiments(database_url) == 0
+    weights = tmp_path / "torch/hub/checkpoints/mobilenet_v3_large-8738ca79.pth"
+    weights.parent.mkdir(parents=True)
+    weights.write_bytes(b"")  # only its presence is checked here; the train worker reads it
+    assert client.post("/experiments", json=body, headers=AUTH).status_code == 201
