@@ -77,12 +77,12 @@ def test_a_mixed_stage_ends_the_curriculum_with_its_own_settings():
     assert stages[21:] == [("mixed", "hard")]
     assert ("mixed", "hard") in config.test_pairs()
     mixed = config.stage_active_learning("mixed")
-    assert (mixed.m, mixed.t, mixed.max_increments, mixed.tau) == (150, 110, 5, 0.02)
+    assert (mixed.m, mixed.t, mixed.max_increments, mixed.tau) == (160, 240, 5, 0.02)
     assert mixed.training_set == "grow" and config.active_learning.training_set == "reset"
     assert (mixed.M, mixed.N) == (2, 2) != (config.active_learning.M, config.active_learning.N)
     assert config.stage_active_learning("fb") == config.active_learning
     draw = config.mixed_draw()
-    assert draw.conditions_per_image == (3, 6) and draw.negatives == 0.1 and draw.draw_from == ()
+    assert draw.conditions_per_image == (2, 4) and draw.negatives == 0.1 and draw.draw_from == ()
 
 
 @pytest.mark.parametrize(
