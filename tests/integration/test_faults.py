@@ -5,6 +5,8 @@ this module starts itself on a free port, so it can kill it), with the tests' sh
   increment is sent again once its lease lapses and trained by the next worker, once;
 - a whole render worker killed mid-batch: the batch's claims lapse, the θ nobody holds any
   more are sent again once and rendered by another worker;
+- the scheduler killed mid-run and started again (as compose's restart policy does): the new
+  one goes on from the database, and nothing is sent or trained twice;
 - Redis killed and restarted empty with batches waiting: the scheduler finds the messages that
   nobody holds (no queue has them, no live worker does) and sends each again, once.
 
@@ -28,6 +30,7 @@ from tests.integration.fault_harness import (
     OwnRedis,
     audit_done_once,
     kill_render_worker_mid_batch,
+    kill_scheduler,
     kill_train_worker_mid_increment,
     restart_redis_empty,
     stack_on_own_redis,
@@ -99,8 +102,16 @@ def test_a_render_worker_killed_mid_batch_loses_nothing_and_renders_nothing_twic
     print(f"\nkilled render worker: {len(recovery.lost_thetas)} lost θ claimed again {recovery.seconds:.1f} s after the kill")
 
 
+def test_a_scheduler_killed_mid_run_is_restarted_and_nothing_runs_twice(fault_stack, fault_api, rows):
+    recovery = kill_scheduler(fault_stack, fault_api, rows)
+    # The scheduler holds no task: nothing was cut off, so the audit allows no second start.
+    check_done_once(fault_stack, fault_api, rows, recovery)
+    print(f"\nkilled scheduler: the restarted one decided {recovery.seconds:.1f} s after the kill")
+
+
 def test_redis_restarted_empty_mid_run_loses_nothing(fault_stack, fault_api, rows, own_redis):
     recovery = restart_redis_empty(fault_stack, fault_api, rows, own_redis)
     # No process died: nothing was cut off, so the audit allows no θ a second start.
     check_done_once(fault_stack, fault_api, rows, recovery)
     print(f"\nRedis restarted empty: {len(recovery.lost_thetas)} lost θ rendering again {recovery.seconds:.1f} s after the kill")
+
