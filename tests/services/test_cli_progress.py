@@ -30,14 +30,30 @@ def test_run_through_a_pipe_prints_a_line_per_increment_as_it_goes(database, tmp
     text = "\n".join(line for _, line in arrivals)
 
     assert "\x1b" not in text and "\r" not in text
-    progress = [(when, line) for when, line in arrivals if " stages (" in line and "ETA" in line]
+    progress = [(when, line) for when, line in arrivals if " planned iterations (" in line and "ETA" in line]
     increments = [line for _, line in progress if "fb/easy k=" in line]
     # k = 0 (the stage starts), 1 and 2 (smoke: M + N = 2 increments)
     assert {line.split("k=")[1].split()[0].rstrip(":") for line in increments} >= {"0", "1", "2"}, text
     # lines arrive while it runs, not in one block at the end
     assert ended - progress[0][0] > 1.0, text
-    assert progress[-1][1].startswith("finished") and "1/1 stages (100%)" in progress[-1][1]
+    assert progress[-1][1].startswith("finished") and "(100%)" in progress[-1][1]
     # no wrapping at 80 columns (COLUMNS=80 is ignored off a terminal): the header stays one line
     header = next(line for _, line in arrivals if line.startswith("foldwise: experiment"))
     assert len(header) > 80 and f"database {database}" in header
     assert any("plateau" in line and line.count("│") == 8 for line in text.splitlines())  # 7 columns, one row
+
+
+def test_progress_counts_planned_training_iterations_not_stages():
+    from foldwise.config import load_config
+    from services.cli import training_progress
+
+    config = load_config(REPO_ROOT / "configs/quick.yaml")
+    singles, mixed = 21 * 1 * 14, 5 * 240  # cap x t per stage
+    assert training_progress(config, []) == (0, singles + mixed)
+    rows = [{"condition": c, "difficulty": d, "status": "done", "increments": 1} for c, d in config.stage_order()[:21]]
+    rows.append({"condition": "mixed", "difficulty": "hard", "status": "running", "increments": 2})
+    done, planned = training_progress(config, rows)
+    # 21 of 22 stages are done, but two thirds of the training is still ahead.
+    assert (done, planned) == (singles + 2 * 240, singles + mixed) and done / planned < 0.55
+    rows[-1] = {**rows[-1], "status": "done", "increments": 3}  # ended early by the stopping rule
+    assert training_progress(config, rows) == (planned, planned)
