@@ -16,7 +16,6 @@ no paper rank and stays out of Spearman's ρ.
 from __future__ import annotations
 
 import csv
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -50,34 +49,21 @@ class LearnabilityOrder:
 
 def average_ranks(values: Sequence[float], descending: bool = True) -> list[float]:
     """Ranks from 1, the largest first when ``descending``; ties share their mean rank."""
-    order = sorted(range(len(values)), key=lambda i: -values[i] if descending else values[i])
-    ranks = [0.0] * len(values)
-    start = 0
-    while start < len(order):
-        end = start
-        while end + 1 < len(order) and values[order[end + 1]] == values[order[start]]:
-            end += 1
-        for position in range(start, end + 1):
-            ranks[order[position]] = (start + end) / 2 + 1
-        start = end + 1
-    return ranks
+    from scipy.stats import rankdata
+
+    return [float(rank) for rank in rankdata([-v if descending else v for v in values], method="average")]
 
 
 def spearman_rho(x: Sequence[float], y: Sequence[float]) -> float | None:
-    """Spearman's rank correlation (Pearson's r of the average ranks, as scipy.stats.spearmanr);
-    None when it is undefined (fewer than two pairs, or no spread on one side)."""
+    """Spearman's rank correlation (scipy.stats.spearmanr); None when it is undefined (fewer
+    than two pairs, or no spread on one side)."""
     if len(x) != len(y):
         raise ValueError(f"spearman_rho: {len(x)} values against {len(y)}")
-    if len(x) < 2:
+    if len(x) < 2 or len(set(x)) < 2 or len(set(y)) < 2:
         return None
-    rx, ry = average_ranks(x, descending=False), average_ranks(y, descending=False)
-    mx, my = sum(rx) / len(rx), sum(ry) / len(ry)
-    sxy = sum((a - mx) * (b - my) for a, b in zip(rx, ry))
-    sxx = sum((a - mx) ** 2 for a in rx)
-    syy = sum((b - my) ** 2 for b in ry)
-    if sxx == 0 or syy == 0:
-        return None
-    return sxy / math.sqrt(sxx * syy)
+    from scipy.stats import spearmanr
+
+    return float(spearmanr(x, y).statistic)
 
 
 def learnability_order(history: Sequence[dict], names: dict[str, str] | None = None) -> LearnabilityOrder:
