@@ -11,3 +11,13 @@ def no_broker_view(monkeypatch):
     from services.scheduler import reconcile
 
     monkeypatch.setattr(reconcile, "_broker_view", lambda snapshot: None)
+
+
+@pytest.fixture
+def sent(monkeypatch, database):
+    """The scheduler's messages, recorded and never delivered (as if every worker were down)."""
+    from services.scheduler import reconcile
+
+    messages: list[reconcile.Send] = []
+    monkeypatch.setattr(reconcile, "_send", messages.append)
+    return messages

@@ -15,7 +15,6 @@ from db.models import Experiment, ExperimentStatus, Model, ModelStatus, Paramete
 from db.session import session_scope
 from services import queries
 from services.embedded import start_experiment
-from services.scheduler import reconcile
 from services.scheduler.reconcile import EnqueueTraining, Finish, apply, reconcile_once
 from tests.services.scheduler.test_flow import config
 from tests.services.scheduler.test_plan import NOW, model, plan, snapshot
@@ -26,14 +25,6 @@ def _statuses(experiment_id: int) -> tuple[Counter, Counter]:
         thetas = Counter(s.value for s in session.scalars(select(ParameterSet.status).where(ParameterSet.experiment_id == experiment_id)))
         models = Counter(s.value for s in session.scalars(select(Model.status).where(Model.experiment_id == experiment_id)))
     return thetas, models
-
-
-@pytest.fixture
-def sent(monkeypatch, database):
-    """The scheduler's messages, recorded and never delivered (as if every worker were down)."""
-    messages: list[reconcile.Send] = []
-    monkeypatch.setattr(reconcile, "_send", messages.append)
-    return messages
 
 
 def _in_flight(experiment_id: int) -> None:

@@ -51,9 +51,7 @@ def _resent(messages) -> list[int]:
     return sorted(i for send in messages if send.kind == "render" for i in send.ids)
 
 
-def test_unclaimed_theta_nobody_holds_is_sent_again_once_and_held_ones_are_left(monkeypatch, database):
-    messages: list[reconcile.Send] = []
-    monkeypatch.setattr(reconcile, "_send", messages.append)
+def test_unclaimed_theta_nobody_holds_is_sent_again_once_and_held_ones_are_left(monkeypatch, sent):
     experiment_id = start_experiment(config())
     _in_flight(experiment_id)
     queued = _age_queued(experiment_id, seconds=40)  # past the grace (30 s of the 60 s lease)
@@ -65,49 +63,45 @@ def test_unclaimed_theta_nobody_holds_is_sent_again_once_and_held_ones_are_left(
         return Held(render=frozenset(waiting_in_queue), train=frozenset())
 
     monkeypatch.setattr(reconcile, "_broker_view", view)
-    messages.clear()
+    sent.clear()
     reconcile_once(experiment_id)
     assert asked == [set(queued)]
-    assert _resent(messages) == sorted(lost)
+    assert _resent(sent) == sorted(lost)
     assert all(n == 2 for n in _sends(lost).values()) and all(n == 1 for n in _sends(waiting_in_queue).values())
 
     # Just re-sent: not quiet any more, so nothing is asked and nothing sent again.
-    messages.clear()
+    sent.clear()
     asked.clear()
     reconcile_once(experiment_id)
-    assert _resent(messages) == [] and asked == [set(waiting_in_queue)]
+    assert _resent(sent) == [] and asked == [set(waiting_in_queue)]
 
 
-def test_a_live_claim_is_left_alone_and_a_dead_one_is_sent_again_with_its_claim_released(monkeypatch, database):
-    messages: list[reconcile.Send] = []
-    monkeypatch.setattr(reconcile, "_send", messages.append)
+def test_a_live_claim_is_left_alone_and_a_dead_one_is_sent_again_with_its_claim_released(monkeypatch, sent):
     holder: set[int] = set()
     monkeypatch.setattr(reconcile, "_broker_view", lambda snapshot: Held(frozenset(holder), frozenset()))
     experiment_id = start_experiment(config())
     _in_flight(experiment_id)
     claimed = _age_queued(experiment_id, seconds=20, claimed=True)  # renewed 20 s ago: a beat missed, no more
-    messages.clear()
+    sent.clear()
     reconcile_once(experiment_id)
-    assert _resent(messages) == []
+    assert _resent(sent) == []
     # Two beats (of lease/4 = 15 s) missed, but a live worker has the batch active: left alone.
     holder.update(claimed)
     _age_queued(experiment_id, seconds=31, claimed=True)
     reconcile_once(experiment_id)
-    assert _resent(messages) == []
+    assert _resent(sent) == []
     # Its worker is gone: sent again, and the dead claim released for the next delivery.
     holder.clear()
     reconcile_once(experiment_id)
-    assert _resent(messages) == sorted(claimed)
+    assert _resent(sent) == sorted(claimed)
     with session_scope() as session:
         rows = session.scalars(select(ParameterSet).where(ParameterSet.id.in_(claimed))).all()
         assert {(row.task_id, row.claimed_at, row.sends) for row in rows} == {(None, None, 2)}
 
 
-def test_a_training_model_whose_worker_is_gone_goes_back_to_queued_and_is_sent_again(monkeypatch, database):
+def test_a_training_model_whose_worker_is_gone_goes_back_to_queued_and_is_sent_again(monkeypatch, sent):
     from workers.train.tasks import _claim
 
-    messages: list[reconcile.Send] = []
-    monkeypatch.setattr(reconcile, "_send", messages.append)
     monkeypatch.setattr(reconcile, "_broker_view", lambda snapshot: Held(frozenset(), frozenset()))
     experiment_id = start_experiment(config())
     _in_flight(experiment_id)
@@ -117,33 +111,29 @@ def test_a_training_model_whose_worker_is_gone_goes_back_to_queued_and_is_sent_a
     with session_scope() as session:
         session.get(Model, model_id).claimed_at = utcnow() - timedelta(seconds=31)
         session.get(Model, model_id).enqueued_at = utcnow() - timedelta(seconds=31)
-    messages.clear()
+    sent.clear()
     reconcile_once(experiment_id)
-    assert [send.ids for send in messages if send.kind == "train"] == [(model_id,)]
+    assert [send.ids for send in sent if send.kind == "train"] == [(model_id,)]
     with session_scope() as session:
         model = session.get(Model, model_id)
         assert (model.status, model.task_id, model.claimed_at, model.sends) == (ModelStatus.queued, None, None, 2)
     assert _claim(model_id, "next-worker")  # taken at once, 31 s after the last beat
 
 
-def test_without_a_broker_view_only_the_hour_old_are_sent_again(monkeypatch, database):
-    messages: list[reconcile.Send] = []
-    monkeypatch.setattr(reconcile, "_send", messages.append)
+def test_without_a_broker_view_only_the_hour_old_are_sent_again(monkeypatch, sent):
     monkeypatch.setattr(reconcile, "_broker_view", lambda snapshot: None)  # RabbitMQ, or unreachable
     experiment_id = start_experiment(config())
     _in_flight(experiment_id)
     queued = _age_queued(experiment_id, seconds=40)
-    messages.clear()
+    sent.clear()
     reconcile_once(experiment_id)
-    assert _resent(messages) == []
+    assert _resent(sent) == []
     _age_queued(experiment_id, seconds=3601)
     reconcile_once(experiment_id)
-    assert _resent(messages) == sorted(queued)
+    assert _resent(sent) == sorted(queued)
 
 
-def test_a_queued_model_nobody_holds_is_sent_again_and_a_held_one_is_not(monkeypatch, database):
-    messages: list[reconcile.Send] = []
-    monkeypatch.setattr(reconcile, "_send", messages.append)
+def test_a_queued_model_nobody_holds_is_sent_again_and_a_held_one_is_not(monkeypatch, sent):
     experiment_id = start_experiment(config())
     _in_flight(experiment_id)
     with session_scope() as session:
@@ -151,9 +141,9 @@ def test_a_queued_model_nobody_holds_is_sent_again_and_a_held_one_is_not(monkeyp
         assert model.status == ModelStatus.queued and model.sends == 1
         model.enqueued_at = utcnow() - timedelta(seconds=40)
         model_id = model.id
-    trains = lambda: [send.ids[0] for send in messages if send.kind == "train"]  # noqa: E731
+    trains = lambda: [send.ids[0] for send in sent if send.kind == "train"]  # noqa: E731
     monkeypatch.setattr(reconcile, "_broker_view", lambda s: Held(frozenset(), frozenset({model_id})))
-    messages.clear()
+    sent.clear()
     reconcile_once(experiment_id)
     assert trains() == []
     monkeypatch.setattr(reconcile, "_broker_view", lambda s: Held(frozenset(), frozenset()))

@@ -9,20 +9,18 @@ from datetime import timedelta
 
 from sqlalchemy import select
 
-from db.models import Model, ModelStatus, utcnow
+from db.models import Experiment, ExperimentStatus, Model, ModelStatus, utcnow
 from db.session import session_scope
 from foldwise.settings import get_settings
 from services.embedded import start_experiment
-from services.scheduler import reconcile, service
+from services.scheduler import service
 from services.scheduler.reconcile import OpenStage
 from services.scheduler.service import MAX_STEPS_PER_PASS, reconcile_until_idle
 from tests.services.scheduler.test_finish_cleanup import _in_flight
 from tests.services.scheduler.test_flow import config
 
 
-def test_a_pass_sends_each_task_at_most_once_even_when_every_step_asks_again(monkeypatch, database):
-    messages: list[reconcile.Send] = []
-    monkeypatch.setattr(reconcile, "_send", messages.append)
+def test_a_pass_sends_each_task_at_most_once_even_when_every_step_asks_again(monkeypatch, sent):
     experiment_id = start_experiment(config())
     _in_flight(experiment_id)
     with session_scope() as session:
@@ -34,12 +32,12 @@ def test_a_pass_sends_each_task_at_most_once_even_when_every_step_asks_again(mon
     monkeypatch.setenv("FOLDWISE_LEASE_S", "0.000001")
     get_settings.cache_clear()
     try:
-        messages.clear()
+        sent.clear()
         steps = reconcile_until_idle(experiment_id)
     finally:
         monkeypatch.delenv("FOLDWISE_LEASE_S")
         get_settings.cache_clear()
-    per_task = Counter((send.kind, i) for send in messages for i in send.ids)
+    per_task = Counter((send.kind, i) for send in sent for i in send.ids)
     assert per_task[("train", model_id)] == 1
     assert max(per_task.values()) == 1, per_task
     assert steps < MAX_STEPS_PER_PASS  # it stopped because nothing new was left, not at the bound
@@ -58,18 +56,14 @@ def test_a_pass_stops_after_the_step_bound(monkeypatch):
     assert len(calls) == 50
 
 
-def test_a_stored_config_this_version_refuses_fails_the_experiment_once_with_the_reason(monkeypatch, database):
+def test_a_stored_config_this_version_refuses_fails_the_experiment_once_with_the_reason(sent):
     # Recorded before the bound on m existed: every pass raised, and the experiment stayed live.
-    from db.models import Experiment, ExperimentStatus
-
-    messages: list[reconcile.Send] = []
-    monkeypatch.setattr(reconcile, "_send", messages.append)
     experiment_id = start_experiment(config())
     _in_flight(experiment_id)
     with session_scope() as session:
         experiment = session.get(Experiment, experiment_id)
         experiment.config = {**experiment.config, "active_learning": {**experiment.config["active_learning"], "m": 10**9}}
-    messages.clear()
+    sent.clear()
     assert reconcile_until_idle(experiment_id) == 1
     with session_scope() as session:
         experiment = session.get(Experiment, experiment_id)
@@ -78,5 +72,5 @@ def test_a_stored_config_this_version_refuses_fails_the_experiment_once_with_the
         open_models = session.scalars(
             select(Model).where(Model.experiment_id == experiment_id, Model.status.in_([ModelStatus.queued, ModelStatus.training]))
         ).all()
-    assert open_models == [] and messages == []  # its open work discarded, nothing sent
+    assert open_models == [] and sent == []  # its open work discarded, nothing sent
     assert reconcile_until_idle(experiment_id) == 0  # a failed experiment is left alone
