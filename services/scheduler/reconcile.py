@@ -347,10 +347,14 @@ def _latest(*moments: datetime | None) -> datetime | None:
 
 
 def load_snapshot(
-    session: Session, experiment: Experiment, now: datetime | None = None, held: Held | None = None
+    session: Session,
+    experiment: Experiment,
+    now: datetime | None = None,
+    held: Held | None = None,
+    config: ExperimentConfig | None = None,
 ) -> Snapshot:
     """The experiment's state; with ``held`` (the broker's view), the quiet θ and models nobody
-    holds are the ones to send again."""
+    holds are the ones to send again. ``config``: its stored config, when the caller has read it."""
     settings = get_settings()
     now = now or utcnow()
     requeue_after = timedelta(seconds=settings.requeue_after_s)
@@ -423,7 +427,7 @@ def load_snapshot(
         experiment_id=experiment.id,
         status=experiment.status,
         seed=experiment.seed,
-        config=ExperimentConfig.model_validate(experiment.config),
+        config=config or ExperimentConfig.model_validate(experiment.config),
         stages=stages,
         models=models,
         theta_counts=theta_counts,
@@ -682,15 +686,14 @@ def _broker_view(snapshot: Snapshot) -> Held | None:
     return held_messages(app, set(snapshot.quiet_theta_ids), quiet_models)
 
 
-def _unreadable_config(experiment: Experiment) -> str | None:
-    """Why the experiment's stored config does not validate under this version (None when it does)."""
+def _stored_config(experiment: Experiment) -> ExperimentConfig | str:
+    """The experiment's stored config, or why this version does not accept it."""
     from foldwise.config import ConfigError, parse_config
 
     try:
-        parse_config(experiment.config)
+        return parse_config(experiment.config)
     except ConfigError as error:
         return f"its stored config is not valid in this version of foldwise: {error}"
-    return None
 
 
 def reconcile_once(experiment_id: int, sent: set[tuple[str, int]] | None = None) -> list[Decision]:
@@ -706,20 +709,20 @@ def reconcile_once(experiment_id: int, sent: set[tuple[str, int]] | None = None)
         experiment = session.scalar(query)
         if experiment is None:
             return []
-        unreadable = _unreadable_config(experiment)
-        if unreadable is not None:
+        config = _stored_config(experiment)
+        if isinstance(config, str):
             # A stored config this version refuses (recorded before a bound existed) can never
             # plan: the experiment fails with the reason instead of raising on every pass.
-            decisions = [Fail(unreadable)] if experiment.status in (ExperimentStatus.pending, ExperimentStatus.running) else []
+            decisions = [Fail(config)] if experiment.status in (ExperimentStatus.pending, ExperimentStatus.running) else []
             if decisions:
                 apply(session, experiment, decisions, None)
             return decisions
-        snapshot = load_snapshot(session, experiment)
+        snapshot = load_snapshot(session, experiment, config=config)
         if snapshot.needs_broker_view():
             held = _broker_view(snapshot)
             if held is not None:
                 # Read again after asking: what a worker finished meanwhile is not sent again.
-                snapshot = load_snapshot(session, experiment, held=held)
+                snapshot = load_snapshot(session, experiment, held=held, config=config)
         decisions = plan(snapshot)
         if sent is not None:
             decisions = _not_sent_yet(decisions, sent)
