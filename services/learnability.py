@@ -96,15 +96,13 @@ def learnability_order(history: Sequence[dict], names: dict[str, str] | None = N
     return LearnabilityOrder(rows=rows, spearman_rho=rho, compared=tuple(row.condition for row in compared))
 
 
-def experiment_learnability(experiment_id: int) -> LearnabilityOrder:
-    from db.session import session_scope
+def experiment_learnability(session, experiment_id: int) -> LearnabilityOrder:
+    """The order of an experiment's conditions, from its P as ``session`` reads it."""
     from foldwise.conditions import load_condition_table
     from services import queries
 
     table = load_condition_table()
-    with session_scope() as session:
-        history = queries.history(session, experiment_id)
-    return learnability_order(history, {code: table.name(code) for code in table.codes})
+    return learnability_order(queries.history(session, experiment_id), {code: table.name(code) for code in table.codes})
 
 
 def write_learnability_csv(order: LearnabilityOrder, path: Path) -> Path:

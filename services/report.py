@@ -84,7 +84,8 @@ def write_report(experiment_id: int, out_dir: Path) -> ReportFiles:
     with session_scope() as session:
         experiment = queries.get_experiment(session, experiment_id)
         name = experiment.name
-        kind = ExperimentConfig.model_validate(experiment.config).kind
+        learnable = ExperimentConfig.model_validate(experiment.config).kind == "learnability"
+        learnability = experiment_learnability(session, experiment_id) if learnable else None
     rows = report_rows(experiment_id)
     out_dir.mkdir(parents=True, exist_ok=True)
     csv_path = out_dir / f"experiment-{experiment_id}.csv"
@@ -125,8 +126,7 @@ def write_report(experiment_id: int, out_dir: Path) -> ReportFiles:
     png_path = out_dir / f"experiment-{experiment_id}.png"
     figure.savefig(png_path, dpi=120)
     plt.close(figure)
-    if kind != "learnability":
+    if learnability is None:
         return ReportFiles(png=png_path, csv=csv_path, rows=rows)
-    order = experiment_learnability(experiment_id)
-    learnability_csv = write_learnability_csv(order, out_dir / f"learnability-{experiment_id}.csv")
-    return ReportFiles(png=png_path, csv=csv_path, rows=rows, learnability=order, learnability_csv=learnability_csv)
+    learnability_csv = write_learnability_csv(learnability, out_dir / f"learnability-{experiment_id}.csv")
+    return ReportFiles(png=png_path, csv=csv_path, rows=rows, learnability=learnability, learnability_csv=learnability_csv)

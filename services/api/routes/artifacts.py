@@ -111,7 +111,7 @@ def experiment_learnability(experiment_id: ExperimentId, session: SessionDep) ->
         raise HTTPException(
             status.HTTP_409_CONFLICT, f"experiment {experiment_id} is of kind {config.kind}, not learnability"
         )
-    order = learnability.experiment_learnability(experiment_id)
+    order = learnability.experiment_learnability(session, experiment_id)
     return {
         "score": "mean mAP over every increment of the condition, each on its own test set",
         "spearman_rho": order.spearman_rho,

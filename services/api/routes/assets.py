@@ -55,6 +55,11 @@ def _file_name(upload: UploadFile) -> str:
     return name
 
 
+def _as_sent(error: Exception, staging: Path) -> HTTPException:
+    """A 422 naming each file as the client sent it, not by its path in the staging folder."""
+    return HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error).replace(str(staging) + os.sep, ""))
+
+
 @router.post(
     "/{kind}",
     status_code=status.HTTP_201_CREATED,
@@ -98,14 +103,14 @@ def upload_assets(
             path.write_bytes(payload)
             try:
                 width, height = check_image_file(path, kind)
-            except AssetError as error:  # name the file as the client sent it, not the staging path
-                raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error).replace(str(staging) + os.sep, "")) from None
+            except AssetError as error:
+                raise _as_sent(error, staging) from None
             described.append({"name": name, "sha256": hashlib.sha256(payload).hexdigest(), "width": width, "height": height})
         if kind == "objects":
             try:
                 check_class_names(sorted(staging.iterdir()))
             except AssetError as error:
-                raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error).replace(str(staging) + os.sep, "")) from None
+                raise _as_sent(error, staging) from None
         described.sort(key=lambda entry: entry["name"])
         digest = hashlib.sha256(json.dumps([[e["name"], e["sha256"]] for e in described]).encode()).hexdigest()
         folder = root / f"{kind}-{digest[:16]}"
