@@ -701,18 +701,14 @@ def class_agnostic(predictions: list[dict], ground_truth: list[dict]) -> tuple[l
 
 
 def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: float) -> dict:
-    from workers.train.checkpoint import detect_object, load_detector
+    from workers.train.checkpoint import load_detector
     from workers.train.data import load_coco_dataset
-    from workers.train.evaluation import evaluate_predictions
+    from workers.train.evaluation import detector_predictions, evaluate_predictions
 
     samples, classes = load_coco_dataset(data)
     detector = load_detector(checkpoint, device="cpu")
     started = time.perf_counter()
-    model_classes = [str(name) for name in detector.meta["classes"]]
-    to_model = np.array([model_classes.index(name) for name in classes], dtype=np.int64)
-    predictions = detect_object(detector, [sample.image_path for sample in samples], batch_size=16)
-    truth = [{"boxes": s.boxes, "labels": to_model[np.asarray(s.labels, dtype=np.int64)]} for s in samples]
-    groups = [{"condition": sample.condition, "difficulty": sample.difficulty} for sample in samples]
+    predictions, truth, groups, model_classes = detector_predictions(detector, samples, classes)
     protocol = {"score_threshold": score_threshold, "iou_threshold": iou_threshold, "coco": False}
     payload = evaluate_predictions(predictions, truth, model_classes, groups=groups, **protocol).to_dict()
     agnostic = evaluate_predictions(*class_agnostic(predictions, truth), ["object"], **protocol).to_dict()

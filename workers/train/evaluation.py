@@ -511,25 +511,18 @@ def detection_samples(
     return samples
 
 
-def evaluate_detector(
+def detector_predictions(
     detector: Any,
     samples: Sequence[Any],
     classes: Sequence[str],
     *,
-    score_threshold: float = 0.8,
-    iou_threshold: float = 0.5,
     batch_size: int = 16,
-    coco: bool = True,
     on_batch: Callable[[int], None] | None = None,
-) -> EvaluationResult:
-    """Run ``detect_object`` on the samples' images and score it against their boxes.
-
-    ``samples`` are ``workers.train.data.Sample`` (labels index ``classes``, the dataset's class
-    names). The detector's own class list (``detector.meta["classes"]``) is the one scored:
-    ground-truth labels are mapped to it by name, so a dataset whose categories come in another
-    order still scores right; a dataset class the detector does not know is an error.
-    Breakdown groups are the samples' condition and difficulty.
-    """
+) -> tuple[list[dict], list[dict], list[dict], list[str]]:
+    """(predictions, ground truth, groups, the detector's class names) for ``evaluate_predictions``:
+    ``detect_object`` on the samples' images, and their boxes with labels mapped to the detector's
+    own class list by name (a dataset whose categories come in another order still scores right;
+    a dataset class the detector does not know is an error). Groups are condition and difficulty."""
     from workers.train.checkpoint import detect_object
 
     model_classes = [str(name) for name in detector.meta.get("classes", classes)]
@@ -546,6 +539,25 @@ def evaluate_detector(
         {"boxes": sample.boxes, "labels": to_model[np.asarray(sample.labels, dtype=np.int64)]} for sample in samples
     ]
     groups = [{"condition": sample.condition, "difficulty": sample.difficulty} for sample in samples]
+    return predictions, ground_truth, groups, model_classes
+
+
+def evaluate_detector(
+    detector: Any,
+    samples: Sequence[Any],
+    classes: Sequence[str],
+    *,
+    score_threshold: float = 0.8,
+    iou_threshold: float = 0.5,
+    batch_size: int = 16,
+    coco: bool = True,
+    on_batch: Callable[[int], None] | None = None,
+) -> EvaluationResult:
+    """Run ``detect_object`` on the samples' images and score it against their boxes
+    (``samples`` are ``workers.train.data.Sample``; see ``detector_predictions``)."""
+    predictions, ground_truth, groups, model_classes = detector_predictions(
+        detector, samples, classes, batch_size=batch_size, on_batch=on_batch
+    )
     return evaluate_predictions(
         predictions,
         ground_truth,
