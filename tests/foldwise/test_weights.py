@@ -51,11 +51,16 @@ def test_missing_weights_name_the_file_and_the_command(monkeypatch, tmp_path):
     assert missing_imagenet_weights("mobilenet_v3_large_fpn") is None
 
 
-def test_foldwise_run_stops_before_any_work_without_the_weights(tmp_path):
+def _imagenet_config(tmp_path):
     config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
     config["detector"] = {**config.get("detector", {}), "pretrained": "imagenet"}
     path = tmp_path / "imagenet.yaml"
     path.write_text(yaml.safe_dump(config))
+    return path
+
+
+def test_foldwise_run_stops_before_any_work_without_the_weights(tmp_path):
+    path = _imagenet_config(tmp_path)
     env = {"FOLDWISE_DATA_DIR": str(tmp_path / "data"), "TORCH_HOME": str(tmp_path / "torch"), "PATH": "/usr/bin:/bin",
            "COLUMNS": "300"}  # fmt: skip
     done = subprocess.run([sys.executable, "-m", "services.cli", "run", str(path)], cwd=REPO_ROOT, capture_output=True,
@@ -76,10 +81,3 @@ def test_foldwise_train_stops_before_reading_the_data_without_the_weights(tmp_pa
     assert done.returncode != 0 and "detector.pretrained: 'imagenet' needs " in output, output
     assert "no-such-set" not in output  # refused on the weights, before the data was looked at
 
-
-def _imagenet_config(tmp_path):
-    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
-    config["detector"] = {**config.get("detector", {}), "pretrained": "imagenet"}
-    path = tmp_path / "imagenet.yaml"
-    path.write_text(yaml.safe_dump(config))
-    return path
