@@ -29,7 +29,8 @@ scores foldwise's landings, and nothing in foldwise is tuned to it.
     python bench/wild.py --model M.pt --n-ood 300 --out bench/results/wild.json
 
 A third score, ``in_domain_reframed``, puts the in-domain images in 4:3 and 3:4 frames (mirrored
-borders): the same objects, other frames.
+borders): the same objects, other frames; a fourth, ``in_domain_rotated``, turns them by
+quarter turns (boxes exact): the same objects, any camera roll.
 
 JSON out: both mAPs, their ratio (the goal is ≥ 0.8), each set's class-agnostic mAP (any
 class at a target counts: finding the sheet apart from naming it), the out-of-domain breakdown by scene
@@ -683,6 +684,36 @@ def make_reframed_set(source: Path, out: Path) -> Path:
     return out
 
 
+def make_rotated_set(source: Path, out: Path) -> Path:
+    """foldwise's own renders turned by a quarter, a half and three quarters of a turn (in
+    turn, image by image), boxes turned with them exactly. A camera held at any roll sees the
+    sheet at any in-plane angle; the renderer turns the sheet only where a condition draws a
+    rotation, so this tells whether the detector learned the object or its upright look."""
+    import cv2
+
+    document = json.loads((source / "annotations.json").read_text())
+    (out / "images").mkdir(parents=True, exist_ok=True)
+    turns = {}
+    for index, image in enumerate(document["images"]):
+        pixels = cv2.imread(str(source / image["file_name"]), cv2.IMREAD_COLOR)
+        quarter = index % 3 + 1  # counter-clockwise quarter turns
+        cv2.imwrite(str(out / image["file_name"]), np.ascontiguousarray(np.rot90(pixels, quarter)))
+        turns[image["id"]] = (quarter, image["width"], image["height"])
+        if quarter % 2:
+            image["width"], image["height"] = image["height"], image["width"]
+    for annotation in document["annotations"]:
+        quarter, width, height = turns[annotation["image_id"]]
+        x, y, w, h = annotation["bbox"]
+        for _ in range(quarter):  # one counter-clockwise quarter turn: (x, y) -> (y, width - x)
+            x, y, w, h = y, width - x - w, h, w
+            width, height = height, width
+        annotation["bbox"] = [x, y, w, h]
+        annotation.pop("amodal_bbox", None)
+        annotation.pop("segmentation", None)
+    (out / "annotations.json").write_text(json.dumps(document))
+    return out
+
+
 def class_agnostic(predictions: list[dict], ground_truth: list[dict]) -> tuple[list[dict], list[dict]]:
     """The same detections and boxes with every class merged into one ("the object"): a box of
     any class at a target counts, and boxes of several classes at one place are suppressed to
@@ -784,6 +815,8 @@ def main(argv=None) -> dict:
     report["in_domain"] = score(checkpoint, in_domain_dir, args.threshold, args.iou)
     reframed_dir = make_reframed_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-reframed"))
     report["in_domain_reframed"] = score(checkpoint, reframed_dir, args.threshold, args.iou)
+    rotated_dir = make_rotated_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-rotated"))
+    report["in_domain_rotated"] = score(checkpoint, rotated_dir, args.threshold, args.iou)
     report["out_of_domain"] = score(checkpoint, ood_dir, args.threshold, args.iou)
     in_map, ood_map = report["in_domain"]["map"], report["out_of_domain"]["map"]
     report["ratio"] = None if not in_map else ood_map / in_map

@@ -94,6 +94,7 @@ def test_the_benchmark_trains_scores_both_sets_and_reports_the_ratio(tmp_path):
     report = json.loads(out.read_text())
     assert report["in_domain"]["images"] == 2 and report["out_of_domain"]["images"] == 4
     assert report["in_domain_reframed"]["images"] == 2  # the same images in 4:3 and 3:4 frames
+    assert report["in_domain_rotated"]["images"] == 2  # and turned by quarter turns
     for part in ("in_domain", "out_of_domain"):
         assert 0.0 <= report[part]["map"] <= 1.0
     assert Path(report["model"]).is_file()
@@ -145,6 +146,35 @@ def test_reframing_pads_to_four_by_three_and_moves_the_boxes(tmp_path):
         assert pixels.shape[:2] == (image["height"], image["width"])
         x, y, w, h = annotation["bbox"]
         assert pixels[int(y) : int(y + h), int(x) : int(x + w)].min() == 255  # the white square moved with its box
+
+
+def test_rotating_turns_each_image_by_quarter_turns_and_its_boxes_exactly(tmp_path):
+    import cv2
+
+    source = tmp_path / "square"
+    (source / "images").mkdir(parents=True)
+    names = "abc"
+    for name in names:  # a 60 x 40 frame, black, a white block at x 5..15, y 10..30
+        pixels = np.zeros((40, 60, 3), np.uint8)
+        pixels[10:30, 5:15] = 255
+        cv2.imwrite(str(source / f"images/{name}.png"), pixels)
+    document = {
+        "images": [{"id": i + 1, "file_name": f"images/{n}.png", "width": 60, "height": 40} for i, n in enumerate(names)],
+        "annotations": [{"id": i + 1, "image_id": i + 1, "category_id": 1, "bbox": [5, 10, 10, 20]} for i in range(3)],
+        "categories": [{"id": 1, "name": "coffee"}],
+    }
+    (source / "annotations.json").write_text(json.dumps(document))
+    out = wild.make_rotated_set(source, tmp_path / "rotated")
+    turned = json.loads((out / "annotations.json").read_text())
+    assert [(i["width"], i["height"]) for i in turned["images"]] == [(40, 60), (60, 40), (40, 60)]
+    boxes = [a["bbox"] for a in turned["annotations"]]
+    assert boxes[0] == [10, 45, 20, 10]  # a quarter turn counter-clockwise: x <- y, y <- width - x - w
+    assert boxes[1] == [45, 10, 10, 20]  # half a turn
+    assert boxes[2] == [10, 5, 20, 10]  # three quarters
+    for image, (x, y, w, h) in zip(turned["images"], boxes):
+        pixels = cv2.imread(str(out / image["file_name"]), cv2.IMREAD_GRAYSCALE)
+        assert pixels.shape == (image["height"], image["width"])
+        assert pixels[y : y + h, x : x + w].min() == 255 and pixels.sum() == 255 * w * h  # the block is the box
 
 
 def test_the_class_agnostic_score_counts_a_found_sheet_whatever_class_it_is_given():
