@@ -143,6 +143,10 @@ class MixedStageConfig(_Section):
     conditions_per_image: tuple[ConditionsPerImage, ConditionsPerImage] = (2, 4)
     # Which conditions it draws from (empty: every condition of the table).
     draw_from: list[str] = Field(default_factory=list)
+    # Conditions every image holds, at a random difficulty, besides the conditions_per_image
+    # drawn from the rest: the nuisances a photograph always has (a camera roll, a tilt), which
+    # a draw of 2-4 among the whole table gives to one image in six only.
+    always: list[str] = Field(default_factory=list)
     # The share of its images that show no object at all.
     negatives: float = Field(default=0.1, ge=0.0, le=0.9)
     # m, t, M, N, tau, max_increments for the mixed stages (unset: the experiment's).
@@ -161,8 +165,21 @@ class MixedStageConfig(_Section):
         if len(set(self.draw_from)) != len(self.draw_from):
             # An image draws distinct entries: a condition listed twice could appear twice in one image.
             raise ValueError("draw_from: a condition is listed twice")
+        for i, code in enumerate(self.always):
+            if code not in table.conditions:
+                raise ValueError(f"always[{i}]: unknown condition {code!r}; known: {', '.join(table.codes)}")
+        if len(set(self.always)) != len(self.always):
+            raise ValueError("always: a condition is listed twice")
+        if self.draw_from and set(self.always) - set(self.draw_from):
+            # draw_from names what a mixed image may show; a held condition outside it contradicts it.
+            outside = sorted(set(self.always) - set(self.draw_from))
+            raise ValueError(f"always: {outside} not in draw_from ({', '.join(self.draw_from)})")
+        pool = [code for code in pool if code not in self.always]
         if high > len(pool):
-            raise ValueError(f"conditions_per_image: {high} conditions per image, but only {len(pool)} to draw from")
+            raise ValueError(
+                f"conditions_per_image: {high} conditions per image, but only {len(pool)} to draw from"
+                + (f" besides always ({', '.join(self.always)})" if self.always else "")
+            )
         if len(set(self.difficulties)) != len(self.difficulties):
             # Two mixed stages of one difficulty would draw the same test set twice.
             raise ValueError("difficulties: a difficulty is listed twice")
@@ -176,7 +193,7 @@ class MixedStageConfig(_Section):
     def draw(self):
         from foldwise.sampling import MixedDraw
 
-        return MixedDraw(tuple(self.conditions_per_image), tuple(self.draw_from), self.negatives)
+        return MixedDraw(tuple(self.conditions_per_image), tuple(self.draw_from), self.negatives, tuple(self.always))
 
 
 class CurriculumConfig(_Section):

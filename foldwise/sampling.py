@@ -10,10 +10,10 @@ image with equal probability. Every other parameter keeps its canonical value. O
 balanced: n images cycle through shuffled rounds of all objects (the paper's "10 per
 object"); the background (and the occluder of external occlusion) is drawn per image.
 
-A *mixed* θ (``condition="mixed"``, the paper's future work: several conditions at once) draws
-``conditions_per_image`` distinct conditions from ``draw_from``, each at a difficulty drawn
-uniformly among the table's difficulties up to the stage's own, and records them in
-``θ.components``; where two drawn conditions set the same parameter, the later one's value
+A *mixed* θ (``condition="mixed"``, the paper's future work: several conditions at once) holds
+every condition of ``always`` and draws ``conditions_per_image`` more, distinct, from the rest of
+``draw_from``, each at a difficulty drawn uniformly among the table's difficulties up to the
+stage's own, and records them in ``θ.components``; where two drawn conditions set the same parameter, the later one's value
 holds. A share ``negatives`` of mixed θ shows no object at all (``instances = 0``).
 """
 
@@ -81,6 +81,8 @@ class MixedDraw:
     conditions_per_image: tuple[int, int] = (2, 4)
     draw_from: tuple[str, ...] = ()  # empty: every condition of the table
     negatives: float = 0.1
+    # Conditions in every image (the wild always has some pose or roll), besides the drawn ones.
+    always: tuple[str, ...] = ()
 
 
 def _normalise(name: str) -> str:
@@ -200,11 +202,12 @@ def _draw_components(
 ) -> list[dict]:
     if difficulty not in table.difficulties:
         raise ValueError(f"unknown difficulty {difficulty!r}; known: {', '.join(table.difficulties)}")
-    pool = list(mixed.draw_from or table.codes)
+    pool = [code for code in (mixed.draw_from or table.codes) if code not in mixed.always]
     low, high = mixed.conditions_per_image
     count = min(int(rng.integers(low, high + 1)), len(pool))
     reachable = table.difficulties[: table.difficulties.index(difficulty) + 1]
-    picked = [pool[int(i)] for i in rng.choice(len(pool), size=count, replace=False)]
+    # The held conditions first, so that a drawn one setting the same parameter has the last word.
+    picked = [*mixed.always, *(pool[int(i)] for i in rng.choice(len(pool), size=count, replace=False))]
     components = []
     for code in picked:
         level = reachable[int(rng.integers(len(reachable)))]
@@ -257,7 +260,8 @@ def generate_parameters(
             raise ValueError(f"mixed θ have no variant of their own (asked for {variant!r})")
         if difficulty not in table.difficulties:
             raise ValueError(f"unknown difficulty {difficulty!r}; known: {', '.join(table.difficulties)}")
-        for drawn in (mixed or MixedDraw()).draw_from:
+        draw = mixed or MixedDraw()
+        for drawn in (*draw.draw_from, *draw.always):
             table.check(drawn, difficulty)
     else:
         _check_variant(code, table.check(code, difficulty), variant)

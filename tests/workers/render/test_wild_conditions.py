@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from foldwise.conditions import load_condition_table
-from foldwise.sampling import generate_parameters, resample_theta
+from foldwise.sampling import MixedDraw, generate_parameters, resample_theta
 from foldwise.theta import MIXED, Theta
 from workers.render import camera, imaging, lighting, pipeline, raster
 from workers.render.annotation import MIN_BOX_SIDE, tight_box
@@ -252,6 +252,21 @@ def test_mixed_theta_records_its_conditions_and_resamples_keep_them():
     redrawn = resample_theta(theta, 1)
     assert redrawn.components == theta.components and redrawn.instances == theta.instances
     assert redrawn.seed != theta.seed
+
+
+def test_a_held_condition_is_in_every_mixed_theta_and_the_others_are_drawn_beside_it():
+    held = MixedDraw(conditions_per_image=(2, 3), always=("or",))
+    thetas = generate_parameters(MIXED, "hard", 120, seed=6, image_size=SIZE, mixed=held)
+    for theta in thetas:
+        codes = [c.condition for c in theta.components]
+        assert codes[0] == "or" and "or" not in codes[1:] and 2 <= len(codes) - 1 <= 3
+    # Its difficulty is drawn like any other's, so the rotation covers every range of the table.
+    assert {t.components[0].difficulty for t in thetas} == set(TABLE.difficulties)
+    assert max(abs(t.rotation) for t in thetas) > math.pi / 2 and min(abs(t.rotation) for t in thetas) < math.pi / 4
+    # Nothing held: the draws are the ones the stage made before the key existed.
+    assert generate_parameters(MIXED, "hard", 20, seed=6, image_size=SIZE) == generate_parameters(
+        MIXED, "hard", 20, seed=6, image_size=SIZE, mixed=MixedDraw(always=())
+    )
 
 
 # --------------------------------------------------------------------------- extremes
