@@ -5,7 +5,8 @@ draw, each as PNG and SVG with its numbers as CSV:
 
 * ``fig4``: mAP against increment k for every (condition, difficulty) stage, a line per
   experiment (run one experiment per detector to compare detectors, as the paper's Fig. 4);
-* ``fig5``: the best mAP each experiment reached per condition (Fig. 5);
+* ``fig5``: the best mAP each experiment reached per condition and difficulty, a panel per
+  experiment (Fig. 5);
 * ``fig6``: mAP against cumulative training time, a line per experiment (a reset run beside a
   grow run of the same config is the paper's Fig. 6), with each run's total training time;
 * ``fig7``: the standard test set's mAP across the whole curriculum, increment after
@@ -174,27 +175,35 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
         save("fig4", figure, ["experiment", "condition", "difficulty", "k", "map"], rows)
 
     if "fig5" in names:
+        # The paper's Fig. 5: per condition, a bar per difficulty (its mAP rises once the
+        # detector trains on hard cases), a panel per detector.
         conditions = list(dict.fromkeys(c for c, _ in keys))
-        figure, ax = plt.subplots(figsize=(max(6, 1.1 * len(conditions) * max(1, len(runs))), 4), constrained_layout=True)
-        width = 0.8 / max(1, len(runs))
+        difficulties = list(dict.fromkeys(d for _, d in keys))
+        shades = plt.get_cmap("Blues")
+        width = 0.8 / max(1, len(difficulties))
+        figure, axes = plt.subplots(
+            max(1, len(runs)), 1, figsize=(max(6, 0.9 * len(conditions) * max(1, len(difficulties)) / 2 + 2), 3.2 * max(1, len(runs))),
+            constrained_layout=True, squeeze=False,
+        )  # fmt: skip
         rows = []
-        for r, run in enumerate(runs):
-            bests = []
-            for condition in conditions:
-                scores = [s["best_map"] for s in run.stages if s["condition"] == condition and s["best_map"] is not None]
-                best = max(scores) if scores else None
-                bests.append(best)
-                rows.append({"experiment": run.experiment_id, "condition": condition, "name": table.name(condition), "best_map": best})
-            ax.bar([c + r * width for c in range(len(conditions))], [b or 0.0 for b in bests], width, label=run.label,
-                   color=colours(r % 10))  # fmt: skip
-        ax.set_xticks([c + width * (len(runs) - 1) / 2 for c in range(len(conditions))])
-        ax.set_xticklabels([table.name(c) for c in conditions], rotation=30, ha="right", fontsize=8)
-        ax.set_ylabel(f"best {MAP_LABEL.format(cut=runs[0].score_threshold, iou=runs[0].iou_threshold) if runs else 'mAP'}")
-        ax.set_ylim(0, 1.02)
-        ax.set_title(f"Fig. 5: the best mAP per condition (any difficulty, any increment);\n{protocol}", fontsize=9)
-        ax.legend(fontsize=7)
-        ax.grid(axis="y", alpha=0.3)
-        save("fig5", figure, ["experiment", "condition", "name", "best_map"], rows)
+        for r, (run, ax) in enumerate(zip(runs, axes[:, 0])):
+            best = {(s["condition"], s["difficulty"]): s["best_map"] for s in run.stages if s["best_map"] is not None}
+            for d, difficulty in enumerate(difficulties):
+                heights = [best.get((condition, difficulty)) for condition in conditions]
+                for condition, value in zip(conditions, heights):
+                    rows.append({"experiment": run.experiment_id, "condition": condition, "name": table.name(condition),
+                                 "difficulty": difficulty, "best_map": value})  # fmt: skip
+                ax.bar([c + d * width for c in range(len(conditions))], [h or 0.0 for h in heights], width, label=difficulty,
+                       color=shades(0.35 + 0.55 * d / max(1, len(difficulties) - 1)), edgecolor="black", linewidth=0.4)  # fmt: skip
+            ax.set_xticks([c + width * (len(difficulties) - 1) / 2 for c in range(len(conditions))])
+            ax.set_xticklabels([table.name(c) for c in conditions], rotation=30, ha="right", fontsize=8)
+            ax.set_ylabel(f"best {MAP_LABEL.format(cut=run.score_threshold, iou=run.iou_threshold)}", fontsize=8)
+            ax.set_ylim(0, 1.02)
+            ax.set_title(run.label, fontsize=8)
+            ax.legend(title="difficulty trained", fontsize=7, title_fontsize=7, ncols=len(difficulties))
+            ax.grid(axis="y", alpha=0.3)
+        figure.suptitle(f"Fig. 5: the best mAP per condition and difficulty (any increment); {protocol}", fontsize=9)
+        save("fig5", figure, ["experiment", "condition", "name", "difficulty", "best_map"], rows)
 
     if "fig6" in names:
         figure, ax = plt.subplots(figsize=(9, 4.5), constrained_layout=True)

@@ -42,8 +42,11 @@ def test_every_figure_is_written_with_its_numbers(fakes, tmp_path):  # noqa: F81
         assert float(fig8[(stage["condition"], stage["difficulty"])]["best_map"]) == stage["best_map"]
     fig6 = [row for row in csv.DictReader(open(written["fig6"][2])) if row["experiment"] == str(first)]
     assert float(fig6[-1]["cumulative_train_seconds"]) == sum(entry["train_seconds"] for entry in history)
-    fig5 = {row["condition"]: float(row["best_map"]) for row in csv.DictReader(open(written["fig5"][2])) if row["experiment"] == str(first)}
-    assert fig5["fb"] == 0.61
+    fig5 = {(row["condition"], row["difficulty"]): row["best_map"] for row in csv.DictReader(open(written["fig5"][2]))
+            if row["experiment"] == str(second)}  # fmt: skip
+    for stage in stages:  # a bar per condition and difficulty: each stage's best
+        assert float(fig5[(stage["condition"], stage["difficulty"])]) == stage["best_map"]
+    assert "difficulty trained" in written["fig5"][1].read_text()
 
     svg = written["fig4"][1].read_text()
     for text in ("focus blur, easy", "scale, hard", "increment k", "score ≥ 0.8, IoU ≥ 0.5", "faster_rcnn (experiment", "yolo (experiment"):
