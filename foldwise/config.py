@@ -271,6 +271,9 @@ class AugmentationConfig(_Section):
     per image per step. Off by default: the paper trains without augmentation."""
 
     enabled: bool = False
+    quarter_turn: float = Field(
+        default=0.0, ge=0.0, le=1.0, description="a turn by 90, 180 or 270 degrees, frame and boxes with it (exact)"
+    )
     zoom: float = Field(
         default=0.0,
         ge=0.0,

@@ -6,9 +6,11 @@ at no render cost: a zoom on one target (the sheet from a third of the frame to 
 it), a random resized crop at a random aspect ratio (objects larger, cut by the frame, and
 frames that are not square), photometric
 distortion (brightness, contrast, saturation, hue), greyscale, Gaussian blur, sensor noise and
-JPEG, each applied with its own probability (``DetectorConfig.augmentation``). No flip and no
-rotation: a mirrored print is not the object (foldwise detects one particular texture), and a
-rotated axis-aligned box is looser than the object's (the renderer rotates the sheet instead).
+JPEG, each applied with its own probability (``DetectorConfig.augmentation``), and quarter
+turns. No flip: a mirrored print is not the object (foldwise detects one particular texture).
+No rotation by other angles: a rotated axis-aligned box is looser than the object's (the
+renderer rotates the sheet instead); a quarter turn keeps the box exact, and gives every
+rendered view the other three camera rolls at no render cost.
 
 Boxes follow the crop and are clipped to it; a box left thinner than ``MIN_BOX_SIDE`` pixels
 is dropped with its label (``SanitizeBoundingBoxes``). The randomness comes from torch's
@@ -58,6 +60,8 @@ def build_augmentation(config: AugmentationConfig, crop_size: tuple[int, int]):
     from torchvision.transforms import v2
 
     steps = []
+    if config.quarter_turn > 0:
+        steps.append(v2.RandomApply([_quarter_turn()], p=config.quarter_turn))
     if config.zoom > 0:
         steps.append(v2.RandomApply([_object_zoom(max(crop_size))], p=config.zoom))
     if config.crop > 0:
@@ -78,6 +82,22 @@ def build_augmentation(config: AugmentationConfig, crop_size: tuple[int, int]):
     steps.append(v2.ClampBoundingBoxes())
     steps.append(v2.SanitizeBoundingBoxes(min_size=MIN_BOX_SIDE))
     return v2.Compose(steps)
+
+
+def _quarter_turn():
+    """A turn by one, two or three quarters (drawn uniformly), the frame turned with it: boxes
+    stay exact (torchvision's rotate kernels, ``expand``)."""
+    from torchvision.transforms import v2
+    from torchvision.transforms.v2 import functional as F
+
+    class RandomQuarterTurn(v2.Transform):
+        def make_params(self, flat_inputs):
+            return {"angle": 90.0 * int(torch.randint(1, 4, ()).item())}
+
+        def transform(self, inpt, params):
+            return self._call_kernel(F.rotate, inpt, angle=params["angle"], expand=True)
+
+    return RandomQuarterTurn()
 
 
 def _aspect_crop(long_side: int):

@@ -56,6 +56,27 @@ def test_boxes_follow_the_crop_and_a_box_cut_away_is_dropped_with_its_label():
     assert min(aspects) < 0.8 and max(aspects) > 1.25
 
 
+def test_a_quarter_turn_turns_the_frame_and_keeps_each_box_exact():
+    transform = build_augmentation(
+        AugmentationConfig(enabled=True, quarter_turn=1.0, crop=0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0), (64, 64)
+    )
+    image = np.zeros((40, 60, 3), np.uint8)
+    image[10:30, 5:15] = 255  # a white block, its box exactly
+    boxes = np.array([[5, 10, 15, 30]], np.float32)
+    seen = set()
+    for seed in range(30):
+        torch.manual_seed(seed)
+        out, target = augmented(transform, image, boxes, np.array([0]), CPU)
+        white = out.mean(0) > 0.5
+        rows, cols = np.flatnonzero(white.any(1).numpy()), np.flatnonzero(white.any(0).numpy())
+        box = target["boxes"][0].tolist()
+        assert box == [cols[0], rows[0], cols[-1] + 1, rows[-1] + 1]  # to the pixel
+        assert white.sum().item() == 200 and target["labels"].tolist() == [1]
+        seen.add((tuple(out.shape[1:]), tuple(box)))
+    # Three turns, none the identity: a quarter (frame 60 x 40), a half, three quarters.
+    assert seen == {((60, 40), (10.0, 45.0, 30.0, 55.0)), ((40, 60), (45.0, 10.0, 55.0, 30.0)), ((60, 40), (10.0, 5.0, 30.0, 15.0))}
+
+
 def test_the_crop_keeps_the_objects_shape():
     """A square object stays square whatever the frame's aspect (no anisotropic resize)."""
     transform = build_augmentation(AugmentationConfig(enabled=True, crop=1.0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0), (64, 64))
