@@ -307,9 +307,13 @@ def _final_model_id(s: Snapshot) -> int | None:
     if last is None:
         return None
     if s.config.kind == "canonical_baseline":
-        trained = [m for m in s.models if m.stage_id == last.id and m.status == ModelStatus.evaluated]
-        return max(trained, key=lambda m: m.increment).id if trained else None
+        return _last_evaluated_model_id(s, last)
     return last.best_model_id
+
+
+def _last_evaluated_model_id(s: Snapshot, stage: StageView) -> int | None:
+    trained = [m for m in s.models if m.stage_id == stage.id and m.status == ModelStatus.evaluated]
+    return max(trained, key=lambda m: m.increment).id if trained else None
 
 
 def _learnability_init(s: Snapshot, stage: StageView, previous: StageView | None) -> int | None:
@@ -318,8 +322,7 @@ def _learnability_init(s: Snapshot, stage: StageView, previous: StageView | None
     initial weights, so that every condition starts alike (config.LearnabilityConfig says why)."""
     if previous is None or previous.condition != stage.condition:
         return None
-    trained = [m for m in s.models if m.stage_id == previous.id and m.status == ModelStatus.evaluated]
-    return max(trained, key=lambda m: m.increment).id if trained else None
+    return _last_evaluated_model_id(s, previous)
 
 
 # Below this many finished renders a share says little (one failure in four is not a trend).
