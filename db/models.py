@@ -61,6 +61,8 @@ class StageEndReason(str, enum.Enum):
     # Algorithm 2 (kind: learnability): its fixed κ increments done. A new value of a
     # non-native enum column (a VARCHAR(20) without a CHECK constraint): no migration.
     kappa = "kappa"
+    # kind: canonical_baseline: its canonical_baseline.increments done (no migration either).
+    increments = "increments"
 
 
 class Split(str, enum.Enum):

@@ -97,9 +97,12 @@ def _parse_parameters(raw: dict, canonical: dict[str, float], where: str, diffic
 
 
 def parse_condition_table(data: dict) -> ConditionTable:
-    from foldwise.theta import MIXED, parameter_names
+    from foldwise.theta import CANONICAL, MIXED, parameter_names
 
     difficulties = tuple(data["difficulties"])
+    if CANONICAL in difficulties:
+        # θ of difficulty "canonical" vary no condition (and a canonical_baseline stage is one).
+        raise ValueError(f"difficulties: {CANONICAL!r} names images at every canonical value, not a difficulty")
     canonical = {k: parse_number(v, f"canonical.{k}") for k, v in data["canonical"].items()}
     known = parameter_names()
     unknown = sorted(set(canonical) - set(known))
@@ -113,6 +116,8 @@ def parse_condition_table(data: dict) -> ConditionTable:
         where = f"conditions.{code}"
         if code == MIXED:
             raise ValueError(f"{where}: {MIXED!r} names the mixed stage, not a condition")
+        if code == CANONICAL:
+            raise ValueError(f"{where}: {CANONICAL!r} names the canonical baseline's stage, not a condition")
         if "variants" in spec:
             variants = {
                 name: _parse_parameters(params, canonical, f"{where}.variants.{name}", difficulties)

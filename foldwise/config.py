@@ -225,7 +225,8 @@ class TestSetConfig(_Section):
     per_stage: int = Field(default=150, ge=1, le=MAX_TEST_IMAGES_PER_STAGE)
     # Which (condition, difficulty) pairs the standard test set covers: the paper's Table 3
     # ("table3", its 7 conditions), every condition of the table ("all"), or only the
-    # curriculum's stages ("curriculum", mixed stages included).
+    # curriculum's stages ("curriculum", mixed stages included; for kind: canonical_baseline,
+    # the curriculum's conditions × difficulties).
     covers: Literal["table3", "all", "curriculum"] = "curriculum"
 
 
@@ -260,6 +261,26 @@ class LearnabilityConfig(_Section):
     """
 
     kappa: int = Field(default=10, ge=1, le=MAX_INCREMENTS, description="increments per (condition, difficulty): κ")
+
+
+class CanonicalBaselineConfig(_Section):
+    """The paper's Table 2 (§3.2): one detector trained on canonical images only, then scored on
+    every (condition, difficulty) of the test set, which tells the conditions that hurt it.
+
+    One stage of ``increments`` increments on canonical θ (every condition at its canonical
+    value), with no stopping rule: the paper trains for a fixed number of iterations (20,000 on
+    2,500 images), and choosing the model by its test score would fit the test set. The
+    curriculum's conditions and difficulties are not trained: they name what the test set
+    covers (``test_set.covers: curriculum``; ``all`` scores every condition of the table, those
+    outside the paper's curriculum included, as its Table 2 does), and the table reads the LAST
+    model's scores.
+
+    An increment's m, t and training_set come from ``active_learning``, as in Algorithm 1 (with
+    ``grow`` the canonical set grows each increment, closest to the paper's one fixed set); its
+    stopping-rule keys (M, N, tau, max_increments) have no meaning here and are refused.
+    """
+
+    increments: int = Field(default=10, ge=1, le=MAX_INCREMENTS, description="increments of the canonical stage")
 
 
 # Keys of `active_learning` that only the stopping rule of Algorithm 1 reads.
@@ -371,8 +392,9 @@ class TaskLimitsConfig(_Section):
 class ExperimentConfig(_Section):
     name: str = Field(min_length=1, max_length=200)
     # active_learning: Algorithm 1 (stopping rule, ω_be opens the next stage); learnability:
-    # Algorithm 2 (κ increments per stage, ω_κ opens the next difficulty; see LearnabilityConfig).
-    kind: Literal["active_learning", "learnability"] = "active_learning"
+    # Algorithm 2 (κ increments per stage, ω_κ opens the next difficulty; see LearnabilityConfig);
+    # canonical_baseline: the paper's Table 2 (one canonical stage; see CanonicalBaselineConfig).
+    kind: Literal["active_learning", "learnability", "canonical_baseline"] = "active_learning"
     seed: int = Field(default=0, ge=0, lt=2**31)
     assets: AssetsConfig = AssetsConfig()
     render: RenderConfig = RenderConfig()
@@ -383,6 +405,7 @@ class ExperimentConfig(_Section):
     evaluation: EvaluationConfig = EvaluationConfig()
     tasks: TaskLimitsConfig = TaskLimitsConfig()
     learnability: LearnabilityConfig = LearnabilityConfig()
+    canonical_baseline: CanonicalBaselineConfig = CanonicalBaselineConfig()
 
     @field_validator("name")
     @classmethod
@@ -395,43 +418,59 @@ class ExperimentConfig(_Section):
     def _kind_fits(self) -> "ExperimentConfig":
         """Keys the chosen kind would silently ignore are errors (each message starts with its
         key). A value equal to its default is let through: a stored config holds every key."""
-        if self.kind != "learnability":
-            if self.learnability != LearnabilityConfig():
-                raise ValueError(f"learnability: only read by kind: learnability (this config's kind is {self.kind})")
+        for section, default in (("learnability", LearnabilityConfig()), ("canonical_baseline", CanonicalBaselineConfig())):
+            if self.kind != section and getattr(self, section) != default:
+                raise ValueError(f"{section}: only read by kind: {section} (this config's kind is {self.kind})")
+        if self.kind == "active_learning":
             return self
         if self.curriculum.mixed is not None:
-            raise ValueError("curriculum.mixed: kind: learnability has no mixed stage (it measures one condition at a time)")
-        if self.test_set.covers != "curriculum":
+            why = {
+                "learnability": "it measures one condition at a time",
+                "canonical_baseline": "it trains on canonical images only; its test set is set by curriculum.conditions",
+            }[self.kind]
+            raise ValueError(f"curriculum.mixed: kind: {self.kind} has no mixed stage ({why})")
+        if self.kind == "learnability" and self.test_set.covers != "curriculum":
             raise ValueError(
                 f"test_set.covers: kind: learnability tests each condition on its own test set; "
                 f"it must be 'curriculum', got {self.test_set.covers!r}"
             )
+        sets_increments = "learnability.kappa" if self.kind == "learnability" else "canonical_baseline.increments"
         defaults = ActiveLearningConfig()
         for key in STOPPING_RULE_KEYS:
             if getattr(self.active_learning, key) != getattr(defaults, key):
                 raise ValueError(
-                    f"active_learning.{key}: kind: learnability has no stopping rule; "
-                    "learnability.kappa sets the increments per stage"
+                    f"active_learning.{key}: kind: {self.kind} has no stopping rule; "
+                    f"{sets_increments} sets the increments per stage"
                 )
         return self
 
     def stage_increments_cap(self, condition: str) -> int:
-        """The most increments a stage of ``condition`` trains: κ for learnability, else the cap."""
+        """The most increments a stage of ``condition`` trains: κ for learnability, the fixed
+        count for the canonical baseline, else the cap."""
         if self.kind == "learnability":
             return self.learnability.kappa
+        if self.kind == "canonical_baseline":
+            return self.canonical_baseline.increments
         return self.stage_active_learning(condition).max_increments
 
     def stage_order(self) -> list[tuple[str, str]]:
         """(condition, difficulty) in curriculum order: for c in C, for δ in Δ; then the mixed
-        stages ("mixed", δ)."""
-        from foldwise.theta import MIXED
+        stages ("mixed", δ). The canonical baseline has one stage, ("canonical", "canonical"):
+        its images vary no condition, as a canonical θ's difficulty says."""
+        from foldwise.theta import CANONICAL, MIXED
 
+        if self.kind == "canonical_baseline":
+            return [(CANONICAL, CANONICAL)]
         stages = [(c, d) for c in self.curriculum.conditions for d in self.curriculum.difficulties]
         if self.curriculum.mixed is not None:
             stages += [(MIXED, d) for d in self.curriculum.mixed.difficulties]
         return stages
 
     def test_pairs(self) -> list[tuple[str, str]]:
+        """The (condition, difficulty) pairs of the standard test set."""
+        if self.test_set.covers == "curriculum" and self.kind == "canonical_baseline":
+            # Its one stage trains no condition: the curriculum names the conditions it is scored on.
+            return [(c, d) for c in self.curriculum.conditions for d in self.curriculum.difficulties]
         if self.test_set.covers == "curriculum":
             return self.stage_order()
         table = load_condition_table()

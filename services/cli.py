@@ -134,6 +134,7 @@ def _run_experiment(config, report_dir: Path | None, study: str | None = None) -
     files = write_report(experiment_id, report_dir or settings.data_dir / f"experiments/{experiment_id}/report")
     console.print(f"report: {files.png}  {files.csv}", highlight=False)
     _print_learnability(experiment_id, files)
+    _print_table2(files)
     return experiment_id, status
 
 
@@ -184,6 +185,42 @@ def _print_learnability(experiment_id: int, files) -> None:
         highlight=False,
     )
     console.print(f"learnability: {files.learnability_csv}", highlight=False)
+
+
+def _table2(title: str, rows, difficulties: list[str]) -> Table:
+    """The paper's Table 2 as a terminal table: mAP per condition at each difficulty and over all,
+    beside the paper's Fast R-CNN figure."""
+
+    def cell(value) -> str:
+        return "—" if value is None else f"{value:.3f}"
+
+    table = Table(title=title)
+    for column in ("condition", *difficulties, "all", "paper (Fast R-CNN)"):
+        table.add_column(column, justify="left" if column == "condition" else "right")
+    for row in rows:
+        table.add_row(row.name, *(cell(row.by_difficulty[d]) for d in difficulties), cell(row.map), cell(row.paper))
+    return table
+
+
+def _table2_title(detector: str, score_threshold: float, iou_threshold: float, model: str = "") -> str:
+    return (
+        f"Table 2: trained on canonical images only ({detector}{model}); mAP, score ≥ {score_threshold:g}, "
+        f"IoU ≥ {iou_threshold:g}"
+    )
+
+
+def _print_table2(files) -> None:
+    """A canonical baseline's Table 2 beside the paper's."""
+    table2 = files.table2
+    if table2 is None:
+        return
+    if table2.model_id is None:
+        model = ", no model evaluated yet"
+    else:
+        model = f", model {table2.model_id} at k={table2.increment}" + ("" if table2.final else ", not final")
+    title = _table2_title(table2.detector, table2.score_threshold, table2.iou_threshold, model)
+    console.print(_table2(title, table2.rows, table2.difficulties))
+    console.print(f"table 2: {files.table2_csv}", highlight=False)
 
 
 def _choices(option: str, text: str, known: tuple[str, ...]) -> list[str]:
@@ -271,17 +308,9 @@ def baseline(
         config, out, train_images, iterations, test_per_pair, codes or None, echo=lambda line: console.print(line, highlight=False)
     )  # fmt: skip
 
-    def cell(value) -> str:
-        return "—" if value is None else f"{value:.3f}"
-
     difficulties = list(rows[0].by_difficulty) if rows else []
-    table = Table(title=f"Table 2: trained on canonical images only ({config.detector.family}); mAP, score ≥ "
-                        f"{config.evaluation.score_threshold:g}, IoU ≥ {config.evaluation.iou_threshold:g}")  # fmt: skip
-    for column in ("condition", *difficulties, "all", "paper (Fast R-CNN)"):
-        table.add_column(column, justify="left" if column == "condition" else "right")
-    for row in rows:
-        table.add_row(row.name, *(cell(v) for v in row.by_difficulty.values()), cell(row.map), cell(row.paper))
-    console.print(table)
+    title = _table2_title(config.detector.family, config.evaluation.score_threshold, config.evaluation.iou_threshold)
+    console.print(_table2(title, rows, difficulties))
     console.print(f"table: {out / 'table2.csv'}", highlight=False)
 
 
@@ -306,6 +335,7 @@ def report(
             files = write_report(experiment_id, out)
             console.print(f"{len(files.rows)} evaluations → {files.png}  {files.csv}", highlight=False)
             _print_learnability(experiment_id, files)
+            _print_table2(files)
         if figures:
             for name, paths in write_figures(experiment_ids, out).items():
                 console.print(f"{name} → {'  '.join(str(p) for p in paths)}", highlight=False)

@@ -6,17 +6,20 @@ time went (in distributed mode renders overlap training, so their sum can exceed
 
 A learnability experiment (Algorithm 2) also gets ``learnability-{id}.csv``: each condition's
 learnability score, its rank, the paper's rank and Spearman's ρ (services/learnability.py).
+A canonical baseline gets ``table2-{id}.csv``: its model's mAP per condition and difficulty
+beside the paper's Table 2 (services/baseline.py).
 """
 
 from __future__ import annotations
 
 import csv
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 from db.session import session_scope
 from foldwise.config import ExperimentConfig
 from services import queries
+from services.baseline import Table2, experiment_table2, write_table2_csv
 from services.learnability import LearnabilityOrder, experiment_learnability, write_learnability_csv
 
 CSV_COLUMNS = [
@@ -46,6 +49,9 @@ class ReportFiles:
     # kind: learnability only: the learnability order beside the paper's, and its CSV.
     learnability: LearnabilityOrder | None = None
     learnability_csv: Path | None = None
+    # kind: canonical_baseline only: the paper's Table 2 from its model, and its CSV.
+    table2: Table2 | None = None
+    table2_csv: Path | None = None
 
 
 def report_rows(experiment_id: int) -> list[dict]:
@@ -84,8 +90,9 @@ def write_report(experiment_id: int, out_dir: Path) -> ReportFiles:
     with session_scope() as session:
         experiment = queries.get_experiment(session, experiment_id)
         name = experiment.name
-        learnable = ExperimentConfig.model_validate(experiment.config).kind == "learnability"
-        learnability = experiment_learnability(session, experiment_id) if learnable else None
+        kind = ExperimentConfig.model_validate(experiment.config).kind
+        learnability = experiment_learnability(session, experiment_id) if kind == "learnability" else None
+        table2 = experiment_table2(session, experiment_id) if kind == "canonical_baseline" else None
     rows = report_rows(experiment_id)
     out_dir.mkdir(parents=True, exist_ok=True)
     csv_path = out_dir / f"experiment-{experiment_id}.csv"
@@ -126,7 +133,11 @@ def write_report(experiment_id: int, out_dir: Path) -> ReportFiles:
     png_path = out_dir / f"experiment-{experiment_id}.png"
     figure.savefig(png_path, dpi=120)
     plt.close(figure)
-    if learnability is None:
-        return ReportFiles(png=png_path, csv=csv_path, rows=rows)
-    learnability_csv = write_learnability_csv(learnability, out_dir / f"learnability-{experiment_id}.csv")
-    return ReportFiles(png=png_path, csv=csv_path, rows=rows, learnability=learnability, learnability_csv=learnability_csv)
+    files = ReportFiles(png=png_path, csv=csv_path, rows=rows)
+    if learnability is not None:
+        learnability_csv = write_learnability_csv(learnability, out_dir / f"learnability-{experiment_id}.csv")
+        files = replace(files, learnability=learnability, learnability_csv=learnability_csv)
+    if table2 is not None:
+        table2_csv = write_table2_csv(table2.rows, table2.difficulties, out_dir / f"table2-{experiment_id}.csv")
+        files = replace(files, table2=table2, table2_csv=table2_csv)
+    return files

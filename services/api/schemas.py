@@ -72,11 +72,12 @@ class ExperimentSummary(_Shape):
 
 class StageSummary(_Shape):
     order: int
-    condition: str = Field(description="c")
-    difficulty: str = Field(description="δ")
+    condition: str = Field(description="c (canonical: the canonical baseline's one stage)")
+    difficulty: str = Field(description="δ (canonical: the canonical baseline's one stage)")
     status: StageStatus
     end_reason: StageEndReason | None = Field(
-        description="plateau (|P_M − P_N| ≤ τ) or cap (max increments); kappa: a learnability stage's κ increments"
+        description="plateau (|P_M − P_N| ≤ τ) or cap (max increments); kappa: a learnability stage's κ increments; "
+        "increments: the canonical baseline's fixed increments"
     )
     increments: int = Field(description="evaluated increments k")
     init_model_id: int | None = Field(

@@ -204,9 +204,11 @@ Decision = Start | SampleTraining | EnqueueRender | OpenStage | CreateModel | En
 def plan(s: Snapshot) -> list[Decision]:
     """What must happen next for this experiment, from its state alone.
 
-    One plan for both kinds: ``learnability`` (Algorithm 2) differs from Algorithm 1 only in
+    One plan for every kind: ``learnability`` (Algorithm 2) differs from Algorithm 1 only in
     when a stage ends (after κ increments, no stopping rule) and in which model opens the next
-    stage (the last of the condition's previous difficulty; none at a new condition)."""
+    stage (the last of the condition's previous difficulty; none at a new condition).
+    ``canonical_baseline`` (the paper's Table 2) is one stage of canonical θ that ends after its
+    fixed increments, and its final model is the last one trained, not the best scored."""
     if s.status == ExperimentStatus.pending:
         return [Start()]
     if s.status != ExperimentStatus.running:
@@ -228,8 +230,7 @@ def plan(s: Snapshot) -> list[Decision]:
 
     stage = next((st for st in s.stages if st.status != StageStatus.done), None)
     if stage is None:
-        last = s.stages[-1] if s.stages else None
-        return decisions + [Finish(last.best_model_id if last else None)]
+        return decisions + [Finish(_final_model_id(s))]
     if stage.status == StageStatus.pending:
         previous = [st for st in s.stages if st.order < stage.order]
         if s.config.kind == "learnability":
@@ -257,6 +258,10 @@ def plan(s: Snapshot) -> list[Decision]:
                 # trains as long as every other (ω_be is still recorded, for Fig. 5 and 8).
                 kappa = s.config.learnability.kappa
                 stop, reason = len(scores) >= kappa, StageEndReason.kappa
+            elif s.config.kind == "canonical_baseline":
+                # Table 2: a fixed training length, as the paper's 20,000 iterations.
+                stop = len(scores) >= s.config.canonical_baseline.increments
+                reason = StageEndReason.increments
             else:
                 decision = stopping_rule(scores, al.M, al.N, al.tau, al.max_increments)
                 stop, reason = decision.stop, StageEndReason(decision.reason) if decision.stop else None
@@ -295,14 +300,29 @@ def plan(s: Snapshot) -> list[Decision]:
     return decisions
 
 
+def _final_model_id(s: Snapshot) -> int | None:
+    """The experiment's final model: the last stage's ω_be; for the canonical baseline its last
+    model ω_K, the one Table 2 scores (picking the best test score would fit the test set)."""
+    last = s.stages[-1] if s.stages else None
+    if last is None:
+        return None
+    if s.config.kind == "canonical_baseline":
+        return _last_evaluated_model_id(s, last)
+    return last.best_model_id
+
+
+def _last_evaluated_model_id(s: Snapshot, stage: StageView) -> int | None:
+    trained = [m for m in s.models if m.stage_id == stage.id and m.status == ModelStatus.evaluated]
+    return max(trained, key=lambda m: m.increment).id if trained else None
+
+
 def _learnability_init(s: Snapshot, stage: StageView, previous: StageView | None) -> int | None:
     """ω_in of a learnability stage: the LAST model ω_κ of the condition's previous difficulty
     (Algorithm 2: ω_in ← ω_k), or, at a condition's first difficulty, none: the detector's
     initial weights, so that every condition starts alike (config.LearnabilityConfig says why)."""
     if previous is None or previous.condition != stage.condition:
         return None
-    trained = [m for m in s.models if m.stage_id == previous.id and m.status == ModelStatus.evaluated]
-    return max(trained, key=lambda m: m.increment).id if trained else None
+    return _last_evaluated_model_id(s, previous)
 
 
 # Below this many finished renders a share says little (one failure in four is not a trend).
@@ -464,7 +484,12 @@ def _sample(
     config: ExperimentConfig, condition: str, difficulty: str, n: int, seed: int
 ) -> list[dict]:
     from foldwise.sampling import generate_parameters
+    from foldwise.theta import CANONICAL
 
+    if difficulty == CANONICAL:
+        # The canonical baseline's stage: a canonical θ varies no condition, so any condition of
+        # the table draws the same images; its first keeps θ.condition one the table knows.
+        condition = load_condition_table().codes[0]
     thetas = generate_parameters(
         condition,
         difficulty,

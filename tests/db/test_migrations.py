@@ -50,3 +50,35 @@ def test_rows_rendered_before_objects_per_image_get_their_one_target(tmp_path):
         {"object": "coffee", "label": 1, "box": [1.0, 2.0, 30.0, 40.0], "amodal_box": [1.0, 2.0, 30.0, 40.0], "visible_fraction": 0.75}
     ]
     assert rows[2] is None or json.loads(rows[2]) is None
+
+
+def _stage_end_reasons_added_since_the_first_migration_are_stored(url):
+    """The end reasons added after 0001 (learnability's kappa, the canonical baseline's
+    increments) and the canonical baseline's stage need no migration: the migrated columns are
+    plain text (no CHECK constraint of 0001's reasons), on every backend."""
+    from sqlalchemy.orm import Session
+
+    from db.models import Experiment, Stage, StageEndReason
+
+    upgrade(url)
+    engine = create_engine(url)
+    with Session(engine) as session:
+        experiment = Experiment(name="b", config={}, seed=0)
+        session.add(experiment)
+        for order, reason in enumerate((StageEndReason.kappa, StageEndReason.increments)):
+            session.add(Stage(experiment=experiment, order=order, condition="canonical", difficulty="canonical", end_reason=reason))
+        session.commit()
+    with Session(engine) as session:
+        stored = [(s.condition, s.difficulty, s.end_reason) for s in session.query(Stage).order_by(Stage.order)]
+    engine.dispose()
+    assert stored == [
+        ("canonical", "canonical", StageEndReason.kappa), ("canonical", "canonical", StageEndReason.increments)
+    ]  # fmt: skip
+
+
+def test_new_stage_end_reasons_need_no_migration_on_sqlite(tmp_path):
+    _stage_end_reasons_added_since_the_first_migration_are_stored(f"sqlite:///{tmp_path / 'r.db'}")
+
+
+def test_new_stage_end_reasons_need_no_migration_on_postgresql(postgres_url):
+    _stage_end_reasons_added_since_the_first_migration_are_stored(postgres_url)

@@ -77,6 +77,11 @@ def test_malformed_table_names_the_key():
         parse_condition_table({**data, "conditions": {}, "table3": ["xx"]})
     with pytest.raises(ValueError, match="names the mixed stage"):
         parse_condition_table({**data, "conditions": {"mixed": data["conditions"]["fb"]}})
+    # "canonical" is the canonical baseline's stage (condition and difficulty), never the table's
+    with pytest.raises(ValueError, match="names the canonical baseline's stage"):
+        parse_condition_table({**data, "conditions": {"canonical": data["conditions"]["fb"]}})
+    with pytest.raises(ValueError, match="difficulties: 'canonical' names images at every canonical value"):
+        parse_condition_table({**data, "difficulties": ["easy", "canonical"]})
 
 
 def test_unknown_condition_or_difficulty():

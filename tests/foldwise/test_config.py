@@ -341,7 +341,7 @@ LEARNABILITY = {"name": "l", "kind": "learnability"}
 @pytest.mark.parametrize(
     ("data", "message"),
     [
-        ({"name": "x", "kind": "learnabilty"}, "kind: Input should be 'active_learning' or 'learnability'"),
+        ({"name": "x", "kind": "learnabilty"}, "kind: Input should be 'active_learning', 'learnability' or 'canonical_baseline'"),
         ({**LEARNABILITY, "learnability": {"kappa": 0}}, "learnability.kappa: Input should be greater than or equal to 1"),
         ({**LEARNABILITY, "learnability": {"kappa": 10**6}}, "learnability.kappa: Input should be less than or equal to"),
         ({**LEARNABILITY, "learnability": {"kapa": 3}}, "learnability.kapa: unknown key"),
@@ -366,6 +366,53 @@ def test_kind_defaults_to_active_learning_and_learnability_keeps_its_kappa_throu
     # the stored form holds every key, the stopping rule's defaults included: it must load again
     assert parse_config(config.model_dump(mode="json")) == config
     assert parse_config({"name": "x", "active_learning": {"max_increments": 6}}).stage_increments_cap("fb") == 6
+
+
+CANONICAL_BASELINE = {"name": "b", "kind": "canonical_baseline"}
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({**CANONICAL_BASELINE, "canonical_baseline": {"increments": 0}}, "canonical_baseline.increments: Input should be greater"),
+        ({**CANONICAL_BASELINE, "canonical_baseline": {"iterations": 3}}, "canonical_baseline.iterations: unknown key"),
+        ({"name": "x", "canonical_baseline": {"increments": 3}}, "canonical_baseline: only read by kind: canonical_baseline"),
+        ({**CANONICAL_BASELINE, "learnability": {"kappa": 3}}, "learnability: only read by kind: learnability (this config's kind is canonical_baseline)"),
+        ({**CANONICAL_BASELINE, "active_learning": {"tau": 0.1}}, "active_learning.tau: kind: canonical_baseline has no stopping rule; canonical_baseline.increments sets"),
+        ({**CANONICAL_BASELINE, "curriculum": {"mixed": {}}}, "curriculum.mixed: kind: canonical_baseline has no mixed stage (it trains on canonical images only"),
+    ],
+)
+def test_canonical_baseline_errors_name_the_key(data, message):
+    with pytest.raises(ConfigError) as error:
+        parse_config(data)
+    assert f"\n  {message}" in str(error.value)
+
+
+def test_canonical_baseline_trains_one_canonical_stage_and_tests_the_curriculum_conditions():
+    from foldwise.conditions import load_condition_table
+
+    config = parse_config({
+        **CANONICAL_BASELINE, "canonical_baseline": {"increments": 4}, "active_learning": {"m": 7, "t": 5},
+        "curriculum": {"conditions": ["fb", "wr"], "difficulties": ["easy", "hard"]},
+    })  # fmt: skip
+    assert config.stage_order() == [("canonical", "canonical")]
+    assert config.stage_increments_cap("canonical") == 4
+    assert config.test_pairs() == [("fb", "easy"), ("fb", "hard"), ("wr", "easy"), ("wr", "hard")]
+    assert parse_config(config.model_dump(mode="json")) == config
+    # covers: all scores every condition of the table at each difficulty, as the paper's Table 2
+    table = load_condition_table()
+    everything = parse_config({**CANONICAL_BASELINE, "test_set": {"covers": "all"}}).test_pairs()
+    assert everything == [(c, d) for c in table.codes for d in table.difficulties]
+
+
+def test_canonical_baseline_quick_tests_the_papers_seven_conditions_at_three_difficulties():
+    from foldwise.conditions import load_condition_table
+
+    config = load_config(REPO_ROOT / "configs/canonical_baseline_quick.yaml")
+    assert config.kind == "canonical_baseline"
+    assert config.curriculum.conditions == list(load_condition_table().table3)
+    assert config.stage_order() == [("canonical", "canonical")]
+    assert len(config.test_pairs()) == 21
 
 
 def test_learnability_quick_covers_the_papers_seven_conditions_at_three_difficulties():

@@ -10,7 +10,7 @@ from fastapi.responses import FileResponse, JSONResponse
 from db.models import Split
 from foldwise import store
 from foldwise.config import ExperimentConfig
-from services import artifacts, learnability, queries
+from services import artifacts, baseline, learnability, queries
 from services.api.deps import MAX_ID, MAX_INT_COLUMN, ExperimentId, ModelId, SessionDep
 from services.api.schemas import NOT_FOUND
 
@@ -118,4 +118,31 @@ def experiment_learnability(experiment_id: ExperimentId, session: SessionDep) ->
         "compared": list(order.compared),
         "paper_order": list(learnability.PAPER_ORDER),
         "conditions": [asdict(row) for row in order.rows],
+    }
+
+
+@router.get(
+    "/experiments/{experiment_id}/table2",
+    responses={**NOT_FOUND, 409: {"description": "the experiment is not of kind canonical_baseline"}},
+)
+def experiment_table2(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
+    """A canonical baseline's Table 2 (paper §3.2): its model's mAP per condition, over every
+    difficulty and at each, beside the paper's Fast R-CNN figure. ``final`` once the experiment
+    has finished; before then, the scores of its latest evaluated model."""
+    config = ExperimentConfig.model_validate(queries.get_experiment(session, experiment_id).config)
+    if config.kind != "canonical_baseline":
+        raise HTTPException(
+            status.HTTP_409_CONFLICT, f"experiment {experiment_id} is of kind {config.kind}, not canonical_baseline"
+        )
+    table = baseline.experiment_table2(session, experiment_id)
+    return {
+        "model_id": table.model_id,
+        "increment": table.increment,
+        "final": table.final,
+        "detector": table.detector,
+        "score_threshold": table.score_threshold,
+        "iou_threshold": table.iou_threshold,
+        "difficulties": table.difficulties,
+        "paper": baseline.PAPER_SETUP,
+        "conditions": [asdict(row) for row in table.rows],
     }

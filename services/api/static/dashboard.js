@@ -40,10 +40,12 @@ const fixed = (value, digits = 3) => (value === null || value === undefined ? "â
 // ---------------------------------------------------------------- summary and ETA
 
 // Time left at the pace so far: finished stages plus the current stage's share of its cap
-// (a learnability experiment trains exactly learnability.kappa increments per stage).
+// (a learnability experiment trains exactly learnability.kappa increments per stage, the
+// canonical baseline canonical_baseline.increments in its one stage).
+const FIXED_INCREMENTS = { learnability: () => config.learnability.kappa, canonical_baseline: () => config.canonical_baseline.increments };
 function eta(summary, stages) {
   if (summary.status !== "running" || !summary.elapsed_seconds) return null;
-  const cap = config.kind === "learnability" ? config.learnability.kappa : config.active_learning.max_increments;
+  const cap = (FIXED_INCREMENTS[config.kind] || (() => config.active_learning.max_increments))();
   let done = stages.filter((s) => s.status === "done").length;
   const current = stages.find((s) => s.status === "running");
   if (current) done += Math.min(current.increments / cap, 0.99);

@@ -208,6 +208,7 @@ ID_ROUTES = [
     ("get", "/experiments/{value}/report.png"),
     ("get", "/experiments/{value}/figures/fig4.png"),
     ("get", "/experiments/{value}/learnability"),
+    ("get", "/experiments/{value}/table2"),
     ("get", "/experiments/{experiment}/images/{value}.png"),
     ("get", "/models/{value}"),
     ("get", "/models/{value}/checkpoint"),
