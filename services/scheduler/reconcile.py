@@ -207,8 +207,9 @@ def plan(s: Snapshot) -> list[Decision]:
 
     One plan for every kind: ``learnability`` (Algorithm 2) differs from Algorithm 1 only in
     when a stage ends (after κ increments, no stopping rule) and in which model opens the next
-    stage (the last of the condition's previous difficulty; none at a new condition).
-    ``canonical_baseline`` (the paper's Table 2) is one stage of canonical θ that ends after its
+    stage (the last of the condition's previous difficulty; at a new condition none, or with
+    ``learnability.start: canonical`` the last model of the shared canonical stage trained
+    first, itself a fixed number of increments). ``canonical_baseline`` (the paper's Table 2) is one stage of canonical θ that ends after its
     fixed increments, and its final model is the last one trained, not the best scored."""
     if s.status == ExperimentStatus.pending:
         return [Start()]
