@@ -1,7 +1,8 @@
 """`foldwise run` of a learnability experiment (Algorithm 2) on a smoke-sized config, end to end
 in one process: κ increments per stage, no stopping rule, each difficulty from the last model
 of the one before, each condition from the initial weights and scored on its own test set,
-and a report with the learnability order and Spearman's ρ."""
+and a report with the learnability order and Spearman's ρ; with ``learnability.start: canonical``,
+a canonical stage first and every condition from its last model."""
 
 from __future__ import annotations
 

@@ -1,4 +1,6 @@
-"""``plan`` for ``kind: learnability`` (Algorithm 2): κ increments, no stopping rule, ω_in ← ω_κ."""
+"""``plan`` for ``kind: learnability`` (Algorithm 2): κ increments, no stopping rule, ω_in ← ω_κ;
+each condition's first difficulty from the initial weights, or from the shared canonical stage's
+last model (``learnability.start: canonical``)."""
 
 from collections import Counter
 from datetime import datetime, timedelta, timezone
