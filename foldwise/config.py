@@ -248,19 +248,39 @@ class LearnabilityConfig(_Section):
     Each model is scored on its own condition's test set (its n images per difficulty), and a
     difficulty starts from the LAST model ω_κ of the difficulty before it, not the best.
 
-    Each condition's first difficulty starts from the detector's initial weights (ImageNet
-    when ``detector.pretrained: imagenet``, else random), as in §5.2 where every detector
-    "was initialized with the pre-trained models available for them": the conditions are then
-    independent, and neither their order in the curriculum nor a condition trained before
-    them changes their scores. (Algorithm 2's pseudo-code never resets ω_in between
-    conditions; followed literally, each condition would inherit every earlier one's training
-    and the order of C would bias the comparison that the algorithm exists to make.)
+    Which model each condition's FIRST difficulty starts from (``start``); either way every
+    condition starts from the same model, as in §5.2, where every detector "was initialized
+    with the pre-trained models available for them": the conditions are then independent, and
+    neither their order in the curriculum nor a condition trained before them changes their
+    scores. (Algorithm 2's pseudo-code never resets ω_in between conditions; followed
+    literally, each condition would inherit every earlier one's training and the order of C
+    would bias the comparison that the algorithm exists to make.)
 
-    An increment's m, t and training_set come from ``active_learning``, as in Algorithm 1;
-    its stopping-rule keys (M, N, tau, max_increments) have no meaning here and are refused.
+    * ``initial`` (the default): the detector's initial weights (ImageNet when
+      ``detector.pretrained: imagenet``, else random).
+    * ``canonical``: the last model of one shared canonical stage, trained first (condition
+      and difficulty ``canonical``, as the canonical_baseline kind's one stage) for
+      ``canonical_increments`` increments and scored on the whole test set. The paper's
+      detectors already see objects when a condition's first stage begins (ImageNet
+      pretraining); from random weights every easy stage instead spends its κ increments
+      learning the objects themselves and scores near 0, so only the medium and hard stages
+      tell the conditions apart. A detector that already knows the objects on canonical images
+      is the offline analogue of that pretrained start: each condition then measures how the
+      condition itself is learned. The canonical stage is not a condition: it has no place in
+      the learnability order.
+
+    An increment's m, t and training_set come from ``active_learning``, as in Algorithm 1 (the
+    canonical stage's too); its stopping-rule keys (M, N, tau, max_increments) have no meaning
+    here and are refused.
     """
 
     kappa: int = Field(default=10, ge=1, le=MAX_INCREMENTS, description="increments per (condition, difficulty): κ")
+    start: Literal["initial", "canonical"] = Field(
+        default="initial", description="what each condition's first difficulty starts from"
+    )
+    canonical_increments: int | None = Field(
+        default=None, ge=1, le=MAX_INCREMENTS, description="increments of the shared canonical stage (start: canonical)"
+    )
 
 
 class CanonicalBaselineConfig(_Section):
@@ -423,6 +443,17 @@ class ExperimentConfig(_Section):
                 raise ValueError(f"{section}: only read by kind: {section} (this config's kind is {self.kind})")
         if self.kind == "active_learning":
             return self
+        start = self.learnability.start
+        if start == "initial" and self.learnability.canonical_increments is not None:
+            raise ValueError(
+                "learnability.canonical_increments: only read with learnability.start: canonical "
+                "(start: initial trains no canonical stage)"
+            )
+        if start == "canonical" and self.learnability.canonical_increments is None:
+            raise ValueError(
+                "learnability.canonical_increments: learnability.start: canonical needs the canonical stage's "
+                "number of increments"
+            )
         if self.curriculum.mixed is not None:
             why = {
                 "learnability": "it measures one condition at a time",
@@ -445,8 +476,12 @@ class ExperimentConfig(_Section):
         return self
 
     def stage_increments_cap(self, condition: str) -> int:
-        """The most increments a stage of ``condition`` trains: κ for learnability, the fixed
-        count for the canonical baseline, else the cap."""
+        """The most increments a stage of ``condition`` trains: κ for learnability (its canonical
+        stage: canonical_increments), the fixed count for the canonical baseline, else the cap."""
+        from foldwise.theta import CANONICAL
+
+        if self.kind == "learnability" and condition == CANONICAL:
+            return self.learnability.canonical_increments
         if self.kind == "learnability":
             return self.learnability.kappa
         if self.kind == "canonical_baseline":
@@ -456,26 +491,34 @@ class ExperimentConfig(_Section):
     def stage_order(self) -> list[tuple[str, str]]:
         """(condition, difficulty) in curriculum order: for c in C, for δ in Δ; then the mixed
         stages ("mixed", δ). The canonical baseline has one stage, ("canonical", "canonical"):
-        its images vary no condition, as a canonical θ's difficulty says."""
+        its images vary no condition, as a canonical θ's difficulty says; a learnability
+        experiment with ``start: canonical`` trains that stage before every condition."""
         from foldwise.theta import CANONICAL, MIXED
 
         if self.kind == "canonical_baseline":
             return [(CANONICAL, CANONICAL)]
         stages = [(c, d) for c in self.curriculum.conditions for d in self.curriculum.difficulties]
+        if self.starts_from_canonical:
+            stages.insert(0, (CANONICAL, CANONICAL))
         if self.curriculum.mixed is not None:
             stages += [(MIXED, d) for d in self.curriculum.mixed.difficulties]
         return stages
 
     def test_pairs(self) -> list[tuple[str, str]]:
         """The (condition, difficulty) pairs of the standard test set."""
-        if self.test_set.covers == "curriculum" and self.kind == "canonical_baseline":
-            # Its one stage trains no condition: the curriculum names the conditions it is scored on.
+        if self.test_set.covers == "curriculum" and (self.kind == "canonical_baseline" or self.starts_from_canonical):
+            # A canonical stage trains no condition: the curriculum names the conditions it is scored on.
             return [(c, d) for c in self.curriculum.conditions for d in self.curriculum.difficulties]
         if self.test_set.covers == "curriculum":
             return self.stage_order()
         table = load_condition_table()
         codes = table.table3 if self.test_set.covers == "table3" else table.codes
         return [(c, d) for c in codes for d in table.difficulties]
+
+    @property
+    def starts_from_canonical(self) -> bool:
+        """A learnability experiment whose conditions start from a shared canonical stage."""
+        return self.kind == "learnability" and self.learnability.start == "canonical"
 
     def stage_active_learning(self, condition: str) -> ActiveLearningConfig:
         """The active-learning settings of a stage of ``condition`` (a mixed stage's overrides applied)."""

@@ -6,7 +6,8 @@ giving a formula. foldwise's score of a condition is the mean of its mAP over ev
 every difficulty (3κ values, each on the condition's own test set): the area under its Fig. 4
 curve, divided by the number of increments. It rewards a condition learned early as well as one
 learned well, and, unlike the best mAP alone, one lucky increment does not decide it. The best
-mAP (Fig. 5) is reported beside it.
+mAP (Fig. 5) is reported beside it. The shared canonical stage of ``learnability.start:
+canonical`` trains no condition and is left out.
 
 The paper's order, most to least learnable: focus blur, motion blur, scale, occlusion,
 deformation, pose. Lighting is in the curriculum (Table 3) but not in that sentence, so it has
@@ -68,8 +69,13 @@ def spearman_rho(x: Sequence[float], y: Sequence[float]) -> float | None:
 
 def learnability_order(history: Sequence[dict], names: dict[str, str] | None = None) -> LearnabilityOrder:
     """Score and rank every condition of P (``queries.history`` entries: condition, map)."""
+    from foldwise.theta import CANONICAL
+
     by_condition: dict[str, list[float | None]] = {}
     for entry in history:
+        if entry["condition"] == CANONICAL:
+            # start: canonical's shared stage, where every condition starts: not a condition.
+            continue
         by_condition.setdefault(entry["condition"], []).append(entry["map"])
     conditions = list(by_condition)
     # A model whose mAP is not finite (diverged) detected nothing usable: it scores 0.

@@ -72,17 +72,22 @@ class ExperimentSummary(_Shape):
 
 class StageSummary(_Shape):
     order: int
-    condition: str = Field(description="c (canonical: the canonical baseline's one stage)")
-    difficulty: str = Field(description="δ (canonical: the canonical baseline's one stage)")
+    condition: str = Field(
+        description="c (canonical: the canonical baseline's one stage, or a learnability run's shared first stage)"
+    )
+    difficulty: str = Field(
+        description="δ (canonical: the canonical baseline's one stage, or a learnability run's shared first stage)"
+    )
     status: StageStatus
     end_reason: StageEndReason | None = Field(
         description="plateau (|P_M − P_N| ≤ τ) or cap (max increments); kappa: a learnability stage's κ increments; "
-        "increments: the canonical baseline's fixed increments"
+        "increments: the canonical baseline's (or a learnability run's canonical stage's) fixed increments"
     )
     increments: int = Field(description="evaluated increments k")
     init_model_id: int | None = Field(
         description="ω_in of the first increment: the previous stage's ω_be (learnability: the last ω_k of the "
-        "condition's previous difficulty; none at its first)"
+        "condition's previous difficulty; at its first, none, or with learnability.start: canonical the "
+        "canonical stage's last ω_k)"
     )
     best_model_id: int | None = Field(description="ω_be")
     best_map: float | None

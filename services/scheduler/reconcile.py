@@ -40,6 +40,7 @@ from foldwise.conditions import load_condition_table
 from foldwise.config import ExperimentConfig
 from foldwise.seeds import derive_seed
 from foldwise.settings import get_settings
+from foldwise.theta import CANONICAL
 from services.scheduler.broker_view import Held
 from services.scheduler.stopping import best_index, stopping_rule
 
@@ -206,8 +207,9 @@ def plan(s: Snapshot) -> list[Decision]:
 
     One plan for every kind: ``learnability`` (Algorithm 2) differs from Algorithm 1 only in
     when a stage ends (after κ increments, no stopping rule) and in which model opens the next
-    stage (the last of the condition's previous difficulty; none at a new condition).
-    ``canonical_baseline`` (the paper's Table 2) is one stage of canonical θ that ends after its
+    stage (the last of the condition's previous difficulty; at a new condition none, or with
+    ``learnability.start: canonical`` the last model of the shared canonical stage trained
+    first, itself a fixed number of increments). ``canonical_baseline`` (the paper's Table 2) is one stage of canonical θ that ends after its
     fixed increments, and its final model is the last one trained, not the best scored."""
     if s.status == ExperimentStatus.pending:
         return [Start()]
@@ -253,7 +255,11 @@ def plan(s: Snapshot) -> list[Decision]:
     if latest is None or latest.status == ModelStatus.evaluated:
         scores = [m.score for m in models]
         if latest is not None:
-            if s.config.kind == "learnability":
+            if s.config.kind == "learnability" and stage.condition == CANONICAL:
+                # start: canonical's shared stage: a fixed length, as the canonical baseline's.
+                stop = len(scores) >= s.config.learnability.canonical_increments
+                reason = StageEndReason.increments
+            elif s.config.kind == "learnability":
                 # Algorithm 2: exactly κ increments and no stopping rule, so that every stage
                 # trains as long as every other (ω_be is still recorded, for Fig. 5 and 8).
                 kappa = s.config.learnability.kappa
@@ -318,11 +324,19 @@ def _last_evaluated_model_id(s: Snapshot, stage: StageView) -> int | None:
 
 def _learnability_init(s: Snapshot, stage: StageView, previous: StageView | None) -> int | None:
     """ω_in of a learnability stage: the LAST model ω_κ of the condition's previous difficulty
-    (Algorithm 2: ω_in ← ω_k), or, at a condition's first difficulty, none: the detector's
-    initial weights, so that every condition starts alike (config.LearnabilityConfig says why)."""
-    if previous is None or previous.condition != stage.condition:
+    (Algorithm 2: ω_in ← ω_k), or, at a condition's first difficulty, the model every condition
+    starts from alike (config.LearnabilityConfig says why): with ``start: initial`` none, the
+    detector's initial weights; with ``start: canonical`` the LAST model of the shared canonical
+    stage (which itself starts from the initial weights)."""
+    if previous is not None and previous.condition == stage.condition:
+        return _last_evaluated_model_id(s, previous)
+    if stage.condition == CANONICAL or s.config.learnability.start != "canonical":
         return None
-    return _last_evaluated_model_id(s, previous)
+    canonical = next((st for st in s.stages if st.condition == CANONICAL), None)
+    if canonical is None or canonical.status != StageStatus.done:
+        # The plan opens stages in order, so this cannot happen; never start from a stage half trained.
+        raise RuntimeError(f"learnability stage {stage.order} would open before the canonical stage is done")
+    return _last_evaluated_model_id(s, canonical)
 
 
 # Below this many finished renders a share says little (one failure in four is not a trend).

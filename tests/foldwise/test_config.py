@@ -423,3 +423,50 @@ def test_learnability_quick_covers_the_papers_seven_conditions_at_three_difficul
     assert config.curriculum.conditions == list(load_condition_table().table3)
     assert config.curriculum.difficulties == ["easy", "medium", "hard"]
     assert len(config.test_pairs()) == 21
+
+
+CANONICAL_START = {"start": "canonical", "canonical_increments": 5}
+
+
+@pytest.mark.parametrize(
+    ("data", "message"),
+    [
+        ({**LEARNABILITY, "learnability": {"start": "pretrained"}}, "learnability.start: Input should be 'initial' or 'canonical'"),
+        ({**LEARNABILITY, "learnability": {"canonical_increments": 5}}, "learnability.canonical_increments: only read with learnability.start: canonical"),
+        ({**LEARNABILITY, "learnability": {"start": "initial", "canonical_increments": 5}}, "learnability.canonical_increments: only read with learnability.start: canonical"),
+        ({**LEARNABILITY, "learnability": {"start": "canonical"}}, "learnability.canonical_increments: learnability.start: canonical needs"),
+        ({**LEARNABILITY, "learnability": {**CANONICAL_START, "canonical_increments": 0}}, "learnability.canonical_increments: Input should be greater than or equal to 1"),
+        ({**LEARNABILITY, "learnability": {**CANONICAL_START, "canonical_increments": 1.5}}, "learnability.canonical_increments: expected a whole number"),
+        ({"name": "x", "learnability": CANONICAL_START}, "learnability: only read by kind: learnability"),
+        ({**CANONICAL_BASELINE, "learnability": {"start": "canonical", "canonical_increments": 3}}, "learnability: only read by kind: learnability"),
+    ],
+)
+def test_learnability_start_errors_name_the_key(data, message):
+    with pytest.raises(ConfigError) as error:
+        parse_config(data)
+    assert f"\n  {message}" in str(error.value)
+
+
+def test_a_canonical_start_adds_one_canonical_stage_first_and_keeps_it_through_json():
+    config = parse_config({**LEARNABILITY, "learnability": {"kappa": 3, **CANONICAL_START},
+                           "curriculum": {"conditions": ["fb", "po"], "difficulties": ["easy", "hard"]}})  # fmt: skip
+    assert config.learnability.start == "canonical" and config.starts_from_canonical
+    assert config.stage_order() == [("canonical", "canonical")] + [(c, d) for c in ("fb", "po") for d in ("easy", "hard")]
+    assert config.stage_increments_cap("canonical") == 5 and config.stage_increments_cap("po") == 3
+    assert config.test_pairs() == [(c, d) for c in ("fb", "po") for d in ("easy", "hard")]
+    assert parse_config(config.model_dump(mode="json")) == config
+    # the default: today's behaviour, no canonical stage
+    plain = parse_config(LEARNABILITY)
+    assert plain.learnability.start == "initial" and plain.learnability.canonical_increments is None
+    assert not plain.starts_from_canonical and ("canonical", "canonical") not in plain.stage_order()
+    assert parse_config(plain.model_dump(mode="json")) == plain
+
+
+def test_learnability_canonical_quick_is_learnability_quick_with_a_canonical_start():
+    quick = load_config(REPO_ROOT / "configs/learnability_quick.yaml").model_dump(mode="json")
+    canonical = load_config(REPO_ROOT / "configs/learnability_canonical_quick.yaml")
+    assert canonical.learnability.start == "canonical" and canonical.learnability.canonical_increments >= 1
+    assert canonical.stage_order()[0] == ("canonical", "canonical") and len(canonical.test_pairs()) == 21
+    changed = canonical.model_dump(mode="json")
+    changed["learnability"] = {**changed["learnability"], "start": "initial", "canonical_increments": None}
+    assert {**changed, "name": quick["name"]} == quick

@@ -57,3 +57,14 @@ def test_progress_counts_planned_training_iterations_not_stages():
     assert (done, planned) == (singles + 2 * 240, singles + mixed) and done / planned < 0.55
     rows[-1] = {**rows[-1], "status": "done", "increments": 3}  # ended early by the stopping rule
     assert training_progress(config, rows) == (planned, planned)
+
+
+def test_progress_plans_the_canonical_stage_of_a_canonical_start_at_its_own_increments():
+    from foldwise.config import load_config
+    from services.cli import training_progress
+
+    config = load_config(REPO_ROOT / "configs/learnability_canonical_quick.yaml")
+    canonical, kappa, t = config.learnability.canonical_increments, config.learnability.kappa, config.active_learning.t
+    assert training_progress(config, []) == (0, (canonical + 21 * kappa) * t)
+    rows = [{"condition": "canonical", "difficulty": "canonical", "status": "running", "increments": 2}]
+    assert training_progress(config, rows) == (2 * t, (canonical + 21 * kappa) * t)

@@ -27,6 +27,14 @@ def test_the_score_is_the_mean_map_over_every_increment():
     assert (po.condition, po.score, po.best_map, po.rank) == ("po", pytest.approx(0.1), 0.3, 2)
 
 
+def test_the_shared_canonical_stage_is_no_condition_of_the_order():
+    # learnability.start: canonical trains a canonical stage first; it scores highest of all
+    order = learnability_order(_history({"canonical": [0.9, 0.95], "fb": [0.2, 0.4], "po": [0.1, 0.3]}))
+    assert [row.condition for row in order.rows] == ["fb", "po"]
+    assert [row.rank for row in order.rows] == [1, 2]
+    assert order.compared == ("fb", "po") and order.spearman_rho == pytest.approx(1.0)
+
+
 def test_a_condition_learned_early_beats_one_that_only_ends_as_high():
     order = learnability_order(_history({"de": [0.1, 0.1, 0.8], "sc": [0.6, 0.7, 0.8]}))
     assert [row.condition for row in order.rows] == ["sc", "de"]

@@ -1,7 +1,8 @@
 """`foldwise run` of a learnability experiment (Algorithm 2) on a smoke-sized config, end to end
 in one process: κ increments per stage, no stopping rule, each difficulty from the last model
 of the one before, each condition from the initial weights and scored on its own test set,
-and a report with the learnability order and Spearman's ρ."""
+and a report with the learnability order and Spearman's ρ; with ``learnability.start: canonical``,
+a canonical stage first and every condition from its last model."""
 
 from __future__ import annotations
 
@@ -108,3 +109,70 @@ def test_a_learnability_run_trains_kappa_increments_from_the_last_model(database
     assert body["compared"] == [row["condition"] for row in rows] and body["paper_order"][0] == "fb"
     assert client.get(f"/experiments/{other}/learnability").status_code == 409
 
+
+
+CANONICAL_INCREMENTS = 2
+
+
+def test_a_canonical_start_trains_the_canonical_stage_first_and_every_condition_from_its_last_model(database, tmp_path):
+    from services.cli import _register_worker_commands, app
+
+    _register_worker_commands()
+    path = _learnability_config(tmp_path)
+    config = yaml.safe_load(path.read_text())
+    config["learnability"] = {"kappa": KAPPA, "start": "canonical", "canonical_increments": CANONICAL_INCREMENTS}
+    path.write_text(yaml.safe_dump(config))
+    report_dir = tmp_path / "report"
+    result = CliRunner().invoke(app, ["run", str(path), "--report-dir", str(report_dir)])
+    assert result.exit_code == 0, result.output
+
+    with session_scope() as session:
+        (experiment,) = session.scalars(select(Experiment)).all()
+        stages = session.scalars(select(Stage).order_by(Stage.order)).all()
+        models = session.scalars(select(Model).order_by(Model.id)).all()
+        evaluations = {e.model_id: e for e in session.scalars(select(Evaluation))}
+        assert experiment.status.value == "finished"
+        assert [(s.condition, s.difficulty) for s in stages] == [
+            ("canonical", "canonical"), ("fb", "easy"), ("fb", "hard"), ("po", "easy"), ("po", "hard"),
+        ]  # fmt: skip
+        by_stage = {s.id: sorted((m for m in models if m.stage_id == s.id), key=lambda m: m.increment) for s in stages}
+        canonical, fb_easy, fb_hard, po_easy, po_hard = stages
+        # the canonical stage trains first, from the initial weights, for its fixed increments
+        canonical_models = by_stage[canonical.id]
+        assert [m.increment for m in canonical_models] == list(range(1, CANONICAL_INCREMENTS + 1))
+        assert canonical.end_reason == StageEndReason.increments and canonical.init_model_id is None
+        assert canonical_models[0].parent_id is None
+        assert max(m.id for m in canonical_models) < min(m.id for m in models if m.stage_id != canonical.id)
+        assert canonical.finished_at <= min(s.started_at for s in stages[1:])
+        # ... scored on the whole test set, every condition of the curriculum
+        for model in canonical_models:
+            groups = set(evaluations[model.id].details["breakdown"]["condition/difficulty"])
+            assert groups == {"fb/easy", "fb/hard", "po/easy", "po/hard"}
+        # every condition's first difficulty starts from the canonical stage's LAST model
+        last_canonical = canonical_models[-1].id
+        for first in (fb_easy, po_easy):
+            assert first.init_model_id == last_canonical
+            assert by_stage[first.id][0].parent_id == last_canonical
+        # later difficulties still start from the condition's previous difficulty's last model
+        assert fb_hard.init_model_id == by_stage[fb_easy.id][-1].id
+        assert po_hard.init_model_id == by_stage[po_easy.id][-1].id
+        for stage in stages[1:]:
+            assert [m.increment for m in by_stage[stage.id]] == list(range(1, KAPPA + 1))
+            assert stage.end_reason == StageEndReason.kappa
+            for model in by_stage[stage.id]:
+                groups = set(evaluations[model.id].details["breakdown"]["condition/difficulty"])
+                assert groups == {f"{stage.condition}/easy", f"{stage.condition}/hard"}
+
+    # the canonical stage is no condition of the learnability order
+    with open(report_dir / f"learnability-{experiment.id}.csv") as handle:
+        rows = list(csv.DictReader(handle))
+    assert sorted(row["condition"] for row in rows) == ["fb", "po"]
+    assert all(int(row["increments"]) == 2 * KAPPA for row in rows)
+
+    # ... and the figures and the report still draw
+    result = CliRunner().invoke(app, ["report", str(experiment.id), "--out", str(report_dir), "--figures"])
+    assert result.exit_code == 0, result.output
+    assert "Spearman" in result.output
+    for name in ("fig4", "fig5", "fig7", "fig8"):
+        png = report_dir / f"{name}-experiments-{experiment.id}.png"
+        assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"

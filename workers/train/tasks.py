@@ -34,6 +34,7 @@ from foldwise import store
 from foldwise.config import ExperimentConfig
 from foldwise.seeds import derive_seed
 from foldwise.settings import get_settings
+from foldwise.theta import CANONICAL
 from workers import lease
 from workers.app import TRAIN_TASK, app
 
@@ -156,8 +157,9 @@ def _run_claimed_increment(model_id: int) -> str:
             ParameterSet.split == Split.test,
             ParameterSet.status == RenderStatus.rendered,
         )
-        if config.kind == "learnability":
-            # Algorithm 2 scores a condition on its own test set (every difficulty of it) only.
+        if config.kind == "learnability" and stage.condition != CANONICAL:
+            # Algorithm 2 scores a condition on its own test set (every difficulty of it) only;
+            # the shared canonical stage (start: canonical) is scored on all of it, as Table 2.
             test_query = test_query.where(ParameterSet.condition == stage.condition)
         test_rows = session.scalars(test_query.order_by(ParameterSet.id)).all()
         test_ids = [row.id for row in test_rows]

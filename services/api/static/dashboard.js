@@ -41,14 +41,20 @@ const fixed = (value, digits = 3) => (value === null || value === undefined ? "â
 
 // Time left at the pace so far: finished stages plus the current stage's share of its cap
 // (a learnability experiment trains exactly learnability.kappa increments per stage, the
-// canonical baseline canonical_baseline.increments in its one stage).
-const FIXED_INCREMENTS = { learnability: () => config.learnability.kappa, canonical_baseline: () => config.canonical_baseline.increments };
+// canonical baseline canonical_baseline.increments in its one stage, and the canonical stage
+// of learnability.start: canonical its learnability.canonical_increments).
+const FIXED_INCREMENTS = {
+  learnability: (stage) => (stage.condition === "canonical" ? config.learnability.canonical_increments : config.learnability.kappa),
+  canonical_baseline: () => config.canonical_baseline.increments,
+};
 function eta(summary, stages) {
   if (summary.status !== "running" || !summary.elapsed_seconds) return null;
-  const cap = (FIXED_INCREMENTS[config.kind] || (() => config.active_learning.max_increments))();
   let done = stages.filter((s) => s.status === "done").length;
   const current = stages.find((s) => s.status === "running");
-  if (current) done += Math.min(current.increments / cap, 0.99);
+  if (current) {
+    const cap = (FIXED_INCREMENTS[config.kind] || (() => config.active_learning.max_increments))(current);
+    done += Math.min(current.increments / cap, 0.99);
+  }
   if (done <= 0) return null;
   return (summary.elapsed_seconds / done) * (stages.length - done);
 }
