@@ -180,10 +180,11 @@ def _print_learnability(experiment_id: int, files) -> None:
     console.print(table)
     rho = order.spearman_rho
     rho = "undefined (fewer than two ranked conditions, or all tied)" if rho is None else f"{rho:.3f}"
-    console.print(
-        f"Spearman's ρ against the paper's order ({', '.join(order.compared) or 'no condition in common'}): {rho}",
-        highlight=False,
-    )
+    # Both orders over the conditions both rank, most learnable first, so that ρ can be read.
+    ranked = sorted((row for row in order.rows if row.condition in order.compared), key=lambda row: row.rank)
+    ours = " > ".join(row.condition for row in ranked) or "no condition in common"
+    papers = " > ".join(row.condition for row in sorted(ranked, key=lambda row: row.paper_rank)) or "-"
+    console.print(f"order here: {ours}; the paper's: {papers}; Spearman's ρ: {rho}", highlight=False)
     console.print(f"learnability: {files.learnability_csv}", highlight=False)
 
 

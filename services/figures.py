@@ -26,6 +26,7 @@ from pathlib import Path
 from db.session import session_scope
 from foldwise.conditions import load_condition_table
 from foldwise.config import ExperimentConfig
+from foldwise.theta import CANONICAL
 from services import queries
 
 FIGURES = ("fig4", "fig5", "fig6", "fig7", "fig8")
@@ -178,7 +179,9 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
         # The paper's Fig. 5: per condition, a bar per difficulty (its mAP rises once the
         # detector trains on hard cases), a panel per detector.
         conditions = list(dict.fromkeys(c for c, _ in keys))
-        difficulties = list(dict.fromkeys(d for _, d in keys))
+        # A canonical stage (the baseline's, or a learnability run's shared start) has no
+        # difficulty: one grey bar across its group instead of a slot beside every difficulty.
+        difficulties = list(dict.fromkeys(d for _, d in keys if d != CANONICAL))
         shades = plt.get_cmap("Blues")
         width = 0.8 / max(1, len(difficulties))
         figure, axes = plt.subplots(
@@ -188,9 +191,17 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
         rows = []
         for r, (run, ax) in enumerate(zip(runs, axes[:, 0])):
             best = {(s["condition"], s["difficulty"]): s["best_map"] for s in run.stages if s["best_map"] is not None}
+            if (CANONICAL, CANONICAL) in best:
+                value = best[(CANONICAL, CANONICAL)]
+                rows.append({"experiment": run.experiment_id, "condition": CANONICAL, "name": table.name(CANONICAL),
+                             "difficulty": CANONICAL, "best_map": value})  # fmt: skip
+                ax.bar([conditions.index(CANONICAL) + width * (len(difficulties) - 1) / 2], [value], 0.8, color="0.7",
+                       edgecolor="black", linewidth=0.4, label="canonical images")  # fmt: skip
             for d, difficulty in enumerate(difficulties):
-                heights = [best.get((condition, difficulty)) for condition in conditions]
+                heights = [None if condition == CANONICAL else best.get((condition, difficulty)) for condition in conditions]
                 for condition, value in zip(conditions, heights):
+                    if condition == CANONICAL:
+                        continue
                     rows.append({"experiment": run.experiment_id, "condition": condition, "name": table.name(condition),
                                  "difficulty": difficulty, "best_map": value})  # fmt: skip
                 ax.bar([c + d * width for c in range(len(conditions))], [h or 0.0 for h in heights], width, label=difficulty,

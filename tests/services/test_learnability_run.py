@@ -87,7 +87,7 @@ def test_a_learnability_run_trains_kappa_increments_from_the_last_model(database
     # Fig. 4 and 5 of the learnability experiment are drawn
     result = CliRunner().invoke(app, ["report", str(experiment.id), "--out", str(report_dir), "--figures"])
     assert result.exit_code == 0, result.output
-    assert "Spearman" in result.output
+    assert "the paper's: fb > po; Spearman's ρ" in result.output  # both orders, so that ρ can be read
     for name in ("fig4", "fig5"):
         png = report_dir / f"{name}-experiments-{experiment.id}.png"
         assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
@@ -176,3 +176,10 @@ def test_a_canonical_start_trains_the_canonical_stage_first_and_every_condition_
     for name in ("fig4", "fig5", "fig7", "fig8"):
         png = report_dir / f"{name}-experiments-{experiment.id}.png"
         assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"
+    # Fig. 5 gives the canonical stage one bar of its own, not a difficulty slot in every group
+    with open(report_dir / f"fig5-experiments-{experiment.id}.csv") as handle:
+        bars = list(csv.DictReader(handle))
+    assert [(b["condition"], b["difficulty"]) for b in bars if "canonical" in (b["condition"], b["difficulty"])] == [
+        ("canonical", "canonical")
+    ]
+    assert {b["difficulty"] for b in bars if b["condition"] != "canonical"} == {"easy", "hard"}
