@@ -212,7 +212,8 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
             ax.set_ylim(0, 1.02)
             ax.set_title(run.label, fontsize=8)
             # Beside the panel: inside, it would cover the tallest bars.
-            ax.legend(title="difficulty trained", fontsize=7, title_fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+            if ax.get_legend_handles_labels()[0]:  # an experiment with no stage yet has no bar to name
+                ax.legend(title="difficulty trained", fontsize=7, title_fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
             ax.grid(axis="y", alpha=0.3)
         figure.suptitle(f"Fig. 5: the best mAP per condition and difficulty (any increment); {protocol}", fontsize=9)
         save("fig5", figure, ["experiment", "condition", "name", "difficulty", "best_map"], rows)
