@@ -99,6 +99,13 @@ def experiment_figure(
     return FileResponse(path, media_type=FIGURE_MEDIA[extension], filename=path.name)
 
 
+def _require_kind(session, experiment_id: int, kind: str) -> None:
+    """409 unless the experiment is of ``kind`` (its route reads what only that kind records)."""
+    config = ExperimentConfig.model_validate(queries.get_experiment(session, experiment_id).config)
+    if config.kind != kind:
+        raise HTTPException(status.HTTP_409_CONFLICT, f"experiment {experiment_id} is of kind {config.kind}, not {kind}")
+
+
 @router.get(
     "/experiments/{experiment_id}/learnability",
     responses={**NOT_FOUND, 409: {"description": "the experiment is not of kind learnability"}},
@@ -106,11 +113,7 @@ def experiment_figure(
 def experiment_learnability(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
     """A learnability experiment's (Algorithm 2) order of conditions beside the paper's, with
     Spearman's ρ, from the scores so far (services/learnability.py defines the score)."""
-    config = ExperimentConfig.model_validate(queries.get_experiment(session, experiment_id).config)
-    if config.kind != "learnability":
-        raise HTTPException(
-            status.HTTP_409_CONFLICT, f"experiment {experiment_id} is of kind {config.kind}, not learnability"
-        )
+    _require_kind(session, experiment_id, "learnability")
     order = learnability.experiment_learnability(session, experiment_id)
     return {
         "score": "mean mAP over every increment of the condition, each on its own test set",
@@ -129,11 +132,7 @@ def experiment_table2(experiment_id: ExperimentId, session: SessionDep) -> dict[
     """A canonical baseline's Table 2 (paper §3.2): its model's mAP per condition, over every
     difficulty and at each, beside the paper's Fast R-CNN figure. ``final`` once the experiment
     has finished; before then, the scores of its latest evaluated model."""
-    config = ExperimentConfig.model_validate(queries.get_experiment(session, experiment_id).config)
-    if config.kind != "canonical_baseline":
-        raise HTTPException(
-            status.HTTP_409_CONFLICT, f"experiment {experiment_id} is of kind {config.kind}, not canonical_baseline"
-        )
+    _require_kind(session, experiment_id, "canonical_baseline")
     table = baseline.experiment_table2(session, experiment_id)
     return {
         "model_id": table.model_id,
