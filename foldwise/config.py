@@ -335,7 +335,9 @@ class DetectorConfig(_Section):
     family: Literal["faster_rcnn", "fast_rcnn", "yolo"] = "faster_rcnn"
     backbone: str = "mobilenet_v3_large_fpn"
     input_size: int = Field(default=128, ge=32, le=2048)
-    pretrained: Literal["none", "imagenet"] = "none"
+    # none: random initialisation; imagenet: torchvision's classifier from the torch hub cache;
+    # coco: the COCO-trained MobileNetV3 that ships with foldwise (backbone mobilenet_v3_large_075_fpn).
+    pretrained: Literal["none", "imagenet", "coco"] = "none"
     batch_size: int = Field(default=4, ge=1, le=512)
     learning_rate: float = Field(default=0.01, gt=0, le=MAX_LEARNING_RATE)
     momentum: float = Field(default=0.9, ge=0, lt=1)
@@ -374,9 +376,11 @@ class DetectorConfig(_Section):
 
     @model_validator(mode="after")
     def _buildable(self) -> "DetectorConfig":
-        from foldwise.weights import backbone_problem
+        from foldwise.weights import backbone_problem, pretrained_problem
 
-        if problem := backbone_problem(self.family, self.backbone):
+        if problem := backbone_problem(self.family, self.backbone) or pretrained_problem(
+            self.family, self.backbone, self.pretrained
+        ):
             raise ValueError(problem.removeprefix("detector."))
         return self
 

@@ -34,6 +34,17 @@ RCNN_BACKBONES = {
     "mobilenet_v3_large_fpn": "mobilenet_v3_large",
     "mobilenet_v3_large_320_fpn": "mobilenet_v3_large",
     "resnet50_fpn_v2": "resnet50",
+    # TensorFlow-slim's MobileNetV3-Large x0.75 (workers/train/detectors/mobilenet_v3_tf.py):
+    # the backbone whose COCO weights ship with foldwise (``pretrained: coco``).
+    "mobilenet_v3_large_075_fpn": "mobilenet_v3_large_075",
+}
+# Initial weights each backbone can start from besides random ones: torchvision's ImageNet
+# classifiers (from the torch hub cache) or the COCO weights foldwise ships.
+PRETRAINED_SOURCES = {
+    "mobilenet_v3_large_fpn": ("imagenet",),
+    "mobilenet_v3_large_320_fpn": ("imagenet",),
+    "resnet50_fpn_v2": ("imagenet",),
+    "mobilenet_v3_large_075_fpn": ("coco",),
 }
 # yolo builds on any classifier of IMAGENET_WEIGHTS; detection-style names
 # ("mobilenet_v3_large_fpn", "mobilenet_v3_large_320_fpn", "resnet50_fpn_v2") name the same one.
@@ -53,6 +64,21 @@ def backbone_problem(family: str, backbone: str) -> str | None:
     if backbone in RCNN_BACKBONES:
         return None
     return f"detector.backbone {backbone!r} is not supported by the {family} detector; known: {', '.join(RCNN_BACKBONES)}"
+
+
+def pretrained_problem(family: str, backbone: str, pretrained: str) -> str | None:
+    """Why ``backbone`` cannot start from ``pretrained`` weights (None when it can)."""
+    if pretrained == "none":
+        return None
+    if family == "yolo":
+        if pretrained == "imagenet":
+            return None
+        return f"detector.pretrained {pretrained!r}: the yolo detector starts from ImageNet weights or none"
+    sources = PRETRAINED_SOURCES.get(backbone, ())
+    if pretrained in sources:
+        return None
+    have = " or ".join(repr(source) for source in sources) or "no pretrained weights"
+    return f"detector.pretrained {pretrained!r}: backbone {backbone!r} has {have} (or 'none')"
 
 
 def torch_hub_dir() -> Path:

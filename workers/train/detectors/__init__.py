@@ -83,6 +83,8 @@ def build_backbone(config: DetectorConfig, load_pretrained: bool = True) -> nn.M
             f"detector.backbone {config.backbone!r} is not supported by the {config.family} detector; "
             f"known: {', '.join(RCNN_BACKBONES)}"
         )
+    if classifier_name == "mobilenet_v3_large_075":
+        return _mobilenet_v3_large_075_fpn(config, load_pretrained)
     pretrained = config.pretrained == "imagenet"
     state = load_imagenet_state(classifier_name, config.backbone) if pretrained and load_pretrained else None
 
@@ -126,6 +128,52 @@ def build_backbone(config: DetectorConfig, load_pretrained: bool = True) -> nn.M
         extra_blocks=LastLevelMaxPool(),
         norm_layer=nn.BatchNorm2d if classifier_name == "resnet50" else None,
     )
+
+
+def _mobilenet_v3_large_075_fpn(config: DetectorConfig, load_pretrained: bool) -> nn.Module:
+    """The feature pyramid on TensorFlow-slim's MobileNetV3-Large x0.75 (strides 8, 16, 32).
+
+    With ``pretrained: coco`` the stem and the blocks at strides 2 to 8 keep the COCO weights
+    (frozen, as torchvision freezes the first stages of a pretrained backbone) and the rest
+    fine-tunes; BatchNorm is folded into those weights, so it stays frozen throughout.
+    """
+    from functools import partial
+
+    from torch import nn
+    from torchvision.models.detection.backbone_utils import BackboneWithFPN
+    from torchvision.ops import FrozenBatchNorm2d
+    from torchvision.ops.feature_pyramid_network import LastLevelMaxPool
+
+    from workers.train.detectors.mobilenet_v3_tf import FEATURE_CHILDREN, load_coco_weights, mobilenet_v3_large_075_body
+
+    pretrained = config.pretrained == "coco"
+    body = mobilenet_v3_large_075_body(partial(FrozenBatchNorm2d, eps=0.0) if pretrained else nn.BatchNorm2d)
+    if pretrained:
+        if load_pretrained:
+            load_coco_weights(body)
+        for block in body[: FEATURE_CHILDREN[0] + 1]:
+            for parameter in block.parameters():
+                parameter.requires_grad_(False)
+    return BackboneWithFPN(
+        body,
+        {str(child): str(level) for level, child in enumerate(FEATURE_CHILDREN)},
+        [body[child].out_channels for child in FEATURE_CHILDREN],
+        config.fpn_channels,
+        extra_blocks=LastLevelMaxPool(),
+        # The body's features are unnormalised (std ~13 at stride 8 on 0..255 input): without
+        # BatchNorm the fresh pyramid and RPN diverged at the first steps.
+        norm_layer=nn.BatchNorm2d,
+    )
+
+
+def input_normalization(config: DetectorConfig) -> tuple[list[float], list[float]]:
+    """The (mean, std) the detector's transform applies to 0..1 images: ImageNet's statistics
+    for torchvision's classifiers, 0..255 for the TensorFlow MobileNet (trained on raw pixels)."""
+    if RCNN_BACKBONES.get(config.backbone) == "mobilenet_v3_large_075":
+        from workers.train.detectors.mobilenet_v3_tf import PIXEL_SCALE
+
+        return [0.0, 0.0, 0.0], [1.0 / PIXEL_SCALE] * 3
+    return [0.485, 0.456, 0.406], [0.229, 0.224, 0.225]
 
 
 def feature_map_names(backbone: nn.Module) -> list[str]:

@@ -77,7 +77,7 @@ def build_fast_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: b
     from torchvision.models.detection.transform import GeneralizedRCNNTransform
     from torchvision.ops import MultiScaleRoIAlign
 
-    from workers.train.detectors import build_backbone, feature_map_names
+    from workers.train.detectors import build_backbone, feature_map_names, input_normalization
 
     backbone = build_backbone(config, load_pretrained)
     # One bilinear sample per bin (torchvision: 2x2): RoIAlign's CPU backward dominated a step.
@@ -101,10 +101,8 @@ def build_fast_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: b
         nms_thresh=0.5,
         detections_per_img=config.detections_per_image,
     )
+    image_mean, image_std = input_normalization(config)
     transform = GeneralizedRCNNTransform(
-        min_size=config.input_size,
-        max_size=config.input_size,
-        image_mean=[0.485, 0.456, 0.406],
-        image_std=[0.229, 0.224, 0.225],
+        min_size=config.input_size, max_size=config.input_size, image_mean=image_mean, image_std=image_std
     )
     return FastRCNN(backbone, transform, roi_heads, max_proposals=config.edge_boxes)

@@ -28,7 +28,7 @@ def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained:
     from torchvision.models.detection.faster_rcnn import FastRCNNConvFCHead, FastRCNNPredictor, RPNHead, TwoMLPHead
     from torchvision.ops import MultiScaleRoIAlign
 
-    from workers.train.detectors import anchor_sizes, build_backbone, feature_map_names
+    from workers.train.detectors import anchor_sizes, build_backbone, feature_map_names, input_normalization
 
     backbone = build_backbone(config, load_pretrained)
     roi_levels = feature_map_names(backbone)
@@ -51,11 +51,14 @@ def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained:
         rpn_head = RPNHead(backbone.out_channels, anchors_per_location)
         box_head = TwoMLPHead(backbone.out_channels * 7 * 7, config.representation_size)
 
+    image_mean, image_std = input_normalization(config)
     return FasterRCNN(
         backbone,
         num_classes=None,
         min_size=config.input_size,
         max_size=config.input_size,
+        image_mean=image_mean,
+        image_std=image_std,
         rpn_anchor_generator=anchor_generator,
         rpn_head=rpn_head,
         rpn_pre_nms_top_n_train=2 * config.rpn_proposals_train,
