@@ -338,6 +338,9 @@ class DetectorConfig(_Section):
     # none: random initialisation; imagenet: torchvision's classifier from the torch hub cache;
     # coco: the COCO-trained MobileNetV3 that ships with foldwise (backbone mobilenet_v3_large_075_fpn).
     pretrained: Literal["none", "imagenet", "coco"] = "none"
+    # Backbone stages that train, counted from the last (torchvision's trainable_backbone_layers):
+    # none = 3 with pretrained weights, all from random ones; 0 keeps the whole backbone frozen.
+    trainable_backbone_stages: int | None = Field(default=None, ge=0, le=6)
     batch_size: int = Field(default=4, ge=1, le=512)
     learning_rate: float = Field(default=0.01, gt=0, le=MAX_LEARNING_RATE)
     momentum: float = Field(default=0.9, ge=0, lt=1)
@@ -382,6 +385,8 @@ class DetectorConfig(_Section):
             self.family, self.backbone, self.pretrained
         ):
             raise ValueError(problem.removeprefix("detector."))
+        if self.family == "yolo" and self.trainable_backbone_stages is not None:
+            raise ValueError("trainable_backbone_stages: only read by the R-CNN families (yolo trains its whole backbone)")
         return self
 
     @field_validator("anchor_size_range")

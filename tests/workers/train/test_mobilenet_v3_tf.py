@@ -186,3 +186,21 @@ def test_float16_weights_are_widened_and_a_short_file_is_refused():
     assert int(tensors["k"]) == 7
     with pytest.raises(ValueError, match="covers 10 bytes of a 14-byte file"):
         decode_weights(graph, blob + b"\0" * 4)
+
+
+@pytest.mark.parametrize(("stages", "first_trained"), [(None, 7), (0, None), (1, 16), (3, 7), (6, 0)])
+def test_trainable_backbone_stages_count_from_the_last(stages, first_trained):
+    config = DetectorConfig(pretrained="coco", trainable_backbone_stages=stages, **SMALL)
+    body = build_detector(config, num_classes=2).backbone.body
+    trained = [index for index, child in enumerate(body.values()) if any(p.requires_grad for p in child.parameters())]
+    assert trained == ([] if first_trained is None else list(range(first_trained, 17)))
+
+
+def test_trainable_backbone_stages_apply_to_torchvisions_backbones_too():
+    mobilenet = build_detector(DetectorConfig(trainable_backbone_stages=1, **{**SMALL, "backbone": "mobilenet_v3_large_fpn"}), 2)
+    assert [i for i, c in enumerate(mobilenet.backbone.body.values()) if any(p.requires_grad for p in c.parameters())] == [16]
+    resnet = build_detector(DetectorConfig(trainable_backbone_stages=2, **{**SMALL, "backbone": "resnet50_fpn_v2"}), 2)
+    trained = {name.split(".")[0] for name, p in resnet.backbone.body.named_parameters() if p.requires_grad}
+    assert trained == {"layer4", "layer3"}
+    with pytest.raises(ValueError, match="trainable_backbone_stages: only read by the R-CNN families"):
+        DetectorConfig(family="yolo", trainable_backbone_stages=2)

@@ -95,12 +95,7 @@ def build_backbone(config: DetectorConfig, load_pretrained: bool = True) -> nn.M
         if state is not None:
             classifier.load_state_dict(state)
         body = classifier.features
-        # Stage starts: the stem, each strided block, the last 1x1 conv (as torchvision's extractor).
-        stages = [0] + [i for i, block in enumerate(body) if getattr(block, "_is_cn", False)] + [len(body) - 1]
-        trainable_stages = 3 if pretrained else len(stages)
-        for block in body[: stages[len(stages) - trainable_stages]]:
-            for parameter in block.parameters():
-                parameter.requires_grad_(False)
+        stages = freeze_early_stages(body, trainable_stages(config))
         # Strides 8, 16 and 32: torchvision's own variant reads stride 32 only, too coarse for
         # 10-pixel objects in 128-pixel images.
         returned = [stages[2], stages[3], stages[-1]]
@@ -111,9 +106,9 @@ def build_backbone(config: DetectorConfig, load_pretrained: bool = True) -> nn.M
         body = torchvision.models.resnet50(weights=None)
         if state is not None:
             body.load_state_dict(state)
-        trainable = (
-            ["layer4", "layer3", "layer2"] if pretrained else ["layer4", "layer3", "layer2", "layer1", "conv1", "bn1"]
-        )
+        trainable = ["layer4", "layer3", "layer2", "layer1", "conv1", "bn1"][: trainable_stages(config)]
+        if "conv1" in trainable:
+            trainable.append("bn1")
         for name, parameter in body.named_parameters():
             if not name.startswith(tuple(trainable)):
                 parameter.requires_grad_(False)
@@ -130,12 +125,33 @@ def build_backbone(config: DetectorConfig, load_pretrained: bool = True) -> nn.M
     )
 
 
+def trainable_stages(config: DetectorConfig) -> int:
+    """How many backbone stages train, counted from the last: the config's
+    ``trainable_backbone_stages``, else 3 for pretrained weights (torchvision's default for
+    fine-tuning) and every stage from random ones. Stages: the stem, each block that halves the
+    resolution, and the last 1x1 convolution (mobilenets, 6 in all); layer4..layer1 and the stem
+    (resnet, 5)."""
+    if config.trainable_backbone_stages is not None:
+        return config.trainable_backbone_stages
+    return 3 if config.pretrained != "none" else 6
+
+
+def freeze_early_stages(body: nn.Sequential, trainable: int) -> list[int]:
+    """Freeze a mobilenet body but for its last ``trainable`` stages; returns where each stage
+    starts (the stem, each strided block, the last 1x1 conv: as torchvision's extractor)."""
+    stages = [0] + [i for i, block in enumerate(body) if getattr(block, "_is_cn", False)] + [len(body) - 1]
+    first_trained = len(body) if trainable == 0 else stages[max(len(stages) - trainable, 0)]
+    for block in body[:first_trained]:
+        for parameter in block.parameters():
+            parameter.requires_grad_(False)
+    return stages
+
+
 def _mobilenet_v3_large_075_fpn(config: DetectorConfig, load_pretrained: bool) -> nn.Module:
     """The feature pyramid on TensorFlow-slim's MobileNetV3-Large x0.75 (strides 8, 16, 32).
 
-    With ``pretrained: coco`` the stem and the blocks at strides 2 to 8 keep the COCO weights
-    (frozen, as torchvision freezes the first stages of a pretrained backbone) and the rest
-    fine-tunes; BatchNorm is folded into those weights, so it stays frozen throughout.
+    With ``pretrained: coco`` the early stages keep the COCO weights (``trainable_stages``) and
+    the rest fine-tunes; BatchNorm is folded into those weights, so it stays frozen throughout.
     """
     from functools import partial
 
@@ -151,9 +167,7 @@ def _mobilenet_v3_large_075_fpn(config: DetectorConfig, load_pretrained: bool) -
     if pretrained:
         if load_pretrained:
             load_coco_weights(body)
-        for block in body[: FEATURE_CHILDREN[0] + 1]:
-            for parameter in block.parameters():
-                parameter.requires_grad_(False)
+    freeze_early_stages(body, trainable_stages(config))
     return BackboneWithFPN(
         body,
         {str(child): str(level) for level, child in enumerate(FEATURE_CHILDREN)},
