@@ -172,9 +172,13 @@ class Recovery:
     notes: dict[str, Any] = field(default_factory=dict)
 
 
-def kill_train_worker_mid_increment(stack: Stack, api, rows: Rows, recovery_timeout_s: float = RECOVERY_GOAL_S) -> Recovery:
-    # Increments long enough (~10 s) to be killed inside; two of them.
-    experiment_id = post_smoke_experiment(stack, api, "fault-train-worker", active_learning={"t": 100, "max_increments": 2})
+def kill_train_worker_mid_increment(
+    stack: Stack, api, rows: Rows, recovery_timeout_s: float = RECOVERY_GOAL_S, iterations: int = 100
+) -> Recovery:
+    # Increments long enough to be killed inside (~10 s at 100 iterations); two of them.
+    experiment_id = post_smoke_experiment(
+        stack, api, "fault-train-worker", active_learning={"t": iterations, "max_increments": 2}
+    )
 
     def training() -> Model | None:
         with rows() as session:

@@ -82,8 +82,15 @@ def check_done_once(stack, api, rows, recovery) -> None:
     assert not audit.problems, audit.problems
 
 
+# Training iterations per increment: the kill lands 0.5 s into the increment, and the model is
+# built and its images read before the first iteration, so 30 (~3 s of training alone on an idle
+# core) leave it well inside; bench/faults.py keeps the harness's 100 (~10 s). The killed
+# increment and the one after it train in full, so each iteration here is paid twice.
+TRAIN_ITERATIONS = 30
+
+
 def test_a_train_worker_killed_mid_increment_is_replaced_and_nothing_trains_twice(fault_stack, fault_api, rows):
-    recovery = kill_train_worker_mid_increment(fault_stack, fault_api, rows)
+    recovery = kill_train_worker_mid_increment(fault_stack, fault_api, rows, iterations=TRAIN_ITERATIONS)
     # A message sent again, not the killed one redelivered.
     assert recovery.notes["task_id_again"] != recovery.notes["task_id_killed"]
     check_done_once(fault_stack, fault_api, rows, recovery)

@@ -7,39 +7,21 @@ from __future__ import annotations
 
 import csv
 
-import yaml
 from sqlalchemy import select
-from typer.testing import CliRunner
 
 from db.models import Evaluation, Experiment, Model, ParameterSet, Split, Stage, StageEndReason
 from db.session import session_scope
-from foldwise.settings import REPO_ROOT
+from tests.services.kinds import DIFFICULTIES, report, run_in_process, smoke_kind_config
 
 INCREMENTS = 2
 # fb is in the paper's curriculum; wr (wrinkles) only in its Table 2, as a condition added since.
-CONDITIONS, DIFFICULTIES = ["fb", "wr"], ["easy", "hard"]
-
-
-def _baseline_config(tmp_path):
-    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
-    config["name"] = "smoke-canonical-baseline"
-    config["kind"] = "canonical_baseline"
-    config["canonical_baseline"] = {"increments": INCREMENTS}
-    config["curriculum"] = {"conditions": CONDITIONS, "difficulties": DIFFICULTIES}
-    # smoke.yaml's stopping rule (M, N, τ, cap) is refused by this kind: m and t only.
-    config["active_learning"] = {"m": 4, "t": 2}
-    path = tmp_path / "canonical_baseline.yaml"
-    path.write_text(yaml.safe_dump(config))
-    return path
+CONDITIONS = ["fb", "wr"]
 
 
 def test_a_canonical_baseline_run_stores_every_conditions_score_and_reports_table_2(database, tmp_path):
-    from services.cli import _register_worker_commands, app
-
-    _register_worker_commands()
     report_dir = tmp_path / "report"
-    result = CliRunner().invoke(app, ["run", str(_baseline_config(tmp_path)), "--report-dir", str(report_dir)])
-    assert result.exit_code == 0, result.output
+    path = smoke_kind_config(tmp_path, "canonical_baseline", {"increments": INCREMENTS}, conditions=CONDITIONS)
+    result = run_in_process(path, report_dir)
     assert "Table 2: trained on canonical images only (faster_rcnn, model" in result.output
 
     pairs = {f"{c}/{d}" for c in CONDITIONS for d in DIFFICULTIES}
@@ -76,9 +58,7 @@ def test_a_canonical_baseline_run_stores_every_conditions_score_and_reports_tabl
 
     # `foldwise report` writes and prints the same table
     again = tmp_path / "again"
-    result = CliRunner().invoke(app, ["report", str(experiment.id), "--out", str(again)])
-    assert result.exit_code == 0, result.output
-    assert "Table 2" in result.output
+    assert "Table 2" in report(str(experiment.id), "--out", str(again)).output
     assert (again / f"table2-{experiment.id}.csv").read_text() == (report_dir / f"table2-{experiment.id}.csv").read_text()
 
     # ... and the API serves it; an Algorithm 1 experiment has none (409), an unknown id is 404

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -75,8 +76,10 @@ CASES = [
 
 
 @pytest.fixture
-def database_file(tmp_path) -> Path:
+def database_file(tmp_path, migrated_sqlite_template) -> Path:
+    """A migrated SQLite file: a copy of the session's template, brought to head (it is)."""
     path = tmp_path / "foldwise.db"
+    shutil.copy(migrated_sqlite_template, path)
     upgrade(f"sqlite:///{path}")
     return path
 

@@ -8,38 +8,22 @@ from __future__ import annotations
 
 import csv
 
-import yaml
 from sqlalchemy import select
-from typer.testing import CliRunner
 
 from db.models import Evaluation, Experiment, Model, Stage, StageEndReason
 from db.session import session_scope
-from foldwise.settings import REPO_ROOT
+from tests.services.kinds import assert_scored_on_own_condition, report, run_in_process, smoke_kind_config
 
 KAPPA = 2
 
 
-def _learnability_config(tmp_path):
-    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
-    config["name"] = "smoke-learnability"
-    config["kind"] = "learnability"
-    config["learnability"] = {"kappa": KAPPA}
-    # Two conditions the paper ranks far apart, so the order has two entries and a ρ.
-    config["curriculum"] = {"conditions": ["fb", "po"], "difficulties": ["easy", "hard"]}
-    # smoke.yaml's τ = 1 would end every Algorithm 1 stage at k = M + N = 2: no such key here.
-    config["active_learning"] = {"m": 4, "t": 2}
-    path = tmp_path / "learnability.yaml"
-    path.write_text(yaml.safe_dump(config))
-    return path
+def _learnability_config(tmp_path, **settings):
+    return smoke_kind_config(tmp_path, "learnability", {"kappa": KAPPA, **settings})
 
 
 def test_a_learnability_run_trains_kappa_increments_from_the_last_model(database, tmp_path):
-    from services.cli import _register_worker_commands, app
-
-    _register_worker_commands()
     report_dir = tmp_path / "report"
-    result = CliRunner().invoke(app, ["run", str(_learnability_config(tmp_path)), "--report-dir", str(report_dir)])
-    assert result.exit_code == 0, result.output
+    result = run_in_process(_learnability_config(tmp_path), report_dir)
     assert "Spearman" in result.output and "kappa" in result.output
 
     with session_scope() as session:
@@ -67,10 +51,7 @@ def test_a_learnability_run_trains_kappa_increments_from_the_last_model(database
         assert fb_hard.init_model_id == by_stage[fb_easy.id][-1].id
         assert po_hard.init_model_id == by_stage[po_easy.id][-1].id
         # every model is scored on its own condition's test set only
-        for stage in stages:
-            for model in by_stage[stage.id]:
-                groups = set(evaluations[model.id].details["breakdown"]["condition/difficulty"])
-                assert groups == {f"{stage.condition}/easy", f"{stage.condition}/hard"}
+        assert_scored_on_own_condition(stages, by_stage, evaluations)
 
     with open(report_dir / f"learnability-{experiment.id}.csv") as handle:
         rows = list(csv.DictReader(handle))
@@ -85,8 +66,7 @@ def test_a_learnability_run_trains_kappa_increments_from_the_last_model(database
         assert rows[0]["spearman_rho"] == ("1.0000" if float(fb["score"]) > float(po["score"]) else "-1.0000")
 
     # Fig. 4 and 5 of the learnability experiment are drawn
-    result = CliRunner().invoke(app, ["report", str(experiment.id), "--out", str(report_dir), "--figures"])
-    assert result.exit_code == 0, result.output
+    result = report(str(experiment.id), "--out", str(report_dir), "--figures")
     assert "the paper's: fb > po; Spearman's ρ" in result.output  # both orders, so that ρ can be read
     for name in ("fig4", "fig5"):
         png = report_dir / f"{name}-experiments-{experiment.id}.png"
@@ -110,21 +90,13 @@ def test_a_learnability_run_trains_kappa_increments_from_the_last_model(database
     assert client.get(f"/experiments/{other}/learnability").status_code == 409
 
 
-
 CANONICAL_INCREMENTS = 2
 
 
 def test_a_canonical_start_trains_the_canonical_stage_first_and_every_condition_from_its_last_model(database, tmp_path):
-    from services.cli import _register_worker_commands, app
-
-    _register_worker_commands()
-    path = _learnability_config(tmp_path)
-    config = yaml.safe_load(path.read_text())
-    config["learnability"] = {"kappa": KAPPA, "start": "canonical", "canonical_increments": CANONICAL_INCREMENTS}
-    path.write_text(yaml.safe_dump(config))
+    path = _learnability_config(tmp_path, start="canonical", canonical_increments=CANONICAL_INCREMENTS)
     report_dir = tmp_path / "report"
-    result = CliRunner().invoke(app, ["run", str(path), "--report-dir", str(report_dir)])
-    assert result.exit_code == 0, result.output
+    run_in_process(path, report_dir)
 
     with session_scope() as session:
         (experiment,) = session.scalars(select(Experiment)).all()
@@ -159,9 +131,7 @@ def test_a_canonical_start_trains_the_canonical_stage_first_and_every_condition_
         for stage in stages[1:]:
             assert [m.increment for m in by_stage[stage.id]] == list(range(1, KAPPA + 1))
             assert stage.end_reason == StageEndReason.kappa
-            for model in by_stage[stage.id]:
-                groups = set(evaluations[model.id].details["breakdown"]["condition/difficulty"])
-                assert groups == {f"{stage.condition}/easy", f"{stage.condition}/hard"}
+        assert_scored_on_own_condition(stages[1:], by_stage, evaluations)
 
     # the canonical stage is no condition of the learnability order
     with open(report_dir / f"learnability-{experiment.id}.csv") as handle:
@@ -170,9 +140,7 @@ def test_a_canonical_start_trains_the_canonical_stage_first_and_every_condition_
     assert all(int(row["increments"]) == 2 * KAPPA for row in rows)
 
     # ... and the figures and the report still draw
-    result = CliRunner().invoke(app, ["report", str(experiment.id), "--out", str(report_dir), "--figures"])
-    assert result.exit_code == 0, result.output
-    assert "Spearman" in result.output
+    assert "Spearman" in report(str(experiment.id), "--out", str(report_dir), "--figures").output
     for name in ("fig4", "fig5", "fig7", "fig8"):
         png = report_dir / f"{name}-experiments-{experiment.id}.png"
         assert png.stat().st_size > 10_000 and png.read_bytes()[:4] == b"\x89PNG"

@@ -8,6 +8,7 @@ databases fail differently on the same input: PostgreSQL refuses NUL in text and
 from __future__ import annotations
 
 import os
+import shutil
 import socket
 
 import pytest
@@ -32,7 +33,13 @@ def _closed_port() -> int:
 
 @pytest.fixture(params=["sqlite", "postgresql"])
 def database_url(request, tmp_path, monkeypatch):
-    url = f"sqlite:///{tmp_path / 'api.db'}" if request.param == "sqlite" else request.getfixturevalue("postgres_url")
+    # A copy of a database migrated once per session (a migration per test cost ~0.15 s of each
+    # of these tests); upgrade() finds the copy at head.
+    if request.param == "sqlite":
+        shutil.copy(request.getfixturevalue("migrated_sqlite_template"), tmp_path / "api.db")
+        url = f"sqlite:///{tmp_path / 'api.db'}"
+    else:
+        url = request.getfixturevalue("migrated_postgres_url")
     upgrade(url)
     monkeypatch.setenv("FOLDWISE_DATA_DIR", str(tmp_path))
     monkeypatch.setenv("FOLDWISE_DATABASE_URL", url)

@@ -10,17 +10,11 @@ from db.models import ExperimentStatus, ModelStatus, ParameterSet, RenderStatus,
 from db.session import session_scope
 from foldwise.config import parse_config
 from services.scheduler.reconcile import CloseStage, CreateModel, Finish, ModelView, SampleTraining, Snapshot, StageView, plan
+from tests.services.kinds import kind_config
 
 NOW = datetime(2026, 1, 1, tzinfo=timezone.utc)
 INCREMENTS = 4
-CONFIG = parse_config(
-    {
-        "name": "b",
-        "kind": "canonical_baseline",
-        "canonical_baseline": {"increments": INCREMENTS},
-        "curriculum": {"conditions": ["fb", "po"], "difficulties": ["easy", "hard"]},
-    }
-)
+CONFIG = parse_config(kind_config("canonical_baseline", "b", {"increments": INCREMENTS}))
 RENDERED = Counter({RenderStatus.rendered: 4})
 STAGE = 10
 

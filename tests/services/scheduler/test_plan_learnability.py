@@ -8,17 +8,11 @@ from datetime import datetime, timedelta, timezone
 from db.models import ExperimentStatus, ModelStatus, RenderStatus, StageEndReason, StageStatus
 from foldwise.config import parse_config
 from services.scheduler.reconcile import CloseStage, CreateModel, ModelView, OpenStage, SampleTraining, Snapshot, StageView, plan
+from tests.services.kinds import kind_config
 
 NOW = datetime(2026, 1, 1, tzinfo=timezone.utc)
 KAPPA = 4
-CONFIG = parse_config(
-    {
-        "name": "l",
-        "kind": "learnability",
-        "learnability": {"kappa": KAPPA},
-        "curriculum": {"conditions": ["fb", "po"], "difficulties": ["easy", "hard"]},
-    }
-)
+CONFIG = parse_config(kind_config("learnability", "l", {"kappa": KAPPA}))
 RENDERED = Counter({RenderStatus.rendered: 4})
 
 
@@ -87,10 +81,7 @@ def test_the_next_condition_opens_from_the_initial_weights():
 # learnability.start: canonical: a shared canonical stage (order 0) before every condition.
 CANONICAL_INCREMENTS = 3
 CANONICAL_START = parse_config(
-    {
-        **CONFIG.model_dump(mode="json"),
-        "learnability": {"kappa": KAPPA, "start": "canonical", "canonical_increments": CANONICAL_INCREMENTS},
-    }
+    kind_config("learnability", "l", {"kappa": KAPPA, "start": "canonical", "canonical_increments": CANONICAL_INCREMENTS})
 )
 
 
