@@ -22,7 +22,7 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from workers.train.detectors.mobilenet_v3_tf import BLOCKS, WEIGHTS_FILE, mobilenet_v3_large_075_body
+from workers.train.detectors.mobilenet_v3_tf import BLOCKS, WEIGHTS_FILE, _SamePad, mobilenet_v3_large_075_body
 
 PACKAGE_MEMBERS = ("package/models/centernet.json", "package/models/centernet.bin")
 COCO_PERSON, COCO_CUP = 0, 41
@@ -103,13 +103,6 @@ def backbone_state(tensors: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     return state
 
 
-def _same_pad(x: torch.Tensor, kernel: tuple[int, int], stride: int) -> torch.Tensor:
-    height, width = x.shape[-2:]
-    pad_h = max((-(-height // stride) - 1) * stride + kernel[0] - height, 0)
-    pad_w = max((-(-width // stride) - 1) * stride + kernel[1] - width, 0)
-    return F.pad(x, (pad_w // 2, pad_w - pad_w // 2, pad_h // 2, pad_h - pad_h // 2))
-
-
 def _resize_legacy(x: torch.Tensor, size: list[int]) -> torch.Tensor:
     """TensorFlow's ResizeBilinear without half-pixel centres: source = destination × in/out."""
     def axis(n_out: int, n_in: int):
@@ -145,8 +138,8 @@ def run_graph(graph: dict, tensors: dict[str, np.ndarray], images: torch.Tensor,
             stride, kernel = int(attr["strides"]["list"]["i"][1]), tuple(w.shape[:2])
             depthwise = "Depthwise" in op
             weight = w.permute(2, 3, 0, 1) if depthwise else w.permute(3, 2, 0, 1)
-            if base64.b64decode(attr["padding"]["s"]).decode() == "SAME":
-                x = _same_pad(x, kernel, stride)
+            if base64.b64decode(attr["padding"]["s"]).decode() == "SAME":  # every kernel here is square
+                x = _SamePad(kernel[0], stride)(x)
             out = F.conv2d(x, weight.contiguous(), None, stride, groups=x.shape[1] if depthwise else 1)
             for fused in attr.get("fused_ops", {}).get("list", {}).get("s", []):
                 fused = base64.b64decode(fused).decode()
