@@ -59,16 +59,16 @@ def quick_settings() -> dict[str, Any]:
 
 def render_canonical_set(name: str, n: int, seed: int, image_size: int) -> Path:
     """A cached dataset folder of n canonical images (COCO JSON as `foldwise render` writes it)."""
-    import cv2
-
-    from workers.render.assets import load_assets
-    from foldwise.sampling import generate_parameters
-    from workers.render.pipeline import render_with_resample
-
     folder = RESULTS / "cache" / f"{name}-canonical-n{n}-s{seed}-px{image_size}"
     annotations_path = folder / "annotations.json"
-    if annotations_path.is_file():
+    if annotations_path.is_file():  # before the renderer's imports: a GPU machine may lack them
         return folder
+    import cv2
+
+    from foldwise.sampling import generate_parameters
+    from workers.render.assets import load_assets
+    from workers.render.pipeline import render_with_resample
+
     assets = load_assets()
     thetas = generate_parameters("fb", "canonical", n, seed, image_size=image_size, assets=assets)
     (folder / "images").mkdir(parents=True, exist_ok=True)
