@@ -2,13 +2,14 @@
 
 Two modes, each printing one JSON document (also written to ``--out``):
 
-* fixed budget (default): per family (faster_rcnn, fast_rcnn, yolo), train ``--iterations`` from
-  random initialisation on ``--train-size`` rendered canonical images, then report training
+* fixed budget (default): per family (faster_rcnn, fast_rcnn, yolo), train ``--iterations`` on
+  ``--train-size`` rendered canonical images (the R-CNN families start as configs/quick.yaml's
+  detector does, on its frozen COCO backbone; yolo, which has no COCO start, from random weights), then report training
   images/s (Fast R-CNN's Edge Boxes proposals are computed once per training image and cached,
   so they are not in it), inference images/s (``detect_object`` over the decoded test images,
   proposals included) and the mAP reached on a fixed canonical test set of ``--test-size`` images;
-* target (``--target-map 0.9 --time-budget 1800 --test-size 150``): per family, train from random
-  initialisation in chunks of ``--eval-every`` iterations (each chunk warm-starts from the last
+* target (``--target-map 0.9 --time-budget 1800 --test-size 150``): per family, train from the
+  same start in chunks of ``--eval-every`` iterations (each chunk warm-starts from the last
   checkpoint, as an increment of Algorithm 1 does), evaluate after each chunk on the held-out
   canonical set, stop when mAP@0.5 under the paper's protocol (score ≥ 0.8) reaches the target or
   the time budget (training + evaluation, rendering excluded) is spent; report the iterations and
@@ -115,7 +116,10 @@ def render_canonical_set(name: str, n: int, seed: int, image_size: int) -> Path:
 def family_config(base, family: str, input_size: int, threads: int, batch_size: int | None):
     from foldwise.config import DetectorConfig
 
-    updates: dict[str, Any] = {"family": family, "input_size": input_size, "num_threads": threads, "pretrained": "none"}
+    updates: dict[str, Any] = {"family": family, "input_size": input_size, "num_threads": threads}
+    if family == "yolo":
+        # yolo has no COCO start: it trains torchvision's MobileNetV3 from random weights.
+        updates.update(backbone="mobilenet_v3_large", pretrained="none", trainable_backbone_stages=None)
     if batch_size:
         updates["batch_size"] = batch_size
     return DetectorConfig.model_validate({**base.model_dump(), **updates})
