@@ -38,14 +38,9 @@ RCNN_BACKBONES = {
     # the backbone whose COCO weights ship with foldwise (``pretrained: coco``).
     "mobilenet_v3_large_075_fpn": "mobilenet_v3_large_075",
 }
-# Initial weights each backbone can start from besides random ones: torchvision's ImageNet
-# classifiers (from the torch hub cache) or the COCO weights foldwise ships.
-PRETRAINED_SOURCES = {
-    "mobilenet_v3_large_fpn": ("imagenet",),
-    "mobilenet_v3_large_320_fpn": ("imagenet",),
-    "resnet50_fpn_v2": ("imagenet",),
-    "mobilenet_v3_large_075_fpn": ("coco",),
-}
+# R-CNN backbones whose COCO weights ship with foldwise (``pretrained: coco``); the others start
+# from torchvision's ImageNet classifiers (``pretrained: imagenet``, from the torch hub cache).
+COCO_BACKBONES = ("mobilenet_v3_large_075_fpn",)
 # yolo builds on any classifier of IMAGENET_WEIGHTS; detection-style names
 # ("mobilenet_v3_large_fpn", "mobilenet_v3_large_320_fpn", "resnet50_fpn_v2") name the same one.
 YOLO_BACKBONE_NAME = re.compile(r"^(?P<base>[a-z0-9_]+?)(?:_320)?(?:_fpn)?(?:_v[12])?$")
@@ -74,11 +69,10 @@ def pretrained_problem(family: str, backbone: str, pretrained: str) -> str | Non
         if pretrained == "imagenet":
             return None
         return f"detector.pretrained {pretrained!r}: the yolo detector starts from ImageNet weights or none"
-    sources = PRETRAINED_SOURCES.get(backbone, ())
-    if pretrained in sources:
+    source = "coco" if backbone in COCO_BACKBONES else "imagenet"
+    if pretrained == source:
         return None
-    have = " or ".join(repr(source) for source in sources) or "no pretrained weights"
-    return f"detector.pretrained {pretrained!r}: backbone {backbone!r} has {have} (or 'none')"
+    return f"detector.pretrained {pretrained!r}: backbone {backbone!r} has {source!r} (or 'none')"
 
 
 def torch_hub_dir() -> Path:

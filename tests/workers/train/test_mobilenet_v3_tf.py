@@ -2,20 +2,19 @@
 
 from __future__ import annotations
 
-from functools import partial
-
 import numpy as np
 import pytest
 import torch
-from torchvision.ops import FrozenBatchNorm2d
 
 from foldwise.config import DetectorConfig
+from tests.workers.train.test_detectors import SMALL as RCNN_SMALL
 from workers.train.checkpoint import load_detector, save_checkpoint
 from workers.train.detectors import build_detector, input_normalization
 from workers.train.detectors.convert_centernet import backbone_state, decode_weights
 from workers.train.detectors.mobilenet_v3_tf import (
     BLOCKS,
     FEATURE_CHILDREN,
+    FOLDED_BATCHNORM,
     WEIGHTS_FILE,
     _SamePad,
     load_coco_weights,
@@ -24,20 +23,11 @@ from workers.train.detectors.mobilenet_v3_tf import (
 
 torch.set_num_threads(1)
 
-SMALL = {
-    "backbone": "mobilenet_v3_large_075_fpn",
-    "input_size": 64,
-    "fpn_channels": 32,
-    "representation_size": 64,
-    "rpn_proposals_train": 40,
-    "rpn_proposals_test": 20,
-    "roi_samples_per_image": 32,
-    "edge_boxes": 30,
-}
+SMALL = {**RCNN_SMALL, "backbone": "mobilenet_v3_large_075_fpn"}
 
 
 def frozen_body():
-    return mobilenet_v3_large_075_body(partial(FrozenBatchNorm2d, eps=0.0)).eval()
+    return mobilenet_v3_large_075_body(FOLDED_BATCHNORM).eval()
 
 
 @pytest.mark.parametrize(("size", "kernel", "before", "after"), [(128, 3, 0, 1), (127, 3, 1, 1), (128, 5, 1, 2), (9, 5, 2, 2)])

@@ -153,20 +153,21 @@ def _mobilenet_v3_large_075_fpn(config: DetectorConfig, load_pretrained: bool) -
     With ``pretrained: coco`` the early stages keep the COCO weights (``trainable_stages``) and
     the rest fine-tunes; BatchNorm is folded into those weights, so it stays frozen throughout.
     """
-    from functools import partial
-
     from torch import nn
     from torchvision.models.detection.backbone_utils import BackboneWithFPN
-    from torchvision.ops import FrozenBatchNorm2d
     from torchvision.ops.feature_pyramid_network import LastLevelMaxPool
 
-    from workers.train.detectors.mobilenet_v3_tf import FEATURE_CHILDREN, load_coco_weights, mobilenet_v3_large_075_body
+    from workers.train.detectors.mobilenet_v3_tf import (
+        FEATURE_CHILDREN,
+        FOLDED_BATCHNORM,
+        load_coco_weights,
+        mobilenet_v3_large_075_body,
+    )
 
     pretrained = config.pretrained == "coco"
-    body = mobilenet_v3_large_075_body(partial(FrozenBatchNorm2d, eps=0.0) if pretrained else nn.BatchNorm2d)
-    if pretrained:
-        if load_pretrained:
-            load_coco_weights(body)
+    body = mobilenet_v3_large_075_body(FOLDED_BATCHNORM if pretrained else nn.BatchNorm2d)
+    if pretrained and load_pretrained:
+        load_coco_weights(body)
     freeze_early_stages(body, trainable_stages(config))
     return BackboneWithFPN(
         body,

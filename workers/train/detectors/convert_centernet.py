@@ -22,7 +22,16 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from workers.train.detectors.mobilenet_v3_tf import BLOCKS, WEIGHTS_FILE, _SamePad, mobilenet_v3_large_075_body
+from workers.train.detectors.mobilenet_v3_tf import (
+    BLOCKS,
+    FEATURE_CHILDREN,
+    FOLDED_BATCHNORM,
+    STEM_CHANNELS,
+    WEIGHTS_FILE,
+    ConvNorm,
+    _SamePad,
+    mobilenet_v3_large_075_body,
+)
 
 PACKAGE_MEMBERS = ("package/models/centernet.json", "package/models/centernet.bin")
 COCO_PERSON, COCO_CUP = 0, 41
@@ -65,29 +74,32 @@ def backbone_state(tensors: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         weights = torch.from_numpy(tensors[name])  # HWIO (depthwise: H, W, C, 1)
         return weights.permute(2, 3, 0, 1) if depthwise else weights.permute(3, 2, 0, 1)
 
+    body = mobilenet_v3_large_075_body(FOLDED_BATCHNORM)
     state: dict[str, torch.Tensor] = {}
 
-    def conv_norm(prefix: str, weight: torch.Tensor, offset: str) -> None:
+    def conv_norm(path: str, weight: torch.Tensor, offset: str) -> None:
+        """A ConvNorm of the body at ``path``: its convolution, and the folded offset as its norm's bias."""
+        module = body.get_submodule(path)
+        assert isinstance(module, ConvNorm)
+        conv_index = next(i for i, layer in enumerate(module) if layer is module.conv)
         bias = torch.from_numpy(tensors[offset])
-        state[f"{prefix}.weight"] = weight.contiguous()
-        state[f"{prefix.rsplit('.', 1)[0]}.{int(prefix.rsplit('.', 1)[1]) + 1}.weight"] = torch.ones_like(bias)
-        norm = f"{prefix.rsplit('.', 1)[0]}.{int(prefix.rsplit('.', 1)[1]) + 1}"
+        state[f"{path}.{conv_index}.weight"] = weight.contiguous()
+        norm = f"{path}.{conv_index + 1}"
+        state[f"{norm}.weight"] = torch.ones_like(bias)
         state[f"{norm}.bias"] = bias
         state[f"{norm}.running_mean"] = torch.zeros_like(bias)
         state[f"{norm}.running_var"] = torch.ones_like(bias)
 
     tf = "tower_0/MobilenetV3"
-    # The stem pads (child 0), so its convolution is child 1 and its norm child 2.
-    conv_norm("0.1", conv(f"{tf}/Conv/Conv2D_weights"), f"{tf}/Conv/Conv2D_bn_offset")
-    cin = 16
-    for index, (expanded, _cout, _kernel, stride, squeeze, _act) in enumerate(BLOCKS):
+    conv_norm("0", conv(f"{tf}/Conv/Conv2D_weights"), f"{tf}/Conv/Conv2D_bn_offset")
+    cin = STEM_CHANNELS
+    for index, (expanded, cout, _kernel, _stride, squeeze, _activation) in enumerate(BLOCKS):
         block = "expanded_conv" if index == 0 else f"expanded_conv_{index}"
         child = str(index + 1)
         if expanded != cin:
-            conv_norm(f"{child}.expand.0", conv(f"{tf}/{block}/expand/Conv2D_weights"), f"{tf}/{block}/expand/Conv2D_bn_offset")
-        dw = 1 if stride > 1 else 0
+            conv_norm(f"{child}.expand", conv(f"{tf}/{block}/expand/Conv2D_weights"), f"{tf}/{block}/expand/Conv2D_bn_offset")
         conv_norm(
-            f"{child}.depthwise.{dw}",
+            f"{child}.depthwise",
             conv(f"{tf}/{block}/depthwise/depthwise_weights", depthwise=True),
             f"{tf}/{block}/depthwise/depthwise_bn_offset",
         )
@@ -97,9 +109,9 @@ def backbone_state(tensors: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
             state[f"{child}.squeeze_excite.reduce.bias"] = torch.from_numpy(tensors[f"{se}/Conv/biases"])
             state[f"{child}.squeeze_excite.expand.weight"] = conv(f"{se}/Conv_1/weights").contiguous()
             state[f"{child}.squeeze_excite.expand.bias"] = torch.from_numpy(tensors[f"{se}/Conv_1/biases"])
-        conv_norm(f"{child}.project.0", conv(f"{tf}/{block}/project/Conv2D_weights"), f"{tf}/{block}/project/Conv2D_bn_offset")
-        cin = _cout
-    conv_norm("16.0", conv("tower_0/extern1/Conv2D_weights"), "tower_0/extern1/Conv2D_bn_offset")
+        conv_norm(f"{child}.project", conv(f"{tf}/{block}/project/Conv2D_weights"), f"{tf}/{block}/project/Conv2D_bn_offset")
+        cin = cout
+    conv_norm(str(len(BLOCKS) + 1), conv("tower_0/extern1/Conv2D_weights"), "tower_0/extern1/Conv2D_bn_offset")
     return state
 
 
@@ -168,10 +180,7 @@ def run_graph(graph: dict, tensors: dict[str, np.ndarray], images: torch.Tensor,
 
 def check(graph: dict, tensors: dict[str, np.ndarray], state: dict[str, torch.Tensor]) -> dict:
     """The graph finds COCO classes on photographs; the converted body matches the graph."""
-    from functools import partial
-
     import skimage.data
-    from torchvision.ops import FrozenBatchNorm2d
 
     def photo(image: np.ndarray) -> torch.Tensor:
         x = torch.from_numpy(image).permute(2, 0, 1)[None].float()
@@ -187,12 +196,10 @@ def check(graph: dict, tensors: dict[str, np.ndarray], state: dict[str, torch.Te
     # The graph's hard-swish and hard-sigmoid multiply by 1/6 stored as float16 (0.166626); with
     # the exact 1/6 the comparison below tests the mapping of weights, not that rounding.
     exact = {name: (np.array(1 / 6, np.float32) if value.ndim == 0 and abs(value - 1 / 6) < 1e-3 else value) for name, value in tensors.items()}
-    body = mobilenet_v3_large_075_body(partial(FrozenBatchNorm2d, eps=0.0)).eval()
+    body = mobilenet_v3_large_075_body(FOLDED_BATCHNORM).eval()
     body.load_state_dict(state)
     x = photo(skimage.data.chelsea())
     expected = run_graph(graph, exact, x, list(FEATURE_NODES))
-    from workers.train.detectors.mobilenet_v3_tf import FEATURE_CHILDREN
-
     features, out = [], x
     with torch.no_grad():
         for index, child in enumerate(body):

