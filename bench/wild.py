@@ -731,7 +731,7 @@ def class_agnostic(predictions: list[dict], ground_truth: list[dict]) -> tuple[l
     return merged, truth
 
 
-def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: float) -> dict:
+def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: float, test_sizes=None) -> dict:
     from workers.train.checkpoint import load_detector
     from workers.train.data import load_coco_dataset
     from workers.train.evaluation import detector_predictions, evaluate_predictions
@@ -739,7 +739,7 @@ def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: f
     samples, classes = load_coco_dataset(data)
     detector = load_detector(checkpoint, device="cpu")
     started = time.perf_counter()
-    predictions, truth, groups, model_classes = detector_predictions(detector, samples, classes)
+    predictions, truth, groups, model_classes = detector_predictions(detector, samples, classes, test_sizes=test_sizes)
     protocol = {"score_threshold": score_threshold, "iou_threshold": iou_threshold, "coco": False}
     payload = evaluate_predictions(predictions, truth, model_classes, groups=groups, **protocol).to_dict()
     agnostic = evaluate_predictions(*class_agnostic(predictions, truth), ["object"], **protocol).to_dict()
@@ -776,6 +776,10 @@ def main(argv=None) -> dict:
     parser.add_argument("--train-dir", type=Path, default=None, help="data directory for the training run")
     parser.add_argument("--threshold", type=float, default=0.8)
     parser.add_argument("--iou", type=float, default=0.5)
+    parser.add_argument(
+        "--test-sizes", type=lambda text: tuple(int(size) for size in text.split(",") if size),
+        help="comma list of inference sizes to score at (default: the model's detector.test_sizes)",
+    )
     parser.add_argument("--out", type=Path)
     args = parser.parse_args(argv)
 
@@ -809,15 +813,16 @@ def main(argv=None) -> dict:
     else:
         checkpoint = args.model
     report["model"] = str(checkpoint)
+    report["test_sizes"] = list(args.test_sizes) if args.test_sizes is not None else "the model's"
 
     in_domain_dir = args.in_domain_dir or ROOT / f"var/bench/wild-in-domain-{config.name}"
     make_in_domain_set(config, in_domain_dir, args.n_in_domain, seed=config.seed + 7919, echo=echo)
-    report["in_domain"] = score(checkpoint, in_domain_dir, args.threshold, args.iou)
+    report["in_domain"] = score(checkpoint, in_domain_dir, args.threshold, args.iou, args.test_sizes)
     reframed_dir = make_reframed_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-reframed"))
-    report["in_domain_reframed"] = score(checkpoint, reframed_dir, args.threshold, args.iou)
+    report["in_domain_reframed"] = score(checkpoint, reframed_dir, args.threshold, args.iou, args.test_sizes)
     rotated_dir = make_rotated_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-rotated"))
-    report["in_domain_rotated"] = score(checkpoint, rotated_dir, args.threshold, args.iou)
-    report["out_of_domain"] = score(checkpoint, ood_dir, args.threshold, args.iou)
+    report["in_domain_rotated"] = score(checkpoint, rotated_dir, args.threshold, args.iou, args.test_sizes)
+    report["out_of_domain"] = score(checkpoint, ood_dir, args.threshold, args.iou, args.test_sizes)
     in_map, ood_map = report["in_domain"]["map"], report["out_of_domain"]["map"]
     report["ratio"] = None if not in_map else ood_map / in_map
     report["goal"] = {"ratio_at_least": 0.8, "met": report["ratio"] is not None and report["ratio"] >= 0.8}

@@ -375,6 +375,10 @@ class DetectorConfig(_Section):
     # Detections returned per image, and the score below which none is returned.
     detections_per_image: int = Field(default=20, ge=1, le=1_000)
     box_score_threshold: float = Field(default=0.05, ge=0.0, lt=1.0)
+    # Detection at several input sizes (longer side, px), merged by per-class NMS (R-CNN
+    # families; each size costs a full inference): a sheet too small to find at input_size is
+    # found at a larger one. Empty: input_size alone. Training always runs at input_size.
+    test_sizes: tuple[Annotated[int, Field(ge=32, le=2048)], ...] = Field(default=(), max_length=8)
     augmentation: AugmentationConfig = AugmentationConfig()
 
     @model_validator(mode="after")
@@ -387,7 +391,16 @@ class DetectorConfig(_Section):
             raise ValueError(problem.removeprefix("detector."))
         if self.family == "yolo" and self.trainable_backbone_stages is not None:
             raise ValueError("trainable_backbone_stages: only read by the R-CNN families (yolo trains its whole backbone)")
+        if self.family == "yolo" and self.test_sizes:
+            raise ValueError("test_sizes: only read by the R-CNN families (yolo letterboxes into input_size)")
         return self
+
+    @field_validator("test_sizes")
+    @classmethod
+    def _distinct_sizes(cls, value: tuple[int, ...]) -> tuple[int, ...]:
+        if len(set(value)) != len(value):
+            raise ValueError(f"sizes repeat: {list(value)}")
+        return value
 
     @field_validator("anchor_size_range")
     @classmethod

@@ -289,6 +289,8 @@ def test_every_number_in_the_config_has_an_upper_bound_in_the_schema():
         node = schema["$defs"][node["$ref"].split("/")[-1]] if "$ref" in node else node
         if "maximum" in node or "exclusiveMaximum" in node:
             return True
+        if node.get("type") == "array" and "items" in node:  # a list of numbers: each bounded
+            return has_maximum(node["items"])
         options = [o for o in node.get("anyOf", []) if o.get("type") != "null"]
         return bool(options) and all(has_maximum(o) for o in options)
 

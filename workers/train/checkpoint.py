@@ -189,26 +189,44 @@ def _image_array(image: np.ndarray | str | Path, index: int) -> tuple[np.ndarray
     return as_rgb_uint8(image, where=f"images[{index}]"), None
 
 
+@contextmanager
+def _test_sizes(model: nn.Module, sizes: Sequence[int] | None) -> Iterator[None]:
+    """The model detects at ``sizes`` inside the block (None: as built), as before after it."""
+    if sizes is None:
+        yield
+        return
+    saved, model.test_sizes = model.test_sizes, tuple(sizes)
+    try:
+        yield
+    finally:
+        model.test_sizes = saved
+
+
 def detect_object(
     detector: Detector,
     images: Sequence[np.ndarray | str | Path],
     batch_size: int = 8,
     on_batch: Callable[[int], None] | None = None,
+    test_sizes: Sequence[int] | None = None,
 ) -> list[dict[str, np.ndarray]]:
     """Detections per image: ``boxes`` (n, 4) float32 xyxy in that image's pixels, ``scores``
     (n,) float32, ``labels`` (n,) int64 0-based class indices, best score first.
 
     Images are RGB uint8 arrays or paths (read with OpenCV); any size (the model resizes to
     its input size and maps boxes back). Runs with the detector config's ``num_threads``.
-    ``on_batch(images_done)`` is called after every batch (progress display).
+    ``on_batch(images_done)`` is called after every batch (progress display). ``test_sizes``
+    overrides the detector config's input sizes to detect at (R-CNN families; ``()``: its
+    input size alone).
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be at least 1, got {batch_size}")
+    if test_sizes is not None and detector.meta["family"] not in RCNN_FAMILIES:
+        raise ValueError(f"test_sizes: only the R-CNN families detect at several sizes, not {detector.meta['family']}")
     model = detector.model
     model.eval()
     results: list[dict[str, np.ndarray]] = []
     threads = int(detector.meta.get("config", {}).get("num_threads", 0))
-    with torch.no_grad(), torch_threads(threads):
+    with torch.no_grad(), torch_threads(threads), _test_sizes(model, test_sizes):
         for start in range(0, len(images), batch_size):
             arrays = [_image_array(image, start + i) for i, image in enumerate(images[start : start + batch_size])]
             cache = getattr(model, "proposal_cache", None)

@@ -206,3 +206,64 @@ def test_imagenet_initialised_detector_reloads_and_warm_starts_without_the_weigh
     train_detector(samples, omega, 1, config(pretrained="imagenet"), CLASSES, tmp_path / "next.pt")
     with pytest.raises(CheckpointError, match="pretrained: checkpoint was built with 'imagenet'"):
         train_detector(samples, omega, 1, config(pretrained="none"), CLASSES, tmp_path / "other.pt")
+
+
+def test_detection_at_several_sizes_merges_each_sizes_detections(trained, tmp_path, monkeypatch):
+    """test_sizes: every detection of the merged run comes from one of the single-size runs, the
+    best of each size survives unless a better box of its class covers it, and the model's own
+    input size is back afterwards (a failing run included)."""
+    from torchvision.ops import box_iou
+
+    _, path, paths, arrays = trained
+    detector = load_detector(path)
+    sizes = (64, 96, 128)
+    single = {size: detect_object(detector, paths, test_sizes=(size,)) for size in sizes}
+    merged = detect_object(detector, paths, test_sizes=sizes)
+    assert detector.model.transform.min_size == (64,) and detector.model.transform.max_size == 64
+    assert any(not np.array_equal(single[64][i]["scores"], single[128][i]["scores"]) for i in range(len(paths)))
+    for index, result in enumerate(merged):
+        pool = [(tuple(box), score, label) for size in sizes for box, score, label in zip(
+            single[size][index]["boxes"], single[size][index]["scores"], single[size][index]["labels"])]
+        assert len(result["scores"]) <= detector.config.detections_per_image
+        for box, score, label in zip(result["boxes"], result["scores"], result["labels"]):
+            assert any(np.allclose(box, b) and score == s and label == l for b, s, l in pool)
+        assert result["scores"][0] == max(score for _, score, _ in pool)
+        for size in sizes:
+            best = single[size][index]
+            if not len(best["scores"]):
+                continue
+            kept = [np.allclose(box, best["boxes"][0]) for box in result["boxes"]]
+            same_class = result["labels"] == best["labels"][0]
+            overlap = box_iou(torch.as_tensor(result["boxes"]), torch.as_tensor(best["boxes"][:1]))[:, 0].numpy()
+            assert any(kept) or np.any(same_class & (overlap > 0.5) & (result["scores"] >= best["scores"][0]))
+    # A detector whose config names test_sizes detects so for every caller: detect_object and
+    # the model's own forward alike.
+    meta = {**detector.meta, "config": {**detector.meta["config"], "test_sizes": list(sizes)}}
+    multi = load_detector(save_checkpoint(detector.model, meta, tmp_path / "multi.pt"))
+    assert multi.model.test_sizes == sizes and detector.model.test_sizes == ()
+    with torch.no_grad():
+        direct = multi.model([torch.from_numpy(arrays[0]).permute(2, 0, 1).float() / 255])
+    np.testing.assert_array_equal(direct[0]["scores"].numpy(), merged[0]["scores"])
+    for a, b in zip(merged, detect_object(multi, paths)):
+        np.testing.assert_array_equal(a["scores"], b["scores"])
+    # A run that fails leaves the model at its own input size and sizes.
+    heads_forward = multi.model.roi_heads.forward
+
+    def failing_at_96(*args, **kwargs):
+        if multi.model.transform.max_size == 96:
+            raise RuntimeError("out of memory")
+        return heads_forward(*args, **kwargs)
+
+    monkeypatch.setattr(multi.model.roi_heads, "forward", failing_at_96)
+    with pytest.raises(RuntimeError, match="out of memory"):
+        detect_object(multi, paths, test_sizes=(64, 96))
+    assert multi.model.transform.max_size == 64 and multi.model.test_sizes == sizes
+
+
+def test_yolo_cannot_detect_at_several_sizes():
+    with pytest.raises(ValueError, match="test_sizes: only read by the R-CNN families"):
+        config(family="yolo", backbone="mobilenet_v3_large", test_sizes=[64, 96])
+    with pytest.raises(ValueError, match="sizes repeat"):
+        config(test_sizes=[64, 64])
+    with pytest.raises(ValueError, match="greater than or equal to 32"):
+        config(test_sizes=[16, 64])

@@ -12,6 +12,7 @@ so that importing this package stays cheap.
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING
 from urllib.parse import urlparse
@@ -245,3 +246,35 @@ def build_detector(
             config = config.model_copy(update={"pretrained": "none"})
         return build_yolo(config, num_classes, train_boxes, train_image_sizes=train_image_sizes)
     raise DetectorBuildError(f"detector.family {config.family!r} is unknown; known: {', '.join(FAMILIES)}")
+
+
+
+def detect_at_sizes(model: nn.Module, detect: Callable[[], list[dict]], sizes: Sequence[int]) -> list[dict]:
+    """An R-CNN's detections (``detect()``: its one-size eval forward on a batch) with its input
+    resized to each of ``sizes`` in turn, merged per image by per-class NMS at the model's own
+    NMS IoU and detection cap (test-time multi-scale; ``config.test_sizes``).
+
+    Each size keeps the model's square rule (the longer side at ``size``); every run maps its
+    boxes back to the images' pixels, so they merge as they are. The size is restored after,
+    also when a run fails.
+    """
+    import torch
+    from torchvision.ops import batched_nms
+
+    transform, heads = model.transform, model.roi_heads
+    saved = transform.min_size, transform.max_size
+    runs = []
+    try:
+        for size in sizes:
+            transform.min_size, transform.max_size = (int(size),), int(size)
+            runs.append(detect())
+    finally:
+        transform.min_size, transform.max_size = saved
+    merged = []
+    for outputs in zip(*runs):
+        boxes = torch.cat([output["boxes"] for output in outputs])
+        scores = torch.cat([output["scores"] for output in outputs])
+        labels = torch.cat([output["labels"] for output in outputs])
+        keep = batched_nms(boxes, scores, labels, heads.nms_thresh)[: heads.detections_per_img]
+        merged.append({"boxes": boxes[keep], "scores": scores[keep], "labels": labels[keep]})
+    return merged

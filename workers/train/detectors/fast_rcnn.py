@@ -11,12 +11,14 @@ ground truth.
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor, nn
 
+from workers.train.detectors import detect_at_sizes
 from workers.train.detectors.edge_boxes import ProposalCache, shared_cache
 
 if TYPE_CHECKING:
@@ -31,12 +33,21 @@ def tensor_to_uint8(image: Tensor) -> np.ndarray:
 class FastRCNN(nn.Module):
     """Torchvision-style detector whose region proposals are precomputed Edge Boxes."""
 
-    def __init__(self, backbone: nn.Module, transform: nn.Module, roi_heads: nn.Module, max_proposals: int) -> None:
+    def __init__(
+        self,
+        backbone: nn.Module,
+        transform: nn.Module,
+        roi_heads: nn.Module,
+        max_proposals: int,
+        test_sizes: Sequence[int] = (),
+    ) -> None:
         super().__init__()
         self.backbone = backbone
         self.transform = transform
         self.roi_heads = roi_heads
         self.max_proposals = max_proposals
+        # Eval-mode detection at each of these input sizes, merged (``detect_at_sizes``).
+        self.test_sizes = tuple(test_sizes)
 
     @property
     def proposal_cache(self) -> ProposalCache:
@@ -48,6 +59,11 @@ class FastRCNN(nn.Module):
         return torch.as_tensor(np.array(boxes), dtype=torch.float32, device=image.device)
 
     def forward(self, images: list[Tensor], targets: list[dict[str, Tensor]] | None = None):
+        if not self.training and self.test_sizes:
+            return detect_at_sizes(self, lambda: self._forward(images, None), self.test_sizes)
+        return self._forward(images, targets)
+
+    def _forward(self, images: list[Tensor], targets: list[dict[str, Tensor]] | None):
         if self.training and targets is None:
             raise ValueError("FastRCNN: targets are required in training mode")
         for image in images:
@@ -105,4 +121,4 @@ def build_fast_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: b
     transform = GeneralizedRCNNTransform(
         min_size=config.input_size, max_size=config.input_size, image_mean=image_mean, image_std=image_std
     )
-    return FastRCNN(backbone, transform, roi_heads, max_proposals=config.edge_boxes)
+    return FastRCNN(backbone, transform, roi_heads, max_proposals=config.edge_boxes, test_sizes=config.test_sizes)

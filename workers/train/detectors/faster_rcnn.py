@@ -11,19 +11,36 @@ passes mAP@0.5 0.9 (score >= 0.8) after ~200 iterations of 4 images.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
-if TYPE_CHECKING:
-    from torchvision.models.detection import FasterRCNN
+from torchvision.models import detection
 
+from workers.train.detectors import detect_at_sizes
+
+if TYPE_CHECKING:
     from foldwise.config import DetectorConfig
 
 ASPECT_RATIOS = (0.5, 1.0, 2.0)
 
 
+class FasterRCNN(detection.FasterRCNN):
+    """torchvision's Faster R-CNN; in eval mode with ``test_sizes``, it detects at each of those
+    input sizes and merges (``detect_at_sizes``): every caller of the model, ONNX export
+    included, gets the detector its config describes."""
+
+    def __init__(self, *args, test_sizes: Sequence[int] = (), **kwargs) -> None:
+        super().__init__(*args, **kwargs)
+        self.test_sizes = tuple(test_sizes)
+
+    def forward(self, images, targets=None):
+        if self.training or not self.test_sizes:
+            return super().forward(images, targets)
+        return detect_at_sizes(self, lambda: super(FasterRCNN, self).forward(images), self.test_sizes)
+
+
 def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: bool = True) -> FasterRCNN:
     """A Faster R-CNN for ``num_classes`` object classes (+ background) on ``config.backbone``."""
-    from torchvision.models.detection import FasterRCNN
     from torchvision.models.detection.anchor_utils import AnchorGenerator
     from torchvision.models.detection.faster_rcnn import FastRCNNConvFCHead, FastRCNNPredictor, RPNHead, TwoMLPHead
     from torchvision.ops import MultiScaleRoIAlign
@@ -72,4 +89,5 @@ def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained:
         box_batch_size_per_image=config.roi_samples_per_image,
         box_score_thresh=config.box_score_threshold,
         box_detections_per_img=config.detections_per_image,
+        test_sizes=config.test_sizes,
     )
