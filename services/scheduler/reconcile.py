@@ -657,26 +657,25 @@ def _discard_open_work(session: Session, experiment_id: int) -> None:
         log.info("experiment %s ended: discarded %s", experiment_id, discarded)
 
 
-def _mark_sent(send: Send) -> None:
+def _mark_sent(session: Session, send: Send) -> None:
     now = utcnow()
     table = ParameterSet if send.kind == "render" else Model
-    with session_scope() as session:
-        session.execute(update(table).where(table.id.in_(send.ids)).values(sends=table.sends + 1))
-        if send.kind == "render":
-            session.execute(
-                update(ParameterSet)
-                .where(ParameterSet.id.in_(send.ids), ParameterSet.status.in_(_OPEN))
-                .values(status=RenderStatus.queued, enqueued_at=now)
-            )
-        else:
-            session.execute(
-                update(Model)
-                .where(Model.id.in_(send.ids), Model.status.in_((ModelStatus.pending, ModelStatus.queued)))
-                .values(status=ModelStatus.queued, enqueued_at=now)
-            )
-            session.execute(
-                update(Model).where(Model.id.in_(send.ids), Model.status == ModelStatus.training).values(enqueued_at=now)
-            )
+    session.execute(update(table).where(table.id.in_(send.ids)).values(sends=table.sends + 1))
+    if send.kind == "render":
+        session.execute(
+            update(ParameterSet)
+            .where(ParameterSet.id.in_(send.ids), ParameterSet.status.in_(_OPEN))
+            .values(status=RenderStatus.queued, enqueued_at=now)
+        )
+    else:
+        session.execute(
+            update(Model)
+            .where(Model.id.in_(send.ids), Model.status.in_((ModelStatus.pending, ModelStatus.queued)))
+            .values(status=ModelStatus.queued, enqueued_at=now)
+        )
+        session.execute(
+            update(Model).where(Model.id.in_(send.ids), Model.status == ModelStatus.training).values(enqueued_at=now)
+        )
 
 
 def _send(send: Send) -> None:
@@ -768,9 +767,13 @@ def reconcile_once(experiment_id: int, sent: set[tuple[str, int]] | None = None)
         if not decisions:
             return []
         sends = apply(session, experiment, decisions, snapshot.config)
+        # Counted in the decision's own transaction, before the message leaves: a scheduler
+        # killed after sending could otherwise leave a task that a worker runs with no send on
+        # record. Killed before sending, the row waits queued and quiet, and is sent again.
+        for send in sends:
+            _mark_sent(session, send)
     for send in sends:
         _send(send)
-        _mark_sent(send)
         if sent is not None:
             sent.update((send.kind, i) for i in send.ids)
     return decisions

@@ -345,7 +345,10 @@ def test_every_number_in_the_config_refuses_every_bad_value(client, database_url
 
     wrong = {}
     for key in NUMERIC_FIELDS:
-        values = [[v, v] if key.endswith(("conditions_per_image", "anchor_size_range")) else v for v in BAD_NUMBERS]
+        values = [
+            [v, v] if key.endswith(("conditions_per_image", "anchor_size_range")) else [v] if key.endswith("_sizes") else v
+            for v in BAD_NUMBERS
+        ]
         for value in values:
             response = client.post("/experiments", json=_nested(key, value), headers=AUTH)
             if response.status_code != 422 or key not in response.json()["detail"]:
