@@ -4,7 +4,8 @@ Two modes, each printing one JSON document (also written to ``--out``):
 
 * fixed budget (default): per family (faster_rcnn, fast_rcnn, yolo), train ``--iterations`` on
   ``--train-size`` rendered canonical images (the R-CNN families start as configs/quick.yaml's
-  detector does, on its frozen COCO backbone; yolo, which has no COCO start, from random weights), then report training
+  detector does, on its frozen COCO backbone, detecting at its input size alone; yolo, which has
+  no COCO start, from random weights), then report training
   images/s (Fast R-CNN's Edge Boxes proposals are computed once per training image and cached,
   so they are not in it), inference images/s (``detect_object`` over the decoded test images,
   proposals included) and the mAP reached on a fixed canonical test set of ``--test-size`` images;
@@ -54,7 +55,10 @@ def quick_settings() -> dict[str, Any]:
     path = REPO / "configs" / "quick.yaml"
     if path.is_file():
         config = load_config(path)
-        return {"detector": config.detector, "image_size": config.render.image_size, "source": str(path.relative_to(REPO))}
+        # One input size: the families compare at one inference each (quick.yaml's test_sizes
+        # multiply the R-CNNs' inference cost by the pixels of its sizes; bench/README.md).
+        detector = config.detector.model_copy(update={"test_sizes": ()})
+        return {"detector": detector, "image_size": config.render.image_size, "source": str(path.relative_to(REPO))}
     return {"detector": DetectorConfig(), "image_size": 128, "source": "DetectorConfig defaults (no configs/quick.yaml)"}
 
 

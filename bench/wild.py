@@ -27,6 +27,7 @@ scores foldwise's landings, and nothing in foldwise is tuned to it.
     python bench/wild.py                                  # train configs/quick.yaml, then score
     python bench/wild.py --model var/.../model.pt         # score a checkpoint
     python bench/wild.py --model M.pt --n-ood 300 --out bench/results/wild.json
+    python bench/wild.py --model M.pt --test-sizes 128         # detect at one input size only
 
 A third score, ``in_domain_reframed``, puts the in-domain images in 4:3 and 3:4 frames (mirrored
 borders): the same objects, other frames; a fourth, ``in_domain_rotated``, turns them by
