@@ -248,7 +248,6 @@ def build_detector(
     raise DetectorBuildError(f"detector.family {config.family!r} is unknown; known: {', '.join(FAMILIES)}")
 
 
-
 def detect_at_sizes(model: nn.Module, detect: Callable[[], list[dict]], sizes: Sequence[int]) -> list[dict]:
     """An R-CNN's detections (``detect()``: its one-size eval forward on a batch) with its input
     resized to each of ``sizes`` in turn, merged per image by per-class NMS at the model's own
