@@ -286,12 +286,28 @@ def detect(
     batch_size: Annotated[int, typer.Option("--batch-size", min=1)] = 8,
     device: Annotated[Optional[str], typer.Option("--device", help="cpu or cuda (default: the checkpoint's choice).")] = None,
     threads: Annotated[int, typer.Option("--threads", min=0, help="Torch CPU threads (0: torch decides).")] = 0,
+    sizes: Annotated[
+        Optional[str],
+        typer.Option(
+            "--sizes",
+            help="Input sizes to detect at, merged, e.g. 128,256 or 128 alone for speed "
+            "(R-CNN families; default: the checkpoint's detector.test_sizes, else its input size).",
+        ),
+    ] = None,
 ) -> None:
     """Detect the object in images; write copies with boxes, class names and scores drawn."""
     import cv2
 
+    from foldwise.config import DetectorConfig
     from workers.train.data import DatasetError, read_image_rgb
 
+    test_sizes = None
+    if sizes is not None:
+        try:
+            test_sizes = DetectorConfig(test_sizes=[int(size) for size in sizes.split(",")]).test_sizes
+        except ValueError as error:  # pydantic's ValidationError is one
+            detail = error.errors()[0]["msg"] if hasattr(error, "errors") else str(error)
+            _fail(f"--sizes {sizes!r}: a comma list of distinct input sizes, 32 to 2048 px ({detail})")
     missing = [str(path) for path in images if not path.is_file()]
     if missing:
         _fail(f"image file(s) not found: {', '.join(missing)}")
@@ -307,7 +323,12 @@ def detect(
 
     from workers.train.checkpoint import detect_object
 
-    detections = detect_object(detector, pictures, batch_size=batch_size)
+    try:
+        detections = detect_object(detector, pictures, batch_size=batch_size, test_sizes=test_sizes)
+    except ValueError as error:
+        if test_sizes is None:
+            raise
+        _fail(str(error))
     out_dir.mkdir(parents=True, exist_ok=True)
     used: set[str] = set()
     for path, picture, found in zip(images, pictures, detections):

@@ -253,3 +253,19 @@ def test_detect_writes_annotated_copies(trained, dataset, tmp_path):
         written = cv2.imread(str(out_dir / image.name))
         assert written is not None and written.shape == (IMAGE_SIZE, IMAGE_SIZE, 3)
         assert f"{image} -> " in result.output
+
+
+def test_detect_at_chosen_sizes_and_bad_sizes_named(trained, dataset, tmp_path):
+    images = [str(sorted((dataset / "images").glob("*.png"))[0])]
+    app, model = make_app(), ["--model", str(trained["checkpoints"]["faster_rcnn"])]
+    lines = {}
+    for sizes in ("64", "64,96,128"):
+        result = runner.invoke(app, ["detect", *model, *images, "--out-dir", str(tmp_path / sizes), "--threshold", "0.0", "--sizes", sizes])
+        assert result.exit_code == 0, result.output
+        lines[sizes] = result.output
+    assert lines["64"] != lines["64,96,128"]  # more sizes, other (merged) detections
+    for bad in ("64,64", "16", "big"):
+        result = runner.invoke(app, ["detect", *model, *images, "--sizes", bad])
+        assert result.exit_code == 1 and f"--sizes {bad!r}" in result.output
+    yolo = runner.invoke(app, ["detect", "--model", str(trained["checkpoints"]["yolo"]), *images, "--sizes", "64"])
+    assert yolo.exit_code == 1 and "only the R-CNN families" in yolo.output
