@@ -759,6 +759,15 @@ def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: f
     }
 
 
+def _test_sizes_argument(text: str) -> tuple[int, ...]:
+    from foldwise.config import parse_test_sizes
+
+    try:
+        return parse_test_sizes(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", type=Path, default=ROOT / "configs/quick.yaml")
@@ -778,7 +787,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--threshold", type=float, default=0.8)
     parser.add_argument("--iou", type=float, default=0.5)
     parser.add_argument(
-        "--test-sizes", type=lambda text: tuple(int(size) for size in text.split(",") if size),
+        "--test-sizes", type=_test_sizes_argument,
         help="comma list of inference sizes to score at (default: the model's detector.test_sizes)",
     )
     parser.add_argument("--out", type=Path)

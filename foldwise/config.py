@@ -411,6 +411,20 @@ class DetectorConfig(_Section):
         return value
 
 
+def parse_test_sizes(text: str) -> tuple[int, ...]:
+    """``"128,256"`` as ``detector.test_sizes``, checked as the config checks it (for command-line
+    options); a ValueError names what is wrong."""
+    try:
+        sizes = [int(size) for size in text.split(",")]
+    except ValueError:
+        raise ValueError(f"{text!r}: a comma list of distinct input sizes, 32 to 2048 px (not whole numbers)") from None
+    try:
+        return DetectorConfig(test_sizes=sizes).test_sizes
+    except ValidationError as error:
+        problem = error.errors()[0]["msg"]
+        raise ValueError(f"{text!r}: a comma list of distinct input sizes, 32 to 2048 px ({problem})") from None
+
+
 class EvaluationConfig(_Section):
     score_threshold: float = Field(default=0.8, ge=0.0, le=1.0, description="the paper's confidence cut")
     iou_threshold: float = Field(default=0.5, gt=0.0, le=1.0)

@@ -191,3 +191,12 @@ def test_the_class_agnostic_score_counts_a_found_sheet_whatever_class_it_is_give
     agnostic = evaluate_predictions(merged, merged_truth, ["object"], coco=False)
     assert agnostic.map == 1.0  # found, at the paper's cut
     assert aware.map == 0.0 and aware.map_unthresholded == 1.0  # its right class only at 0.6, under the cut
+
+
+def test_test_sizes_are_read_as_the_config_reads_them_and_bad_ones_refused(capsys):
+    assert wild._test_sizes_argument("128,256") == (128, 256)
+    for bad, problem in (("16", "greater than or equal to 32"), ("128,128", "sizes repeat"), ("big", "not whole numbers")):
+        with pytest.raises(SystemExit):
+            wild.main(["--test-sizes", bad])
+        error = capsys.readouterr().err
+        assert f"argument --test-sizes: {bad!r}" in error and problem in error

@@ -298,16 +298,15 @@ def detect(
     """Detect the object in images; write copies with boxes, class names and scores drawn."""
     import cv2
 
-    from foldwise.config import DetectorConfig
+    from foldwise.config import parse_test_sizes
     from workers.train.data import DatasetError, read_image_rgb
 
     test_sizes = None
     if sizes is not None:
         try:
-            test_sizes = DetectorConfig(test_sizes=[int(size) for size in sizes.split(",")]).test_sizes
-        except ValueError as error:  # pydantic's ValidationError is one
-            detail = error.errors()[0]["msg"] if hasattr(error, "errors") else str(error)
-            _fail(f"--sizes {sizes!r}: a comma list of distinct input sizes, 32 to 2048 px ({detail})")
+            test_sizes = parse_test_sizes(sizes)
+        except ValueError as error:
+            _fail(f"--sizes {error}")
     missing = [str(path) for path in images if not path.is_file()]
     if missing:
         _fail(f"image file(s) not found: {', '.join(missing)}")
@@ -325,9 +324,7 @@ def detect(
 
     try:
         detections = detect_object(detector, pictures, batch_size=batch_size, test_sizes=test_sizes)
-    except ValueError as error:
-        if test_sizes is None:
-            raise
+    except ValueError as error:  # e.g. --sizes for a yolo detector
         _fail(str(error))
     out_dir.mkdir(parents=True, exist_ok=True)
     used: set[str] = set()
