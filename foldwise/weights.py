@@ -37,15 +37,10 @@ RCNN_BACKBONES = {
     # TensorFlow-slim's MobileNetV3-Large x0.75 (workers/train/detectors/mobilenet_v3_tf.py):
     # the backbone whose COCO weights ship with foldwise (``pretrained: coco``).
     "mobilenet_v3_large_075_fpn": "mobilenet_v3_large_075",
-    # The same body under the CenterNet's own COCO-trained neck, frozen, in place of a feature
-    # pyramid trained on renders (workers/train/detectors/centernet_neck.py).
-    "mobilenet_v3_large_075_centernet": "mobilenet_v3_large_075",
 }
 # R-CNN backbones whose COCO weights ship with foldwise (``pretrained: coco``); the others start
 # from torchvision's ImageNet classifiers (``pretrained: imagenet``, from the torch hub cache).
-COCO_BACKBONES = ("mobilenet_v3_large_075_fpn", "mobilenet_v3_large_075_centernet")
-# Backbones that exist only with their pretrained weights (a frozen neck has nothing to learn from).
-PRETRAINED_ONLY_BACKBONES = ("mobilenet_v3_large_075_centernet",)
+COCO_BACKBONES = ("mobilenet_v3_large_075_fpn",)
 # yolo builds on any classifier of IMAGENET_WEIGHTS; detection-style names
 # ("mobilenet_v3_large_fpn", "mobilenet_v3_large_320_fpn", "resnet50_fpn_v2") name the same one.
 YOLO_BACKBONE_NAME = re.compile(r"^(?P<base>[a-z0-9_]+?)(?:_320)?(?:_fpn)?(?:_v[12])?$")
@@ -69,8 +64,6 @@ def backbone_problem(family: str, backbone: str) -> str | None:
 def pretrained_problem(family: str, backbone: str, pretrained: str) -> str | None:
     """Why ``backbone`` cannot start from ``pretrained`` weights (None when it can)."""
     if pretrained == "none":
-        if backbone in PRETRAINED_ONLY_BACKBONES:
-            return f"detector.pretrained 'none': backbone {backbone!r} is its COCO weights, frozen; set pretrained to 'coco'"
         return None
     if family == "yolo":
         if pretrained == "imagenet":

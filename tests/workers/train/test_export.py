@@ -170,31 +170,3 @@ def test_yolo_exported_at_another_size_runs_there_and_not_above_its_input_size(e
 
     larger = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--image-size", "96", "--out", str(target)])
     assert larger.exit_code == 1 and "up to its input size 64 (got 96x96)" in larger.output
-
-
-def test_a_detector_on_the_centernet_neck_exports_its_detections_at_any_size(rendered, tmp_path):
-    """The neck's ×2 resizes follow the image's size in the graph, not the size it was traced at."""
-    import cv2
-    import torch
-
-    from foldwise.config import DetectorConfig
-    from workers.train.checkpoint import detect_object, load_detector, save_checkpoint
-    from workers.train.detectors import build_detector
-    from workers.train.export import OnnxDetector, export_onnx
-
-    config = DetectorConfig(
-        backbone="mobilenet_v3_large_075_centernet", pretrained="coco", trainable_backbone_stages=0,
-        input_size=64, test_sizes=[64, 96], box_score_threshold=0.001,
-    )  # fmt: skip
-    torch.manual_seed(0)
-    model = build_detector(config, num_classes=2).eval()
-    meta = {
-        "family": "faster_rcnn", "backbone": config.backbone, "classes": ["a", "b"], "input_size": 64,
-        "config": config.model_dump(mode="json"),
-    }  # fmt: skip
-    detector = load_detector(save_checkpoint(model, meta, tmp_path / "neck.pt"))
-    onnx_model = OnnxDetector.load(export_onnx(detector, tmp_path / "neck.onnx"))
-    images = rendered_images(rendered)[:2]
-    images.append(cv2.resize(images[0], (96, 80)))
-    for image, expected in zip(images, detect_object(detector, images)):
-        assert_same_detections(onnx_model.detect(image), expected)

@@ -84,8 +84,6 @@ def build_backbone(config: DetectorConfig, load_pretrained: bool = True) -> nn.M
             f"detector.backbone {config.backbone!r} is not supported by the {config.family} detector; "
             f"known: {', '.join(RCNN_BACKBONES)}"
         )
-    if config.backbone == "mobilenet_v3_large_075_centernet":
-        return _mobilenet_v3_large_075_centernet(config, load_pretrained)
     if classifier_name == "mobilenet_v3_large_075":
         return _mobilenet_v3_large_075_fpn(config, load_pretrained)
     pretrained = config.pretrained == "imagenet"
@@ -184,19 +182,6 @@ def _mobilenet_v3_large_075_fpn(config: DetectorConfig, load_pretrained: bool) -
     )
 
 
-def _mobilenet_v3_large_075_centernet(config: DetectorConfig, load_pretrained: bool) -> nn.Module:
-    """The COCO body under the CenterNet's COCO neck, frozen: one 128-channel map at stride 4."""
-    from workers.train.detectors.centernet_neck import CenterNetFeatures, CenterNetNeck, load_neck_weights
-    from workers.train.detectors.mobilenet_v3_tf import FOLDED_BATCHNORM, load_coco_weights, mobilenet_v3_large_075_body
-
-    body, neck = mobilenet_v3_large_075_body(FOLDED_BATCHNORM), CenterNetNeck()
-    if load_pretrained:
-        load_coco_weights(body)
-        load_neck_weights(neck)
-    freeze_early_stages(body, trainable_stages(config))
-    return CenterNetFeatures(body, neck)
-
-
 def input_normalization(config: DetectorConfig) -> tuple[list[float], list[float]]:
     """The (mean, std) the detector's transform applies to 0..1 images: ImageNet's statistics
     for torchvision's classifiers, 0..255 for the TensorFlow MobileNet (trained on raw pixels)."""
@@ -207,15 +192,14 @@ def input_normalization(config: DetectorConfig) -> tuple[list[float], list[float
     return [0.485, 0.456, 0.406], [0.229, 0.224, 0.225]
 
 
-def feature_map_names(backbone: nn.Module, with_pool: bool = False) -> list[str]:
-    """The feature maps RoI pooling reads (every level but an FPN's extra max-pooled one, which
-    only the RPN reads: ``with_pool`` includes it)."""
+def feature_map_names(backbone: nn.Module) -> list[str]:
+    """The FPN levels RoI pooling reads (every level but the extra max-pooled one)."""
     import torch
 
     was_training = backbone.training
     backbone.eval()
     with torch.no_grad():
-        names = [name for name in backbone(torch.zeros(1, 3, 64, 64)) if with_pool or name != "pool"]
+        names = [name for name in backbone(torch.zeros(1, 3, 64, 64)) if name != "pool"]
     backbone.train(was_training)
     return names
 

@@ -22,13 +22,6 @@ import numpy as np
 import torch
 from torch.nn import functional as F
 
-from workers.train.detectors.centernet_neck import (
-    LATERALS,
-    NECK_WEIGHTS_FILE,
-    UPSAMPLINGS,
-    CenterNetFeatures,
-    CenterNetNeck,
-)
 from workers.train.detectors.mobilenet_v3_tf import (
     BLOCKS,
     FEATURE_CHILDREN,
@@ -48,8 +41,6 @@ FEATURE_NODES = (
     "tower_0/MobilenetV3/expanded_conv_11/add",
     "tower_0/extern1/hard_swish/mul_1",
 )
-# The neck's output: what the CenterNet's class and size heads read.
-NECK_NODE = "tower_0/CenternetHead/mul"
 
 
 def read_package(source: Path) -> tuple[dict, bytes]:
@@ -124,37 +115,6 @@ def backbone_state(tensors: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
     return state
 
 
-def neck_state(tensors: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
-    """The CenterNet neck's state dict (``centernet_neck.CenterNetNeck``; BatchNorm folded into
-    the biases, as in the graph)."""
-
-    def conv(name: str, depthwise: bool = False) -> torch.Tensor:
-        weights = torch.from_numpy(tensors[name])  # HWIO (depthwise: H, W, C, 1)
-        return (weights.permute(2, 3, 0, 1) if depthwise else weights.permute(3, 2, 0, 1)).contiguous()
-
-    def bias(name: str) -> torch.Tensor:
-        return torch.from_numpy(tensors[name])
-
-    head, graph_head = "CenternetHead", "tower_0/CenternetHead"
-    state: dict[str, torch.Tensor] = {}
-    for name in LATERALS:
-        state[f"laterals.{name}.reduce.weight"] = conv(f"{graph_head}/{name}/1x1/Conv2D_weights")
-        state[f"laterals.{name}.reduce.bias"] = bias(f"{graph_head}/{name}/1x1/Conv2D_bn_offset")
-        state[f"laterals.{name}.conv.0.weight"] = conv(f"{head}/{name}/3x3/depthwise_weights", depthwise=True)
-        state[f"laterals.{name}.conv.1.weight"] = conv(f"{graph_head}/{name}/3x3/separable_conv2d_weights")
-        state[f"laterals.{name}.conv.1.bias"] = bias(f"{graph_head}/{name}/3x3/separable_conv2d_bn_offset")
-    for name in UPSAMPLINGS:
-        for branch in ("branch_x", "branch_y"):
-            path = f"{name}/{branch}_upsample_resize"
-            state[f"upsamplings.{name}.{branch}.0.weight"] = conv(f"{head}/{path}/depthwise_weights", depthwise=True)
-            state[f"upsamplings.{name}.{branch}.1.weight"] = conv(f"{graph_head}/{path}/separable_conv2d_weights")
-            state[f"upsamplings.{name}.{branch}.1.bias"] = bias(f"{graph_head}/{path}/separable_conv2d_bn_offset")
-    state["gate_reduce.weight"] = conv(f"{graph_head}/conv1x1_se_a/Conv2D_weights")
-    state["gate_reduce.bias"] = bias(f"{graph_head}/conv1x1_se_a/Conv2D_bn_offset")
-    state["gate_expand.weight"] = conv(f"{head}/conv1x1_se_b/weights")
-    return state
-
-
 def _resize_legacy(x: torch.Tensor, size: list[int]) -> torch.Tensor:
     """TensorFlow's ResizeBilinear without half-pixel centres: source = destination × in/out."""
     def axis(n_out: int, n_in: int):
@@ -218,8 +178,8 @@ def run_graph(graph: dict, tensors: dict[str, np.ndarray], images: torch.Tensor,
         return [evaluate(name) for name in outputs]
 
 
-def check(graph: dict, tensors: dict[str, np.ndarray], state: dict[str, torch.Tensor], neck_state_: dict[str, torch.Tensor]) -> dict:
-    """The graph finds COCO classes on photographs; the converted body and neck match the graph."""
+def check(graph: dict, tensors: dict[str, np.ndarray], state: dict[str, torch.Tensor]) -> dict:
+    """The graph finds COCO classes on photographs; the converted body matches the graph."""
     import skimage.data
 
     def photo(image: np.ndarray) -> torch.Tensor:
@@ -250,15 +210,6 @@ def check(graph: dict, tensors: dict[str, np.ndarray], state: dict[str, torch.Te
     report["feature_max_relative_error"] = [f"{e:.1e}" for e in errors]
     if max(errors) > 1e-5:
         raise AssertionError(f"the converted backbone differs from the graph: relative errors {errors}")
-    neck = CenterNetNeck().eval()
-    neck.load_state_dict(neck_state_)
-    (expected_neck,) = run_graph(graph, exact, x, [NECK_NODE])
-    with torch.no_grad():
-        neck_out = CenterNetFeatures(body, neck)(x)["0"]
-    error = float((neck_out - expected_neck).abs().max() / expected_neck.abs().max())
-    report["neck_max_relative_error"] = f"{error:.1e}"
-    if error > 1e-5:
-        raise AssertionError(f"the converted neck differs from the graph: relative error {error}")
     return report
 
 
@@ -266,17 +217,15 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("package", type=Path, help="the npm tarball, or its unpacked models/ folder")
     parser.add_argument("--out", type=Path, default=WEIGHTS_FILE)
-    parser.add_argument("--neck-out", type=Path, default=NECK_WEIGHTS_FILE)
     args = parser.parse_args()
     graph, blob = read_package(args.package)
     tensors = decode_weights(graph, blob)
-    state, neck = backbone_state(tensors), neck_state(tensors)
-    print(json.dumps(check(graph, tensors, state, neck)))
-    for out, weights in ((args.out, state), (args.neck_out, neck)):
-        out.parent.mkdir(parents=True, exist_ok=True)
-        # float16, as published: the widening to float32 happens on load.
-        torch.save({name: tensor.half() for name, tensor in weights.items()}, out)
-        print(f"wrote {out} ({out.stat().st_size} bytes)")
+    state = backbone_state(tensors)
+    print(json.dumps(check(graph, tensors, state)))
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    # float16, as published: the widening to float32 happens on load.
+    torch.save({name: tensor.half() for name, tensor in state.items()}, args.out)
+    print(f"wrote {args.out} ({args.out.stat().st_size} bytes)")
 
 
 if __name__ == "__main__":

@@ -22,7 +22,6 @@ if TYPE_CHECKING:
     from foldwise.config import DetectorConfig
 
 ASPECT_RATIOS = (0.5, 1.0, 2.0)
-ANCHOR_SIZES = 8
 
 
 class FasterRCNN(detection.FasterRCNN):
@@ -50,9 +49,8 @@ def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained:
 
     backbone = build_backbone(config, load_pretrained)
     roi_levels = feature_map_names(backbone)
-    levels = len(feature_map_names(backbone, with_pool=True))  # an FPN's max-pooled level: the RPN's alone
-    # Eight anchor sizes in all: two per level of a pyramid, all eight on a single map.
-    sizes = anchor_sizes(config, levels, per_level=max(2, ANCHOR_SIZES // levels))
+    levels = len(roi_levels) + 1  # + the max-pooled level the RPN also reads
+    sizes = anchor_sizes(config, levels)
     anchor_generator = AnchorGenerator(sizes=sizes, aspect_ratios=(ASPECT_RATIOS,) * levels)
     anchors_per_location = anchor_generator.num_anchors_per_location()[0]
     # One bilinear sample per bin (torchvision: 2x2): RoIAlign's CPU backward dominated a step.

@@ -131,16 +131,12 @@ class InvertedResidual(nn.Module):
         self._is_cn = stride > 1
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        return self.forward_with_expansion(x)[0]
-
-    def forward_with_expansion(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """The block's output and its expansion's (the CenterNet neck reads the latter)."""
-        expanded = x if self.expand is None else self.expand(x)
-        y = self.depthwise(expanded)
+        y = x if self.expand is None else self.expand(x)
+        y = self.depthwise(y)
         if self.squeeze_excite is not None:
             y = self.squeeze_excite(y)
         y = self.project(y)
-        return (x + y if self.residual else y), expanded
+        return x + y if self.residual else y
 
 
 def mobilenet_v3_large_075_body(norm_layer: type[nn.Module] = nn.BatchNorm2d) -> nn.Sequential:
