@@ -331,6 +331,10 @@ class AugmentationConfig(_Section):
     jpeg: float = Field(default=0.2, ge=0.0, le=1.0, description="JPEG at quality 20-90")
 
 
+# Input sizes (longer side, px) detector.test_sizes accepts: the config and the command-line parser.
+MIN_TEST_SIZE, MAX_TEST_SIZE = 32, 2048
+
+
 class DetectorConfig(_Section):
     family: Literal["faster_rcnn", "fast_rcnn", "yolo"] = "faster_rcnn"
     backbone: str = "mobilenet_v3_large_fpn"
@@ -378,7 +382,7 @@ class DetectorConfig(_Section):
     # Detection at several input sizes (longer side, px), merged by per-class NMS (R-CNN
     # families; each size costs a full inference): a sheet too small to find at input_size is
     # found at a larger one. Empty: input_size alone. Training always runs at input_size.
-    test_sizes: tuple[Annotated[int, Field(ge=32, le=2048)], ...] = Field(default=(), max_length=8)
+    test_sizes: tuple[Annotated[int, Field(ge=MIN_TEST_SIZE, le=MAX_TEST_SIZE)], ...] = Field(default=(), max_length=8)
     augmentation: AugmentationConfig = AugmentationConfig()
 
     @model_validator(mode="after")
@@ -417,12 +421,12 @@ def parse_test_sizes(text: str) -> tuple[int, ...]:
     try:
         sizes = [int(size) for size in text.split(",")]
     except ValueError:
-        raise ValueError(f"{text!r}: a comma list of distinct input sizes, 32 to 2048 px (not whole numbers)") from None
+        raise ValueError(f"{text!r}: a comma list of distinct input sizes, {MIN_TEST_SIZE} to {MAX_TEST_SIZE} px (not whole numbers)") from None
     try:
         return DetectorConfig(test_sizes=sizes).test_sizes
     except ValidationError as error:
         problem = error.errors()[0]["msg"]
-        raise ValueError(f"{text!r}: a comma list of distinct input sizes, 32 to 2048 px ({problem})") from None
+        raise ValueError(f"{text!r}: a comma list of distinct input sizes, {MIN_TEST_SIZE} to {MAX_TEST_SIZE} px ({problem})") from None
 
 
 class EvaluationConfig(_Section):
