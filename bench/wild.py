@@ -28,6 +28,7 @@ scores foldwise's landings, and nothing in foldwise is tuned to it.
     python bench/wild.py --model var/.../model.pt         # score a checkpoint
     python bench/wild.py --model M.pt --n-ood 300 --out bench/results/wild.json
     python bench/wild.py --model M.pt --test-sizes 128         # detect at one input size only
+    python bench/wild.py --model M.pt --test-turns 0           # upright views only
 
 A third score, ``in_domain_reframed``, puts the in-domain images in 4:3 and 3:4 frames (mirrored
 borders): the same objects, other frames; a fourth, ``in_domain_rotated``, turns them by
@@ -732,7 +733,7 @@ def class_agnostic(predictions: list[dict], ground_truth: list[dict]) -> tuple[l
     return merged, truth
 
 
-def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: float, test_sizes=None) -> dict:
+def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: float, test_sizes=None, test_turns=None) -> dict:
     from workers.train.checkpoint import load_detector
     from workers.train.data import load_coco_dataset
     from workers.train.evaluation import detector_predictions, evaluate_predictions
@@ -740,7 +741,9 @@ def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: f
     samples, classes = load_coco_dataset(data)
     detector = load_detector(checkpoint, device="cpu")
     started = time.perf_counter()
-    predictions, truth, groups, model_classes = detector_predictions(detector, samples, classes, test_sizes=test_sizes)
+    predictions, truth, groups, model_classes = detector_predictions(
+        detector, samples, classes, test_sizes=test_sizes, test_turns=test_turns
+    )
     protocol = {"score_threshold": score_threshold, "iou_threshold": iou_threshold, "coco": False}
     payload = evaluate_predictions(predictions, truth, model_classes, groups=groups, **protocol).to_dict()
     agnostic = evaluate_predictions(*class_agnostic(predictions, truth), ["object"], **protocol).to_dict()
@@ -768,6 +771,15 @@ def _test_sizes_argument(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(str(error)) from None
 
 
+def _test_turns_argument(text: str) -> tuple[int, ...]:
+    from foldwise.config import parse_test_turns
+
+    try:
+        return parse_test_turns(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", type=Path, default=ROOT / "configs/quick.yaml")
@@ -789,6 +801,10 @@ def main(argv=None) -> dict:
     parser.add_argument(
         "--test-sizes", type=_test_sizes_argument,
         help="comma list of inference sizes to score at (default: the model's detector.test_sizes)",
+    )
+    parser.add_argument(
+        "--test-turns", type=_test_turns_argument,
+        help="comma list of quarter turns to detect on too, e.g. 0 for upright only (default: the model's detector.test_turns)",
     )
     parser.add_argument("--out", type=Path)
     args = parser.parse_args(argv)
@@ -824,15 +840,17 @@ def main(argv=None) -> dict:
         checkpoint = args.model
     report["model"] = str(checkpoint)
     report["test_sizes"] = list(args.test_sizes) if args.test_sizes is not None else "the model's"
+    report["test_turns"] = list(args.test_turns) if args.test_turns is not None else "the model's"
+    views = {"test_sizes": args.test_sizes, "test_turns": args.test_turns}
 
     in_domain_dir = args.in_domain_dir or ROOT / f"var/bench/wild-in-domain-{config.name}"
     make_in_domain_set(config, in_domain_dir, args.n_in_domain, seed=config.seed + 7919, echo=echo)
-    report["in_domain"] = score(checkpoint, in_domain_dir, args.threshold, args.iou, args.test_sizes)
+    report["in_domain"] = score(checkpoint, in_domain_dir, args.threshold, args.iou, **views)
     reframed_dir = make_reframed_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-reframed"))
-    report["in_domain_reframed"] = score(checkpoint, reframed_dir, args.threshold, args.iou, args.test_sizes)
+    report["in_domain_reframed"] = score(checkpoint, reframed_dir, args.threshold, args.iou, **views)
     rotated_dir = make_rotated_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-rotated"))
-    report["in_domain_rotated"] = score(checkpoint, rotated_dir, args.threshold, args.iou, args.test_sizes)
-    report["out_of_domain"] = score(checkpoint, ood_dir, args.threshold, args.iou, args.test_sizes)
+    report["in_domain_rotated"] = score(checkpoint, rotated_dir, args.threshold, args.iou, **views)
+    report["out_of_domain"] = score(checkpoint, ood_dir, args.threshold, args.iou, **views)
     in_map, ood_map = report["in_domain"]["map"], report["out_of_domain"]["map"]
     report["ratio"] = None if not in_map else ood_map / in_map
     report["goal"] = {"ratio_at_least": 0.8, "met": report["ratio"] is not None and report["ratio"] >= 0.8}

@@ -383,6 +383,11 @@ class DetectorConfig(_Section):
     # families; each size costs a full inference): a sheet too small to find at input_size is
     # found at a larger one. Empty: input_size alone. Training always runs at input_size.
     test_sizes: tuple[Annotated[int, Field(ge=MIN_TEST_SIZE, le=MAX_TEST_SIZE)], ...] = Field(default=(), max_length=8)
+    # Detection also on the image turned by these quarter turns (1: 90° counter-clockwise, 2, 3;
+    # 0: as it is), at every test size, all merged the same way (R-CNN families; each turn costs
+    # the sizes' inference again): the wild's camera has any roll, and one of the four views
+    # brings any sheet within 45° of upright. Empty: the image as it is.
+    test_turns: tuple[Literal[0, 1, 2, 3], ...] = Field(default=(), max_length=4)
     augmentation: AugmentationConfig = AugmentationConfig()
 
     @model_validator(mode="after")
@@ -397,6 +402,8 @@ class DetectorConfig(_Section):
             raise ValueError("trainable_backbone_stages: only read by the R-CNN families (yolo trains its whole backbone)")
         if self.family == "yolo" and self.test_sizes:
             raise ValueError("test_sizes: only read by the R-CNN families (yolo letterboxes into input_size)")
+        if self.family == "yolo" and self.test_turns:
+            raise ValueError("test_turns: only read by the R-CNN families")
         return self
 
     @field_validator("test_sizes")
@@ -404,6 +411,13 @@ class DetectorConfig(_Section):
     def _distinct_sizes(cls, value: tuple[int, ...]) -> tuple[int, ...]:
         if len(set(value)) != len(value):
             raise ValueError(f"sizes repeat: {list(value)}")
+        return value
+
+    @field_validator("test_turns")
+    @classmethod
+    def _distinct_turns(cls, value: tuple[int, ...]) -> tuple[int, ...]:
+        if len(set(value)) != len(value):
+            raise ValueError(f"turns repeat: {list(value)}")
         return value
 
     @field_validator("anchor_size_range")
@@ -427,6 +441,21 @@ def parse_test_sizes(text: str) -> tuple[int, ...]:
     except ValidationError as error:
         problem = error.errors()[0]["msg"]
         raise ValueError(f"{text!r}: a comma list of distinct input sizes, {MIN_TEST_SIZE} to {MAX_TEST_SIZE} px ({problem})") from None
+
+
+def parse_test_turns(text: str) -> tuple[int, ...]:
+    """``"0,1,2,3"`` as ``detector.test_turns``, checked as the config checks it (for command-line
+    options); a ValueError names what is wrong."""
+    what = f"{text!r}: a comma list of distinct quarter turns, 0 to 3"
+    try:
+        turns = [int(turn) for turn in text.split(",")]
+    except ValueError:
+        raise ValueError(f"{what} (not whole numbers)") from None
+    try:
+        return DetectorConfig(test_turns=turns).test_turns
+    except ValidationError as error:
+        problem = error.errors()[0]["msg"]
+        raise ValueError(f"{what} ({problem})") from None
 
 
 class EvaluationConfig(_Section):

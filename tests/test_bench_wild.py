@@ -200,3 +200,12 @@ def test_test_sizes_are_read_as_the_config_reads_them_and_bad_ones_refused(capsy
             wild.main(["--test-sizes", bad])
         error = capsys.readouterr().err
         assert f"argument --test-sizes: {bad!r}" in error and problem in error
+
+
+def test_test_turns_are_read_as_the_config_reads_them_and_bad_ones_refused(capsys):
+    assert wild._test_turns_argument("0,1,2,3") == (0, 1, 2, 3)
+    for bad, problem in (("5", "0, 1, 2 or 3"), ("1,1", "turns repeat"), ("left", "not whole numbers")):
+        with pytest.raises(SystemExit):
+            wild.main(["--test-turns", bad])
+        error = capsys.readouterr().err
+        assert f"argument --test-turns: {bad!r}" in error and problem in error

@@ -190,16 +190,17 @@ def _image_array(image: np.ndarray | str | Path, index: int) -> tuple[np.ndarray
 
 
 @contextmanager
-def _test_sizes(model: nn.Module, sizes: Sequence[int] | None) -> Iterator[None]:
-    """The model detects at ``sizes`` inside the block (None: as built), as before after it."""
-    if sizes is None:
-        yield
-        return
-    saved, model.test_sizes = model.test_sizes, tuple(sizes)
+def _test_views(model: nn.Module, sizes: Sequence[int] | None, turns: Sequence[int] | None) -> Iterator[None]:
+    """The model detects at ``sizes`` and ``turns`` inside the block (None: as built), as before after it."""
+    overrides = {name: tuple(value) for name, value in (("test_sizes", sizes), ("test_turns", turns)) if value is not None}
+    saved = {name: getattr(model, name) for name in overrides}
     try:
+        for name, value in overrides.items():
+            setattr(model, name, value)
         yield
     finally:
-        model.test_sizes = saved
+        for name, value in saved.items():
+            setattr(model, name, value)
 
 
 def detect_object(
@@ -208,6 +209,7 @@ def detect_object(
     batch_size: int = 8,
     on_batch: Callable[[int], None] | None = None,
     test_sizes: Sequence[int] | None = None,
+    test_turns: Sequence[int] | None = None,
 ) -> list[dict[str, np.ndarray]]:
     """Detections per image: ``boxes`` (n, 4) float32 xyxy in that image's pixels, ``scores``
     (n,) float32, ``labels`` (n,) int64 0-based class indices, best score first.
@@ -216,17 +218,19 @@ def detect_object(
     its input size and maps boxes back). Runs with the detector config's ``num_threads``.
     ``on_batch(images_done)`` is called after every batch (progress display). ``test_sizes``
     overrides the detector config's input sizes to detect at (R-CNN families; ``()``: its
-    input size alone).
+    input size alone), ``test_turns`` its quarter turns (``()``: the images as they are).
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be at least 1, got {batch_size}")
     if test_sizes is not None and detector.meta["family"] not in RCNN_FAMILIES:
         raise ValueError(f"test_sizes: only the R-CNN families detect at several sizes, not {detector.meta['family']}")
+    if test_turns is not None and detector.meta["family"] not in RCNN_FAMILIES:
+        raise ValueError(f"test_turns: only the R-CNN families detect on turned views, not {detector.meta['family']}")
     model = detector.model
     model.eval()
     results: list[dict[str, np.ndarray]] = []
     threads = int(detector.meta.get("config", {}).get("num_threads", 0))
-    with torch.no_grad(), torch_threads(threads), _test_sizes(model, test_sizes):
+    with torch.no_grad(), torch_threads(threads), _test_views(model, test_sizes, test_turns):
         for start in range(0, len(images), batch_size):
             arrays = [_image_array(image, start + i) for i, image in enumerate(images[start : start + batch_size])]
             cache = getattr(model, "proposal_cache", None)

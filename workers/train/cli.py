@@ -294,11 +294,19 @@ def detect(
             "(R-CNN families; default: the checkpoint's detector.test_sizes, else its input size).",
         ),
     ] = None,
+    turns: Annotated[
+        Optional[str],
+        typer.Option(
+            "--turns",
+            help="Quarter turns of each image to detect on too, merged, e.g. 0,1,2,3, or 0 for speed "
+            "(R-CNN families; default: the checkpoint's detector.test_turns).",
+        ),
+    ] = None,
 ) -> None:
     """Detect the object in images; write copies with boxes, class names and scores drawn."""
     import cv2
 
-    from foldwise.config import parse_test_sizes
+    from foldwise.config import parse_test_sizes, parse_test_turns
     from workers.train.data import DatasetError, read_image_rgb
 
     test_sizes = None
@@ -307,6 +315,12 @@ def detect(
             test_sizes = parse_test_sizes(sizes)
         except ValueError as error:
             _fail(f"--sizes {error}")
+    test_turns = None
+    if turns is not None:
+        try:
+            test_turns = parse_test_turns(turns)
+        except ValueError as error:
+            _fail(f"--turns {error}")
     missing = [str(path) for path in images if not path.is_file()]
     if missing:
         _fail(f"image file(s) not found: {', '.join(missing)}")
@@ -323,8 +337,8 @@ def detect(
     from workers.train.checkpoint import detect_object
 
     try:
-        detections = detect_object(detector, pictures, batch_size=batch_size, test_sizes=test_sizes)
-    except ValueError as error:  # e.g. --sizes for a yolo detector
+        detections = detect_object(detector, pictures, batch_size=batch_size, test_sizes=test_sizes, test_turns=test_turns)
+    except ValueError as error:  # e.g. --sizes or --turns for a yolo detector
         _fail(str(error))
     out_dir.mkdir(parents=True, exist_ok=True)
     used: set[str] = set()

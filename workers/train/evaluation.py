@@ -519,12 +519,13 @@ def detector_predictions(
     batch_size: int = 16,
     on_batch: Callable[[int], None] | None = None,
     test_sizes: Sequence[int] | None = None,
+    test_turns: Sequence[int] | None = None,
 ) -> tuple[list[dict], list[dict], list[dict], list[str]]:
     """(predictions, ground truth, groups, the detector's class names) for ``evaluate_predictions``:
     ``detect_object`` on the samples' images, and their boxes with labels mapped to the detector's
     own class list by name (a dataset whose categories come in another order still scores right;
     a dataset class the detector does not know is an error). Groups are condition and difficulty.
-    ``test_sizes`` overrides the detector config's (see ``detect_object``)."""
+    ``test_sizes`` and ``test_turns`` override the detector config's (see ``detect_object``)."""
     from workers.train.checkpoint import detect_object
 
     model_classes = [str(name) for name in detector.meta.get("classes", classes)]
@@ -535,7 +536,8 @@ def detector_predictions(
         )
     to_model = np.array([model_classes.index(name) for name in classes], dtype=np.int64)
     predictions = detect_object(
-        detector, [sample.image_path for sample in samples], batch_size=batch_size, on_batch=on_batch, test_sizes=test_sizes
+        detector, [sample.image_path for sample in samples], batch_size=batch_size, on_batch=on_batch,
+        test_sizes=test_sizes, test_turns=test_turns,
     )
     ground_truth = [
         {"boxes": sample.boxes, "labels": to_model[np.asarray(sample.labels, dtype=np.int64)]} for sample in samples

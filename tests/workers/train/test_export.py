@@ -136,6 +136,25 @@ def test_a_detector_with_test_sizes_exports_its_merged_detections(exported, rend
         assert not np.array_equal(expected["scores"], single["scores"])
 
 
+def test_a_detector_with_test_turns_exports_its_merged_detections(exported, rendered, tmp_path):
+    """The graph of a Faster R-CNN that detects on quarter turns holds every turn, the boxes
+    mapped back and the merge, at any image size (a non-square one included)."""
+    import cv2
+
+    from workers.train.checkpoint import detect_object, load_detector, save_checkpoint
+    from workers.train.export import OnnxDetector, export_onnx
+
+    plain = load_detector(exported["faster_rcnn"][0], device="cpu")
+    meta = {**plain.meta, "config": {**plain.meta["config"], "test_sizes": [64, 96], "test_turns": [0, 1, 2, 3]}}
+    detector = load_detector(save_checkpoint(plain.model, meta, tmp_path / "turns.pt"))
+    model = OnnxDetector.load(export_onnx(detector, tmp_path / "turns.onnx"))
+    images = rendered_images(rendered)[:2]
+    images.append(cv2.resize(images[0], (96, 80)))
+    for image, expected, upright in zip(images, detect_object(detector, images), detect_object(plain, images, test_sizes=(64, 96))):
+        assert_same_detections(model.detect(image), expected)
+        assert not np.array_equal(expected["scores"], upright["scores"])
+
+
 def test_fast_rcnn_cannot_export_and_says_why(exported):
     _, onnx_file, result = exported["fast_rcnn"]
     assert result.exit_code == 1

@@ -269,3 +269,11 @@ def test_detect_at_chosen_sizes_and_bad_sizes_named(trained, dataset, tmp_path):
         assert result.exit_code == 1 and f"--sizes {bad!r}" in result.output
     yolo = runner.invoke(app, ["detect", "--model", str(trained["checkpoints"]["yolo"]), *images, "--sizes", "64"])
     assert yolo.exit_code == 1 and "only the R-CNN families" in yolo.output
+    turned = runner.invoke(app, ["detect", *model, *images, "--out-dir", str(tmp_path / "turns"), "--threshold", "0.0", "--turns", "0,1,2,3"])
+    assert turned.exit_code == 0, turned.output
+    assert turned.output != lines["64"]  # four views merged, other detections
+    for bad, problem in (("0,0", "turns repeat"), ("4", "0, 1, 2 or 3"), ("left", "not whole numbers")):
+        result = runner.invoke(app, ["detect", *model, *images, "--turns", bad])
+        assert result.exit_code == 1 and f"--turns {bad!r}" in result.output and problem in result.output
+    yolo = runner.invoke(app, ["detect", "--model", str(trained["checkpoints"]["yolo"]), *images, "--turns", "0,2"])
+    assert yolo.exit_code == 1 and "only the R-CNN families" in yolo.output

@@ -248,14 +248,17 @@ def build_detector(
     raise DetectorBuildError(f"detector.family {config.family!r} is unknown; known: {', '.join(FAMILIES)}")
 
 
-def detect_at_sizes(model: nn.Module, detect: Callable[[], list[dict]], sizes: Sequence[int]) -> list[dict]:
-    """An R-CNN's detections (``detect()``: its one-size eval forward on a batch) with its input
-    resized to each of ``sizes`` in turn, merged per image by per-class NMS at the model's own
-    NMS IoU and detection cap (test-time multi-scale; ``config.test_sizes``).
+def detect_at_views(
+    model: nn.Module, detect: Callable[[list], list[dict]], images: list, sizes: Sequence[int], turns: Sequence[int]
+) -> list[dict]:
+    """An R-CNN's detections (``detect(images)``: its one-size eval forward on a batch) on each
+    view of the images: resized to each of ``sizes`` (``config.test_sizes``; empty: the model's
+    own size) and turned by each of ``turns`` quarter turns (``config.test_turns``; empty: as
+    they are), merged per image by per-class NMS at the model's own NMS IoU and detection cap.
 
-    Each size keeps the model's square rule (the longer side at ``size``); every run maps its
-    boxes back to the images' pixels, so they merge as they are. The size is restored after,
-    also when a run fails.
+    Each size keeps the model's square rule (the longer side at ``size``); every run's boxes are
+    mapped back to the images' own pixels (resize and turn undone), so they merge as they are.
+    The size is restored after, also when a run fails.
     """
     import torch
     from torchvision.ops import batched_nms
@@ -264,9 +267,18 @@ def detect_at_sizes(model: nn.Module, detect: Callable[[], list[dict]], sizes: S
     saved = transform.min_size, transform.max_size
     runs = []
     try:
-        for size in sizes:
-            transform.min_size, transform.max_size = (int(size),), int(size)
-            runs.append(detect())
+        for turn in turns or (0,):
+            turned = [turn_image(image, turn) for image in images] if turn else images
+            for size in sizes or (None,):
+                if size is not None:
+                    transform.min_size, transform.max_size = (int(size),), int(size)
+                outputs = detect(turned)
+                if turn:
+                    outputs = [
+                        {**output, "boxes": unturn_boxes(output["boxes"], turn, image.shape[-2], image.shape[-1])}
+                        for output, image in zip(outputs, images)
+                    ]
+                runs.append(outputs)
     finally:
         transform.min_size, transform.max_size = saved
     merged = []
@@ -277,3 +289,31 @@ def detect_at_sizes(model: nn.Module, detect: Callable[[], list[dict]], sizes: S
         keep = batched_nms(boxes, scores, labels, heads.nms_thresh)[: heads.detections_per_img]
         merged.append({"boxes": boxes[keep], "scores": scores[keep], "labels": labels[keep]})
     return merged
+
+
+def turn_image(image, turn: int):
+    """A (C, H, W) image turned by ``turn`` quarter turns counter-clockwise: ``torch.rot90(image,
+    turn, dims=(1, 2))`` written as a transpose and flips, which ONNX has (rot90 it has not)."""
+    if turn == 1:
+        return image.transpose(1, 2).flip(1)
+    if turn == 2:
+        return image.flip((1, 2))
+    if turn == 3:
+        return image.transpose(1, 2).flip(2)
+    return image
+
+
+def unturn_boxes(boxes, turn: int, height, width):
+    """xyxy boxes found on an image turned by ``turn`` quarter turns counter-clockwise
+    (``turn_image``), in the pixels of the image as it was
+    (``height`` x ``width``): exact, a turned box is a box."""
+    import torch
+
+    x1, y1, x2, y2 = boxes.unbind(-1)
+    if turn == 1:
+        return torch.stack([width - y2, x1, width - y1, x2], -1)
+    if turn == 2:
+        return torch.stack([width - x2, height - y2, width - x1, height - y1], -1)
+    if turn == 3:
+        return torch.stack([y1, height - x2, y2, height - x1], -1)
+    return boxes

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from workers.train.detectors import detect_at_sizes
+from workers.train.detectors import detect_at_views
 from workers.train.detectors.edge_boxes import ProposalCache, shared_cache
 
 if TYPE_CHECKING:
@@ -40,14 +40,16 @@ class FastRCNN(nn.Module):
         roi_heads: nn.Module,
         max_proposals: int,
         test_sizes: Sequence[int] = (),
+        test_turns: Sequence[int] = (),
     ) -> None:
         super().__init__()
         self.backbone = backbone
         self.transform = transform
         self.roi_heads = roi_heads
         self.max_proposals = max_proposals
-        # Eval-mode detection at each of these input sizes, merged (``detect_at_sizes``).
+        # Eval-mode detection at each of these input sizes and quarter turns, merged (``detect_at_views``).
         self.test_sizes = tuple(test_sizes)
+        self.test_turns = tuple(test_turns)
 
     @property
     def proposal_cache(self) -> ProposalCache:
@@ -59,8 +61,8 @@ class FastRCNN(nn.Module):
         return torch.as_tensor(np.array(boxes), dtype=torch.float32, device=image.device)
 
     def forward(self, images: list[Tensor], targets: list[dict[str, Tensor]] | None = None):
-        if not self.training and self.test_sizes:
-            return detect_at_sizes(self, lambda: self._forward(images, None), self.test_sizes)
+        if not self.training and (self.test_sizes or self.test_turns):
+            return detect_at_views(self, lambda views: self._forward(views, None), images, self.test_sizes, self.test_turns)
         return self._forward(images, targets)
 
     def _forward(self, images: list[Tensor], targets: list[dict[str, Tensor]] | None):
@@ -121,4 +123,6 @@ def build_fast_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: b
     transform = GeneralizedRCNNTransform(
         min_size=config.input_size, max_size=config.input_size, image_mean=image_mean, image_std=image_std
     )
-    return FastRCNN(backbone, transform, roi_heads, max_proposals=config.edge_boxes, test_sizes=config.test_sizes)
+    return FastRCNN(
+        backbone, transform, roi_heads, max_proposals=config.edge_boxes, test_sizes=config.test_sizes, test_turns=config.test_turns
+    )

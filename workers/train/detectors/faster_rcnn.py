@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 from torchvision.models import detection
 
-from workers.train.detectors import detect_at_sizes
+from workers.train.detectors import detect_at_views
 
 if TYPE_CHECKING:
     from foldwise.config import DetectorConfig
@@ -25,18 +25,20 @@ ASPECT_RATIOS = (0.5, 1.0, 2.0)
 
 
 class FasterRCNN(detection.FasterRCNN):
-    """torchvision's Faster R-CNN; in eval mode with ``test_sizes``, it detects at each of those
-    input sizes and merges (``detect_at_sizes``): every caller of the model, ONNX export
+    """torchvision's Faster R-CNN; in eval mode with ``test_sizes`` or ``test_turns``, it detects
+    at each of those input sizes and quarter turns and merges (``detect_at_views``): every caller of the model, ONNX export
     included, gets the detector its config describes."""
 
-    def __init__(self, *args, test_sizes: Sequence[int] = (), **kwargs) -> None:
+    def __init__(self, *args, test_sizes: Sequence[int] = (), test_turns: Sequence[int] = (), **kwargs) -> None:
         super().__init__(*args, **kwargs)
         self.test_sizes = tuple(test_sizes)
+        self.test_turns = tuple(test_turns)
 
     def forward(self, images, targets=None):
-        if self.training or not self.test_sizes:
+        if self.training or not (self.test_sizes or self.test_turns):
             return super().forward(images, targets)
-        return detect_at_sizes(self, lambda: super(FasterRCNN, self).forward(images), self.test_sizes)
+        detect = super(FasterRCNN, self).forward
+        return detect_at_views(self, detect, images, self.test_sizes, self.test_turns)
 
 
 def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: bool = True) -> FasterRCNN:
@@ -90,4 +92,5 @@ def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained:
         box_score_thresh=config.box_score_threshold,
         box_detections_per_img=config.detections_per_image,
         test_sizes=config.test_sizes,
+        test_turns=config.test_turns,
     )
