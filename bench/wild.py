@@ -762,22 +762,23 @@ def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: f
     }
 
 
-def _test_sizes_argument(text: str) -> tuple[int, ...]:
-    from foldwise.config import parse_test_sizes
+def _config_argument(parser_name: str):
+    """An argparse ``type`` that reads a list as ``foldwise.config.<parser_name>`` does (imported
+    when an argument is read, so ``--help`` stays cheap); its error is argparse's message."""
 
-    try:
-        return parse_test_sizes(text)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(str(error)) from None
+    def read(text: str) -> tuple[int, ...]:
+        from foldwise import config
+
+        try:
+            return getattr(config, parser_name)(text)
+        except ValueError as error:
+            raise argparse.ArgumentTypeError(str(error)) from None
+
+    return read
 
 
-def _test_turns_argument(text: str) -> tuple[int, ...]:
-    from foldwise.config import parse_test_turns
-
-    try:
-        return parse_test_turns(text)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(str(error)) from None
+_test_sizes_argument = _config_argument("parse_test_sizes")
+_test_turns_argument = _config_argument("parse_test_turns")
 
 
 def main(argv=None) -> dict:

@@ -406,18 +406,11 @@ class DetectorConfig(_Section):
             raise ValueError("test_turns: only read by the R-CNN families")
         return self
 
-    @field_validator("test_sizes")
+    @field_validator("test_sizes", "test_turns")
     @classmethod
-    def _distinct_sizes(cls, value: tuple[int, ...]) -> tuple[int, ...]:
+    def _distinct_views(cls, value: tuple[int, ...], info: ValidationInfo) -> tuple[int, ...]:
         if len(set(value)) != len(value):
-            raise ValueError(f"sizes repeat: {list(value)}")
-        return value
-
-    @field_validator("test_turns")
-    @classmethod
-    def _distinct_turns(cls, value: tuple[int, ...]) -> tuple[int, ...]:
-        if len(set(value)) != len(value):
-            raise ValueError(f"turns repeat: {list(value)}")
+            raise ValueError(f"{info.field_name.removeprefix('test_')} repeat: {list(value)}")
         return value
 
     @field_validator("anchor_size_range")
@@ -429,33 +422,28 @@ class DetectorConfig(_Section):
         return value
 
 
-def parse_test_sizes(text: str) -> tuple[int, ...]:
-    """``"128,256"`` as ``detector.test_sizes``, checked as the config checks it (for command-line
-    options); a ValueError names what is wrong."""
+def _parse_view_list(text: str, field: str, what: str) -> tuple[int, ...]:
+    """``text`` (comma-separated whole numbers) as ``DetectorConfig.<field>``, checked as the
+    config checks it; a ValueError says ``what`` the list must be and what is wrong."""
     try:
-        sizes = [int(size) for size in text.split(",")]
+        values = [int(value) for value in text.split(",")]
     except ValueError:
-        raise ValueError(f"{text!r}: a comma list of distinct input sizes, {MIN_TEST_SIZE} to {MAX_TEST_SIZE} px (not whole numbers)") from None
+        raise ValueError(f"{text!r}: a comma list of {what} (not whole numbers)") from None
     try:
-        return DetectorConfig(test_sizes=sizes).test_sizes
+        return getattr(DetectorConfig(**{field: values}), field)
     except ValidationError as error:
         problem = error.errors()[0]["msg"]
-        raise ValueError(f"{text!r}: a comma list of distinct input sizes, {MIN_TEST_SIZE} to {MAX_TEST_SIZE} px ({problem})") from None
+        raise ValueError(f"{text!r}: a comma list of {what} ({problem})") from None
+
+
+def parse_test_sizes(text: str) -> tuple[int, ...]:
+    """``"128,256"`` as ``detector.test_sizes`` (for command-line options); a ValueError names what is wrong."""
+    return _parse_view_list(text, "test_sizes", f"distinct input sizes, {MIN_TEST_SIZE} to {MAX_TEST_SIZE} px")
 
 
 def parse_test_turns(text: str) -> tuple[int, ...]:
-    """``"0,1,2,3"`` as ``detector.test_turns``, checked as the config checks it (for command-line
-    options); a ValueError names what is wrong."""
-    what = f"{text!r}: a comma list of distinct quarter turns, 0 to 3"
-    try:
-        turns = [int(turn) for turn in text.split(",")]
-    except ValueError:
-        raise ValueError(f"{what} (not whole numbers)") from None
-    try:
-        return DetectorConfig(test_turns=turns).test_turns
-    except ValidationError as error:
-        problem = error.errors()[0]["msg"]
-        raise ValueError(f"{what} ({problem})") from None
+    """``"0,1,2,3"`` as ``detector.test_turns`` (for command-line options); a ValueError names what is wrong."""
+    return _parse_view_list(text, "test_turns", "distinct quarter turns, 0 to 3")
 
 
 class EvaluationConfig(_Section):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Callable
 from enum import Enum
 from pathlib import Path
 from typing import Annotated, Any, NoReturn, Optional
@@ -28,6 +29,16 @@ class Family(str, Enum):
 def _fail(message: str) -> NoReturn:
     typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
     raise typer.Exit(code=1)
+
+
+def _parsed_option(option: str, text: str | None, parse: Callable[[str], Any]) -> Any:
+    """``parse(text)``, None when the option was not given; a bad value fails naming the option."""
+    if text is None:
+        return None
+    try:
+        return parse(text)
+    except ValueError as error:
+        _fail(f"{option} {error}")
 
 
 def _set_threads(threads: int) -> None:
@@ -309,18 +320,8 @@ def detect(
     from foldwise.config import parse_test_sizes, parse_test_turns
     from workers.train.data import DatasetError, read_image_rgb
 
-    test_sizes = None
-    if sizes is not None:
-        try:
-            test_sizes = parse_test_sizes(sizes)
-        except ValueError as error:
-            _fail(f"--sizes {error}")
-    test_turns = None
-    if turns is not None:
-        try:
-            test_turns = parse_test_turns(turns)
-        except ValueError as error:
-            _fail(f"--turns {error}")
+    test_sizes = _parsed_option("--sizes", sizes, parse_test_sizes)
+    test_turns = _parsed_option("--turns", turns, parse_test_turns)
     missing = [str(path) for path in images if not path.is_file()]
     if missing:
         _fail(f"image file(s) not found: {', '.join(missing)}")

@@ -318,16 +318,17 @@ def test_detection_on_quarter_turns_merges_each_turns_detections_mapped_back(tra
     np.testing.assert_allclose(back[:3], on_image["boxes"][:3], atol=0.05)
 
 
-def test_yolo_cannot_detect_at_several_sizes():
-    with pytest.raises(ValueError, match="test_sizes: only read by the R-CNN families"):
-        config(family="yolo", backbone="mobilenet_v3_large", test_sizes=[64, 96])
-    with pytest.raises(ValueError, match="sizes repeat"):
-        config(test_sizes=[64, 64])
-    with pytest.raises(ValueError, match="greater than or equal to 32"):
-        config(test_sizes=[16, 64])
-    with pytest.raises(ValueError, match="test_turns: only read by the R-CNN families"):
-        config(family="yolo", backbone="mobilenet_v3_large", test_turns=[0, 1])
-    with pytest.raises(ValueError, match="turns repeat"):
-        config(test_turns=[1, 1])
-    with pytest.raises(ValueError, match="Input should be 0, 1, 2 or 3"):
-        config(test_turns=[0, 4])
+@pytest.mark.parametrize(
+    "changes, problem",
+    [
+        ({"family": "yolo", "backbone": "mobilenet_v3_large", "test_sizes": [64, 96]}, "test_sizes: only read by the R-CNN families"),
+        ({"test_sizes": [64, 64]}, "sizes repeat"),
+        ({"test_sizes": [16, 64]}, "greater than or equal to 32"),
+        ({"family": "yolo", "backbone": "mobilenet_v3_large", "test_turns": [0, 1]}, "test_turns: only read by the R-CNN families"),
+        ({"test_turns": [1, 1]}, "turns repeat"),
+        ({"test_turns": [0, 4]}, "Input should be 0, 1, 2 or 3"),
+    ],
+)
+def test_bad_test_views_are_refused_with_the_reason(changes, problem):
+    with pytest.raises(ValueError, match=problem):
+        config(**changes)

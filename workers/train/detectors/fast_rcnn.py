@@ -47,7 +47,8 @@ class FastRCNN(nn.Module):
         self.transform = transform
         self.roi_heads = roi_heads
         self.max_proposals = max_proposals
-        # Eval-mode detection at each of these input sizes and quarter turns, merged (``detect_at_views``).
+        # Eval-mode detection at each of these input sizes and quarter turns, merged
+        # (``detect_at_views``).
         self.test_sizes = tuple(test_sizes)
         self.test_turns = tuple(test_turns)
 

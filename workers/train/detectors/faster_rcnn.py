@@ -26,8 +26,8 @@ ASPECT_RATIOS = (0.5, 1.0, 2.0)
 
 class FasterRCNN(detection.FasterRCNN):
     """torchvision's Faster R-CNN; in eval mode with ``test_sizes`` or ``test_turns``, it detects
-    at each of those input sizes and quarter turns and merges (``detect_at_views``): every caller of the model, ONNX export
-    included, gets the detector its config describes."""
+    at each of those input sizes and quarter turns and merges (``detect_at_views``): every
+    caller of the model, ONNX export included, gets the detector its config describes."""
 
     def __init__(self, *args, test_sizes: Sequence[int] = (), test_turns: Sequence[int] = (), **kwargs) -> None:
         super().__init__(*args, **kwargs)
