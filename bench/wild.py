@@ -633,18 +633,24 @@ def train_with_config(config_path: Path, data_dir: Path, echo=print) -> tuple[Pa
 
 
 def make_in_domain_set(config, out: Path, n_per_pair: int, seed: int, echo=print) -> Path:
-    """foldwise's own renders of the config's curriculum (every stage, mixed included)."""
+    """foldwise's own renders of the config's curriculum (every stage, mixed included).
+
+    The cache key holds what the renders depend on (the curriculum's conditions and
+    difficulties, the render size and backend, the assets, the count and the seed), not the rest
+    of the config: two configs that differ in their detector or training score on one set."""
     from workers.render.assets import load_assets
     from workers.render.cli import render_dataset
 
-    manifest = out / "annotations.json"
-    key = hashlib.sha256(json.dumps([config.model_dump(mode="json"), n_per_pair, seed], sort_keys=True).encode()).hexdigest()[:16]
-    if manifest.is_file() and json.loads(manifest.read_text()).get("info", {}).get("recipe") == key:
-        echo(f"in-domain set: reusing {out}")
-        return out
     stages = config.stage_order()
     conditions = sorted({condition for condition, _ in stages if condition != "canonical"}, key=[c for c, _ in stages].index)
     difficulties = list(config.curriculum.difficulties)
+    recipe = [conditions, difficulties, config.render.image_size, config.render.backend,
+              config.assets.model_dump(mode="json"), n_per_pair, seed]
+    key = hashlib.sha256(json.dumps(recipe, sort_keys=True).encode()).hexdigest()[:16]
+    manifest = out / "annotations.json"
+    if manifest.is_file() and json.loads(manifest.read_text()).get("info", {}).get("recipe") == key:
+        echo(f"in-domain set: reusing {out}")
+        return out
     assets = load_assets(config.assets)
     coco = render_dataset(out, conditions, difficulties, n_per_pair, seed, config.render.image_size, config.render.backend,
                           assets, echo=lambda *_: None)

@@ -106,6 +106,29 @@ def test_the_benchmark_trains_scores_both_sets_and_reports_the_ratio(tmp_path):
         assert report[part]["class_agnostic"]["map_unthresholded"] >= report[part]["map_unthresholded"] - 1e-9
 
 
+def test_the_in_domain_set_is_shared_by_configs_that_render_alike(tmp_path):
+    """The cache key is what the renders read: a config with another detector or training scores
+    on the same images (not a re-render into the same folder); another render size re-renders."""
+    from foldwise.config import load_config
+
+    config = load_config(ROOT / "configs" / "smoke.yaml")
+    out = tmp_path / "in"
+    lines: list[str] = []
+    wild.make_in_domain_set(config, out, 1, seed=3, echo=lines.append)
+    first = (out / "annotations.json").read_text()
+    other_detector = config.model_copy(
+        update={"detector": config.detector.model_copy(update={"test_sizes": (64, 96), "learning_rate": 0.02})}
+    )
+    wild.make_in_domain_set(other_detector, out, 1, seed=3, echo=lines.append)
+    assert lines[-1] == f"in-domain set: reusing {out}"
+    assert (out / "annotations.json").read_text() == first
+    larger = config.model_copy(update={"render": config.render.model_copy(update={"image_size": 48})})
+    wild.make_in_domain_set(larger, out, 1, seed=3, echo=lines.append)
+    assert not lines[-1].startswith("in-domain set: reusing")
+    coco = json.loads((out / "annotations.json").read_text())
+    assert {(image["width"], image["height"]) for image in coco["images"]} == {(48, 48)}
+
+
 def test_a_plain_scene_is_a_flat_sheet_seen_from_above_at_half_the_frame():
     """With every factor off the scene is plain: a flat, unrotated sheet straight below a 40°
     camera filling half the frame's width, and nothing else in view."""
