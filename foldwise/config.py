@@ -453,6 +453,13 @@ class EvaluationConfig(_Section):
     # pycocotools' metrics beside the paper's mAP. The stopping rule never reads them, and on a
     # 3,150-image test set they cost ~20 s per increment, against ~1 s for the VOC mAP.
     coco: bool = True
+    # The views the loop scores each increment's model at (its P, which the stopping rule reads
+    # and the tables show): "detector", those the detector config names (test_sizes × test_turns,
+    # as every other caller gets them); "trained", the one view it trained at (input_size,
+    # upright), the paper's P. The loop compares models with each other, which one view does at
+    # a fraction of the cost: quick.yaml's twelve views made the loop's evaluation 60% of
+    # `make run`. The checkpoint keeps its views; bench/wild.py and `foldwise detect` use them.
+    views: Literal["detector", "trained"] = "detector"
 
 
 class TaskLimitsConfig(_Section):

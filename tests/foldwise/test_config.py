@@ -472,3 +472,11 @@ def test_learnability_canonical_quick_is_learnability_quick_with_a_canonical_sta
     changed = canonical.model_dump(mode="json")
     changed["learnability"] = {**changed["learnability"], "start": "initial", "canonical_increments": None}
     assert {**changed, "name": quick["name"]} == quick
+
+
+def test_the_loop_scores_at_the_detectors_views_unless_told_the_trained_one():
+    assert parse_config({"name": "v"}).evaluation.views == "detector"
+    assert load_config(REPO_ROOT / "configs/quick.yaml").evaluation.views == "trained"
+    with pytest.raises(ConfigError) as caught:
+        parse_config({"name": "v", "evaluation": {"views": "all"}})
+    assert "evaluation.views" in str(caught.value) and "'detector' or 'trained'" in str(caught.value)

@@ -115,3 +115,44 @@ def test_a_mixed_stage_records_every_object_and_trains_on_images_without_one(dat
         }
         assert sizes[(stages[1].id, 1)] == m and sizes[(stages[1].id, 2)] == 2 * m
         assert all(size == m for (stage_id, _), size in sizes.items() if stage_id == stages[0].id)
+
+
+def test_the_loop_scores_at_the_trained_view_when_told_and_the_checkpoint_keeps_its_views(
+    database, tmp_path, monkeypatch
+):
+    """evaluation.views: trained — every increment's P comes from one view (the detector's own
+    size, upright), recorded with the evaluation, while the checkpoint still detects at the
+    views its config names (what `foldwise detect`, REST and bench/wild.py get)."""
+    import yaml
+
+    import workers.train.checkpoint as checkpoint
+    from services.cli import _register_worker_commands, app
+
+    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
+    config["name"] = "smoke-views"
+    config["curriculum"]["difficulties"] = ["easy"]
+    config["active_learning"]["max_increments"] = 2
+    config["detector"].update({"test_sizes": [64, 96], "test_turns": [0, 1]})
+    config["evaluation"]["views"] = "trained"
+    path = tmp_path / "views.yaml"
+    path.write_text(yaml.safe_dump(config))
+
+    asked = []
+    real_detect = checkpoint.detect_object
+
+    def recording_detect(detector, images, *args, **kwargs):
+        asked.append((kwargs.get("test_sizes"), kwargs.get("test_turns")))
+        return real_detect(detector, images, *args, **kwargs)
+
+    monkeypatch.setattr(checkpoint, "detect_object", recording_detect)
+    _register_worker_commands()
+    result = CliRunner().invoke(app, ["run", str(path), "--report-dir", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+
+    with session_scope() as session:
+        evaluations = session.scalars(select(Evaluation)).all()
+        model = session.scalars(select(Model).order_by(Model.id.desc())).first()
+        assert evaluations and asked == [((), ())] * len(evaluations)
+        assert all(e.details["views"] == {"test_sizes": [], "test_turns": []} for e in evaluations)
+        loaded = checkpoint.load_detector(store.resolve(model.checkpoint_path))
+    assert (loaded.model.test_sizes, loaded.model.test_turns) == ((64, 96), (0, 1))

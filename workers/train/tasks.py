@@ -122,6 +122,16 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
         return _run_claimed_increment(model_id)
 
 
+def loop_views(config: ExperimentConfig) -> dict[str, tuple]:
+    """``detect_object``'s view overrides for the loop's evaluation (``evaluation.views``): none
+    (the detector's own views), or its one trained view for an R-CNN whose config names others."""
+    from workers.train.checkpoint import RCNN_FAMILIES
+
+    if config.evaluation.views == "detector" or config.detector.family not in RCNN_FAMILIES:
+        return {}
+    return {"test_sizes": (), "test_turns": ()}
+
+
 def _run_claimed_increment(model_id: int) -> str:
     from workers.train.checkpoint import detect_object, load_detector
     from workers.train.evaluation import detection_samples, evaluate_predictions
@@ -185,8 +195,9 @@ def _run_claimed_increment(model_id: int) -> str:
         started = time.perf_counter()
         detector = load_detector(store.resolve(relative))
         test_samples = _samples(test_rows)
+        views = loop_views(config)
         predictions = detect_object(
-            detector, [s.image_path for s in test_samples], batch_size=config.evaluation.batch_size
+            detector, [s.image_path for s in test_samples], batch_size=config.evaluation.batch_size, **views
         )
         result = evaluate_predictions(
             predictions,
@@ -230,6 +241,10 @@ def _run_claimed_increment(model_id: int) -> str:
         # With a few test images' detections, for the dashboard (θ ids: GET /experiments/{id}/images/{θ}).
         evaluation.details = {
             **result.to_dict(),
+            "views": {
+                "test_sizes": list(views.get("test_sizes", config.detector.test_sizes)),
+                "test_turns": list(views.get("test_turns", config.detector.test_turns)),
+            },
             "test_detections": detection_samples(
                 test_ids, predictions, [{"condition": s.condition, "difficulty": s.difficulty} for s in test_samples]
             ),
