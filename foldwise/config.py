@@ -457,7 +457,7 @@ class EvaluationConfig(_Section):
     # and the tables show): "detector", those the detector config names (test_sizes × test_turns,
     # as every other caller gets them); "trained", the one view it trained at (input_size,
     # upright), the paper's P. The loop compares models with each other, which one view does at
-    # a fraction of the cost: quick.yaml's twelve views made the loop's evaluation 60% of
+    # a fraction of the cost: at twelve views the loop's evaluation was 60% of quick.yaml's
     # `make run`. The checkpoint keeps its views; bench/wild.py and `foldwise detect` use them.
     views: Literal["detector", "trained"] = "detector"
 
