@@ -40,10 +40,14 @@ def report_dir(experiment_id: int) -> str:
     return f"experiments/{experiment_id}/report"
 
 
+# atomic_write_bytes writes "<name>" through ".<name>.<random>.tmp" beside it.
+_TEMPORARY_SUFFIX = ".tmp"
+
+
 def atomic_write_bytes(path: Path, payload: bytes) -> None:
     """Write via a temporary file and rename, so readers never see half a file."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=_TEMPORARY_SUFFIX)
     try:
         with os.fdopen(handle, "wb") as stream:
             stream.write(payload)
@@ -51,3 +55,15 @@ def atomic_write_bytes(path: Path, payload: bytes) -> None:
     except BaseException:
         Path(temporary).unlink(missing_ok=True)
         raise
+
+
+def unfinished_write_target(file_name: str) -> str | None:
+    """The file name an ``atomic_write_bytes`` temporary file was to become, or None when
+    ``file_name`` is not one. Such a file is left only by a writer killed before its rename
+    (any other failure removes it): half a write, never read."""
+    if not (file_name.startswith(".") and file_name.endswith(_TEMPORARY_SUFFIX)):
+        return None
+    parts = file_name[1:].rsplit(".", 2)  # name, mkstemp's random part (no dots), "tmp"
+    if len(parts) != 3 or not parts[0]:
+        return None
+    return parts[0]

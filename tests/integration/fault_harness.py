@@ -394,14 +394,15 @@ def audit_done_once(stack: Stack, rows: Rows, recovery: Recovery) -> Audit:
     on_disk = {p.name for p in images.iterdir()} if images.is_dir() else set()
     expected = {f"{t.id}.png" for t in rendered}
     discarded = {f"{t.id}.png" for t in thetas if t.status == RenderStatus.discarded}
-    # A worker killed inside store.atomic_write_bytes leaves its temporary file
-    # (".<image>.<random>.tmp"): half an image, never renamed, so never read. It is not a render;
-    # it may only belong to a θ that was then rendered whole by the task's next delivery.
-    killed_writes = {name for name in on_disk if name.startswith(".") and name.endswith(".tmp")}
-    orphaned = sorted(name for name in killed_writes if name[1:].split(".png.")[0] + ".png" not in expected)
+    # A worker killed inside store.atomic_write_bytes leaves its temporary file: half an image,
+    # never renamed, so never read. It is not a render; it may only belong to a θ that was then
+    # rendered whole by the task's next delivery.
+    killed_writes = {name: store.unfinished_write_target(name) for name in on_disk}
+    killed_writes = {name: target for name, target in killed_writes.items() if target is not None}
+    orphaned = sorted(name for name, target in killed_writes.items() if target not in expected)
     if orphaned:
         problems.append(f"temporary files of no rendered θ: {orphaned}")
-    on_disk -= killed_writes
+    on_disk -= set(killed_writes)
     if not expected <= on_disk:
         problems.append(f"rendered θ without an image: {sorted(expected - on_disk)}")
     if on_disk - expected - discarded:
