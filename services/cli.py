@@ -70,6 +70,30 @@ def run(
         raise typer.Exit(1)
 
 
+def _print_final_model(config, model_id: int, data_dir: Path) -> None:
+    """Where the detector the run hands over is, and, when the loop scored at one view, that the
+    table's mAP is not the detector's own (it detects at all of its views)."""
+    from db.models import Model
+    from db.session import session_scope
+
+    with session_scope() as session:
+        model = session.get(Model, model_id)
+        checkpoint = data_dir / model.checkpoint_path if model is not None and model.checkpoint_path else None
+    if checkpoint is None:
+        return
+    path = escape(str(checkpoint))  # a path may hold brackets: text, not markup
+    console.print(f"final model: {path} (model {model_id}); foldwise detect --model {path} IMAGE...", highlight=False)
+    detector = config.detector
+    views = max(len(detector.test_sizes), 1) * max(len(detector.test_turns), 1)
+    if config.evaluation.views == "trained" and views > 1:
+        console.print(
+            f"best mAP above: each model at the one view it trained at (evaluation.views: trained); the final "
+            f"model detects at {views} views (sizes {list(detector.test_sizes) or [detector.input_size]}, "
+            f"quarter turns {list(detector.test_turns) or [0]}): python bench/wild.py --model {path} scores it there",
+            highlight=False,
+        )
+
+
 def _run_experiment(config, report_dir: Path | None, study: str | None = None) -> tuple[int, str]:
     """Record and run one experiment in this process with progress, then print its stage table
     and write its report; returns its id and final status."""
@@ -131,6 +155,8 @@ def _run_experiment(config, report_dir: Path | None, study: str | None = None) -
         console.print(f"images that could not be rendered: {reasons}", highlight=False)
     if info["error"]:
         console.print(f"[red]failed:[/] {info['error']}", highlight=False)
+    if info["final_model_id"] is not None:
+        _print_final_model(config, info["final_model_id"], settings.data_dir)
     files = write_report(experiment_id, report_dir or settings.data_dir / f"experiments/{experiment_id}/report")
     console.print(f"report: {files.png}  {files.csv}", highlight=False)
     _print_learnability(experiment_id, files)

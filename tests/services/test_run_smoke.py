@@ -24,6 +24,7 @@ def test_smoke_run_records_everything(database, tmp_path):
     result = CliRunner().invoke(app, ["run", str(REPO_ROOT / "configs/smoke.yaml"), "--report-dir", str(tmp_path)])
     assert result.exit_code == 0, result.output
     assert "fb" in result.output and "plateau" in result.output
+    assert "final model: " in result.output and "views (sizes" not in result.output  # one view: nothing to add
 
     with session_scope() as session:
         (experiment,) = session.scalars(select(Experiment)).all()
@@ -155,4 +156,9 @@ def test_the_loop_scores_at_the_trained_view_when_told_and_the_checkpoint_keeps_
         assert evaluations and asked == [((), ())] * len(evaluations)
         assert all(e.details["views"] == {"test_sizes": [], "test_turns": []} for e in evaluations)
         loaded = checkpoint.load_detector(store.resolve(model.checkpoint_path))
+        final = session.get(Model, session.scalars(select(Experiment)).one().final_model_id)
+        final_path = store.resolve(final.checkpoint_path)
     assert (loaded.model.test_sizes, loaded.model.test_turns) == ((64, 96), (0, 1))
+    # The run names the detector it hands over, and says its table's mAP is one view's, not the detector's.
+    assert f"final model: {final_path} (model {final.id})" in result.output
+    assert "the final model detects at 4 views (sizes [64, 96], quarter turns [0, 1])" in result.output
