@@ -70,15 +70,16 @@ def run(
         raise typer.Exit(1)
 
 
-def _print_final_model(config, model_id: int, data_dir: Path) -> None:
+def _print_final_model(config, model_id: int) -> None:
     """Where the detector the run hands over is, and, when the loop scored at one view, that the
     table's mAP is not the detector's own (it detects at all of its views)."""
     from db.models import Model
     from db.session import session_scope
+    from foldwise import store
 
     with session_scope() as session:
         model = session.get(Model, model_id)
-        checkpoint = data_dir / model.checkpoint_path if model is not None and model.checkpoint_path else None
+        checkpoint = store.resolve(model.checkpoint_path) if model is not None and model.checkpoint_path else None
     if checkpoint is None:
         return
     path = escape(str(checkpoint))  # a path may hold brackets: text, not markup
@@ -156,7 +157,7 @@ def _run_experiment(config, report_dir: Path | None, study: str | None = None) -
     if info["error"]:
         console.print(f"[red]failed:[/] {info['error']}", highlight=False)
     if info["final_model_id"] is not None:
-        _print_final_model(config, info["final_model_id"], settings.data_dir)
+        _print_final_model(config, info["final_model_id"])
     files = write_report(experiment_id, report_dir or settings.data_dir / f"experiments/{experiment_id}/report")
     console.print(f"report: {files.png}  {files.csv}", highlight=False)
     _print_learnability(experiment_id, files)
