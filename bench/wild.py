@@ -787,6 +787,17 @@ def _config_argument(parser_name: str):
     return read
 
 
+def _frame_argument(text: str) -> tuple[int, int]:
+    """An argparse ``type`` for WIDTHxHEIGHT (both sets' ``--…-size``): a bad one is argparse's message."""
+    try:
+        width, height = (int(value) for value in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not WIDTHxHEIGHT, e.g. 320x240") from None
+    if width < 1 or height < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: width and height must be at least 1 pixel")
+    return width, height
+
+
 _test_sizes_argument = _config_argument("parse_test_sizes")
 _test_turns_argument = _config_argument("parse_test_turns")
 
@@ -796,14 +807,14 @@ def main(argv=None) -> dict:
     parser.add_argument("--config", type=Path, default=ROOT / "configs/quick.yaml")
     parser.add_argument("--model", type=Path, help="score this checkpoint instead of training")
     parser.add_argument("--n-ood", type=int, default=200, help="out-of-domain images")
-    parser.add_argument("--ood-size", default="320x240", help="WIDTHxHEIGHT of out-of-domain images")
+    parser.add_argument("--ood-size", type=_frame_argument, default="320x240", help="WIDTHxHEIGHT of out-of-domain images")
     parser.add_argument("--ood-samples", type=int, default=24, help="Cycles samples per out-of-domain image")
     parser.add_argument("--ood-seed", type=int, default=2026)
     parser.add_argument("--ood-dir", type=Path, default=None, help="default: var/bench/wild-ood[-FACTORS]")
     # A second out-of-domain set, drawn apart (its own seed, larger frames), so that no lever is
     # chosen on one set of draws alone: the goal is met only when both ratios reach it.
     parser.add_argument("--n-ood-second", type=int, default=100, help="images of the second out-of-domain set (0: none)")
-    parser.add_argument("--ood-second-size", default="480x360", help="WIDTHxHEIGHT of the second set's images")
+    parser.add_argument("--ood-second-size", type=_frame_argument, default="480x360", help="WIDTHxHEIGHT of the second set's images")
     parser.add_argument("--ood-second-seed", type=int, default=7)
     parser.add_argument("--ood-second-dir", type=Path, default=None, help="default: var/bench/wild-ood-b[-FACTORS]")
     parser.add_argument(
@@ -835,7 +846,7 @@ def main(argv=None) -> dict:
     from workers.render.assets import load_assets
 
     classes = tuple(load_assets(config.assets).classes)
-    width, height = (int(v) for v in args.ood_size.lower().split("x"))
+    width, height = args.ood_size
     factors = FACTORS if args.factors == "all" else () if args.factors == "none" else tuple(args.factors.split(","))
     recipe = OodRecipe(
         n=args.n_ood, width=width, height=height, samples=args.ood_samples, seed=args.ood_seed, classes=classes, factors=factors
@@ -843,7 +854,7 @@ def main(argv=None) -> dict:
     suffix = "" if factors == FACTORS else "-" + ("-".join(factors) or "plain")
     if args.ood_dir is None:
         args.ood_dir = ROOT / f"var/bench/wild-ood{suffix}"
-    second_width, second_height = (int(v) for v in args.ood_second_size.lower().split("x"))
+    second_width, second_height = args.ood_second_size
     second_recipe = OodRecipe(
         n=args.n_ood_second, width=second_width, height=second_height, samples=args.ood_samples,
         seed=args.ood_second_seed, classes=classes, factors=factors,

@@ -73,14 +73,15 @@ def run(
 def _print_final_model(config, model_id: int) -> None:
     """Where the detector the run hands over is, and, when the loop scored at one view, that the
     table's mAP is not the detector's own (it detects at all of its views)."""
-    from db.models import Model
     from db.session import session_scope
-    from foldwise import store
+    from services.artifacts import checkpoint_file
+    from services.queries import NotFound
 
-    with session_scope() as session:
-        model = session.get(Model, model_id)
-        checkpoint = store.resolve(model.checkpoint_path) if model is not None and model.checkpoint_path else None
-    if checkpoint is None:
+    try:
+        with session_scope() as session:
+            checkpoint = checkpoint_file(session, model_id)
+    except NotFound as missing:
+        console.print(f"final model: {escape(str(missing))}", highlight=False)
         return
     path = escape(str(checkpoint))  # a path may hold brackets: text, not markup
     console.print(f"final model: {path} (model {model_id}); foldwise detect --model {path} IMAGE...", highlight=False)

@@ -240,3 +240,13 @@ def test_test_turns_are_read_as_the_config_reads_them_and_bad_ones_refused(capsy
             wild.main(["--test-turns", bad])
         error = capsys.readouterr().err
         assert f"argument --test-turns: {bad!r}" in error and problem in error
+
+
+def test_frame_sizes_of_both_out_of_domain_sets_are_read_alike_and_bad_ones_refused(capsys):
+    assert wild._frame_argument("480X360") == (480, 360)
+    for option in ("--ood-size", "--ood-second-size"):
+        for bad, problem in (("480", "is not WIDTHxHEIGHT"), ("4x3x2", "is not WIDTHxHEIGHT"), ("0x240", "at least 1 pixel")):
+            with pytest.raises(SystemExit):
+                wild.main([option, bad])
+            error = capsys.readouterr().err
+            assert f"argument {option}: {bad!r}" in error and problem in error

@@ -162,3 +162,12 @@ def test_the_loop_scores_at_the_trained_view_when_told_and_the_checkpoint_keeps_
     # The run names the detector it hands over, and says its table's mAP is one view's, not the detector's.
     assert f"final model: {final_path} (model {final.id})" in result.output
     assert "the final model detects at 4 views (sizes [64, 96], quarter turns [0, 1])" in result.output
+
+
+def test_a_final_model_whose_checkpoint_is_gone_is_named_as_missing(database, capsys):
+    """The run's last lines name the detector; a checkpoint missing from the store is said, not printed as a path."""
+    from foldwise.config import parse_config
+    from services.cli import _print_final_model
+
+    _print_final_model(parse_config({"name": "gone"}), 999)
+    assert "final model: model 999 does not exist" in capsys.readouterr().out
