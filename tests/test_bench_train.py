@@ -9,6 +9,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench import train  # noqa: E402
+import pytest  # noqa: E402
+
 from foldwise.config import load_config  # noqa: E402
 
 
@@ -22,3 +24,29 @@ def test_the_families_compare_at_one_view_of_quick_yamls_detector():
     for family in ("faster_rcnn", "fast_rcnn", "yolo"):  # yolo reads neither: its config must validate
         config = train.family_config(base, family, input_size=128, threads=1, batch_size=None)
         assert config.family == family and config.test_sizes == () and config.test_turns == ()
+
+
+def test_score_times_a_second_pass_and_reports_the_first_beside_it(tmp_path, monkeypatch):
+    """Throughput is a warm pass: a first pass over every image runs untimed (on a GPU it pays
+    one-off costs per batch shape), and its own rate is reported apart; the mAP comes from the
+    timed pass's detections."""
+    from tests.workers.train.test_training import CLASSES, config, synthetic_samples
+    from workers.train import checkpoint as checkpoint_module
+    from workers.train.training import train_detector
+
+    samples = synthetic_samples(tmp_path / "images", n=5)
+    weights = tmp_path / "yolo.pt"
+    train_detector(samples, None, 1, config(family="yolo", backbone="mobilenet_v3_small", pretrained="none"), CLASSES, weights, seed=0)
+    passes = []
+    real_detect = checkpoint_module.detect_object
+
+    def counting_detect(detector, images, **options):
+        passes.append(len(images))
+        return real_detect(detector, images, **options)
+
+    monkeypatch.setattr(checkpoint_module, "detect_object", counting_detect)
+    result = train.score(weights, samples, CLASSES, batch_size=2)
+    assert passes == [5, 5]  # every image twice, the second pass timed
+    assert result["first_pass_images_per_s"] > 0 and result["inference_images_per_s"] > 0
+    assert result["inference_images_per_s"] == pytest.approx(5 / result["inference_seconds"])
+    assert 0.0 <= result["map_unthresholded"] <= 1.0

@@ -115,6 +115,9 @@ def test_cache_without_path_and_lru_capacity():
     assert cache.misses == 4
     cache.proposals(images[2])
     assert cache.hits == 1
+    cache.clear()  # bench/train.py times inference on images the cache has not seen
+    cache.proposals(images[2])
+    assert (cache.hits, cache.misses) == (1, 5)
 
 
 def test_unwritable_folder_only_disables_the_file(tmp_path):

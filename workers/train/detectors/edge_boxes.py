@@ -154,6 +154,11 @@ class ProposalCache:
         self.file_hits = 0
         self.misses = 0
 
+    def clear(self) -> None:
+        """Forget every proposal held in memory (files beside images stay)."""
+        with self._lock:
+            self._memory.clear()
+
     @staticmethod
     def cache_path(image_path: str | Path) -> Path:
         image_path = Path(image_path)
