@@ -24,6 +24,11 @@ The set is written as a COCO folder (``--ood-dir``) and reused when its recipe i
 A second set of the same scene, drawn apart (100 images at 480×360, seed 7: ``--n-ood-second``,
 ``--ood-second-size``, ``--ood-second-seed``; 0 images skips it), is scored beside it, so that
 no lever is judged on one set of draws (a set of 100 images moves by about ±0.05 between draws).
+Both cover the ground and the clutter with photographs that are also foldwise's training
+backgrounds and occluders; a third set (100 images at 320×240, seed 11: ``--n-ood-apart``,
+``--ood-apart-size``, ``--ood-apart-seed``) uses photographs that no training path reads
+(``PHOTO_POOLS["held_apart"]``), so a detector that knew its training backgrounds by heart
+would be seen to fail there.
 It is a proxy for photographs, made by independent code; it is not the held-out set that
 scores foldwise's landings, and nothing in foldwise is tuned to it.
 
@@ -38,7 +43,7 @@ Two more in-domain scores: ``in_domain_reframed`` puts the in-domain images in 4
 quarter turns (boxes exact): the same objects, any camera roll.
 
 JSON out: the mAPs, the out-of-domain / in-domain ratio of each out-of-domain set (the goal,
-≥ 0.8, is met only when both reach it), each set's class-agnostic mAP (any
+≥ 0.8, is met only when every one reaches it), each set's class-agnostic mAP (any
 class at a target counts: finding the sheet apart from naming it), the out-of-domain breakdown by scene
 kind (negatives, small / medium / large / frame-filling sheets, occluded, several targets),
 the time each part took and the machine.
@@ -71,6 +76,18 @@ RECIPE_VERSION = 2
 # is chelsea: a detector that finds those would be right, so they are not clutter).
 CLUTTER_PHOTOS = ("immunohistochemistry", "retina", "colorwheel", "coins", "page", "camera", "moon")
 GROUND_PHOTOS = ("brick", "grass", "gravel", "hubble_deep_field", "moon")
+# Every photograph above is also one of foldwise's training backgrounds or occluders. The
+# held-apart pool is not: three of Blender's panoramas (bench/panoramas.py), and matplotlib's and
+# skimage's sample photographs that no training path reads. A detector that learnt its training
+# backgrounds by heart fails there.
+HELD_APART_PANORAMAS = ("night", "studio", "sunrise")  # bench/panoramas.NAMES
+HELD_APART_CLUTTER = ("grace_hopper", "Minduka_Present_Blue_Pack", "horse", "microaneurysms", *HELD_APART_PANORAMAS)
+HELD_APART_GROUND = (*HELD_APART_PANORAMAS, "grace_hopper", "Minduka_Present_Blue_Pack")
+PHOTO_POOLS = {  # recipe.photos -> (ground photographs, clutter photographs)
+    "training": (GROUND_PHOTOS, CLUTTER_PHOTOS),
+    "held_apart": (HELD_APART_GROUND, HELD_APART_CLUTTER),
+}
+MATPLOTLIB_PHOTOS = {"grace_hopper": "grace_hopper.jpg", "Minduka_Present_Blue_Pack": "Minduka_Present_Blue_Pack.png"}
 # What makes a scene wild, each factor on its own: with one turned off, that part of the scene
 # takes a plain value (see OodScene.build), so a run per factor tells which one the detector
 # misses most.
@@ -89,16 +106,22 @@ class OodRecipe:
     negatives: float = 0.1
     classes: tuple[str, ...] = ()
     factors: tuple[str, ...] = FACTORS
+    # Which photographs cover the ground and the clutter sheets (PHOTO_POOLS).
+    photos: str = "training"
 
     def __post_init__(self) -> None:
         unknown = sorted(set(self.factors) - set(FACTORS))
         if unknown:
             raise ValueError(f"unknown factor(s) {unknown}; known: {', '.join(FACTORS)}")
+        if self.photos not in PHOTO_POOLS:
+            raise ValueError(f"unknown photo pool {self.photos!r}; known: {', '.join(PHOTO_POOLS)}")
 
     def key(self) -> str:
         fields = asdict(self)
         if self.factors == FACTORS:  # the full wild set keeps the key it had before factors existed
             del fields["factors"]
+        if self.photos == "training":  # and before the held-apart pool existed
+            del fields["photos"]
         payload = json.dumps({"version": RECIPE_VERSION, **fields}, sort_keys=True)
         return hashlib.sha256(payload.encode()).hexdigest()[:16]
 
@@ -315,8 +338,9 @@ class OodScene:
 
         # Ground: a photograph or a procedural texture.
         ground_size = 40.0
+        ground_photos, clutter_photos = PHOTO_POOLS[recipe.photos]
         if rng.random() < 0.4 or "ground" not in wild:
-            name = str(rng.choice(GROUND_PHOTOS))
+            name = str(rng.choice(ground_photos))
             ground_material = self._material("wild-ground", rng, image=self._image(name, self.textures[name]), gloss=False)
         else:
             kind = str(rng.choice(["noise", "voronoi", "wave", "checker", "brick", "magic"]))
@@ -357,7 +381,7 @@ class OodScene:
 
         # Clutter: sheets of other photographs, and primitives, beside and over the target.
         for index in range(int(rng.integers(0, 4)) if "clutter" in wild else 0):
-            photo = str(rng.choice(CLUTTER_PHOTOS))
+            photo = str(rng.choice(clutter_photos))
             texture = self.textures[photo]
             aspect = texture.shape[1] / texture.shape[0]
             side = rng.uniform(0.4, 1.0)
@@ -539,17 +563,28 @@ def _scene_kind(objects, fill: float, negative: bool) -> str:
     return "small" if fill < 0.25 else "medium" if fill < 0.6 else "large" if fill < 1.0 else "frame-filling"
 
 
-def load_textures(classes) -> dict[str, np.ndarray]:
-    """The object textures foldwise uses (same files), and the clutter/ground photographs."""
+def load_textures(classes, photos: str = "training") -> dict[str, np.ndarray]:
+    """The object textures foldwise uses (same files), and the ground/clutter photographs of pool ``photos``."""
+    import cv2
     import skimage.data
 
+    from bench import panoramas
     from workers.render.assets import _to_uint8_rgb, load_assets
 
     catalog = load_assets()
     textures = {name: catalog.texture(name) for name in classes}
-    for name in set(CLUTTER_PHOTOS) | set(GROUND_PHOTOS):
-        image = getattr(skimage.data, name)()
-        textures[name] = _to_uint8_rgb(np.asarray(image), f"skimage.data.{name}")
+    ground, clutter = PHOTO_POOLS[photos]
+    for name in sorted(set(ground) | set(clutter)):
+        if name in panoramas.NAMES:
+            image = cv2.cvtColor(cv2.imread(str(panoramas.path(name)), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        elif name in MATPLOTLIB_PHOTOS:
+            import matplotlib.cbook
+
+            sample = matplotlib.cbook.get_sample_data(MATPLOTLIB_PHOTOS[name], asfileobj=False)
+            image = cv2.cvtColor(cv2.imread(str(sample), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+        else:
+            image = getattr(skimage.data, name)()
+        textures[name] = _to_uint8_rgb(np.asarray(image), name)
     return textures
 
 
@@ -563,7 +598,7 @@ def make_ood_set(out: Path, recipe: OodRecipe, echo=print) -> Path:
         echo(f"out-of-domain set: reusing {out} (recipe {recipe.key()})")
         return out
     (out / "images").mkdir(parents=True, exist_ok=True)
-    scene = OodScene(load_textures(recipe.classes), recipe)
+    scene = OodScene(load_textures(recipe.classes, recipe.photos), recipe)
     rng = np.random.default_rng(recipe.seed)
     images, annotations = [], []
     started = time.perf_counter()
@@ -787,8 +822,19 @@ def _config_argument(parser_name: str):
     return read
 
 
+def _positive_count(text: str) -> int:
+    """An argparse ``type`` for the first set's size: 0 would replace a cached set by an empty one."""
+    try:
+        count = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if count < 1:
+        raise argparse.ArgumentTypeError(f"{count}: the first out-of-domain set needs at least 1 image")
+    return count
+
+
 def _frame_argument(text: str) -> tuple[int, int]:
-    """An argparse ``type`` for WIDTHxHEIGHT (both sets' ``--…-size``): a bad one is argparse's message."""
+    """An argparse ``type`` for WIDTHxHEIGHT (every set's ``--…-size``): a bad one is argparse's message."""
     try:
         width, height = (int(value) for value in text.lower().split("x"))
     except ValueError:
@@ -806,7 +852,7 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", type=Path, default=ROOT / "configs/quick.yaml")
     parser.add_argument("--model", type=Path, help="score this checkpoint instead of training")
-    parser.add_argument("--n-ood", type=int, default=200, help="out-of-domain images")
+    parser.add_argument("--n-ood", type=_positive_count, default=200, help="out-of-domain images (at least 1)")
     parser.add_argument("--ood-size", type=_frame_argument, default="320x240", help="WIDTHxHEIGHT of out-of-domain images")
     parser.add_argument("--ood-samples", type=int, default=24, help="Cycles samples per out-of-domain image")
     parser.add_argument("--ood-seed", type=int, default=2026)
@@ -817,6 +863,12 @@ def main(argv=None) -> dict:
     parser.add_argument("--ood-second-size", type=_frame_argument, default="480x360", help="WIDTHxHEIGHT of the second set's images")
     parser.add_argument("--ood-second-seed", type=int, default=7)
     parser.add_argument("--ood-second-dir", type=Path, default=None, help="default: var/bench/wild-ood-b[-FACTORS]")
+    # A third set whose ground and clutter photographs no training path uses (PHOTO_POOLS): the
+    # first two reuse foldwise's own background and occluder photographs.
+    parser.add_argument("--n-ood-apart", type=int, default=100, help="images of the held-apart-photographs set (0: none)")
+    parser.add_argument("--ood-apart-size", type=_frame_argument, default="320x240", help="WIDTHxHEIGHT of that set's images")
+    parser.add_argument("--ood-apart-seed", type=int, default=11)
+    parser.add_argument("--ood-apart-dir", type=Path, default=None, help="default: var/bench/wild-ood-apart[-FACTORS]")
     parser.add_argument(
         "--factors", default="all",
         help=f"which parts of the scene are wild: all, none, or a comma list of {','.join(FACTORS)} (the rest plain)",
@@ -854,24 +906,26 @@ def main(argv=None) -> dict:
     suffix = "" if factors == FACTORS else "-" + ("-".join(factors) or "plain")
     if args.ood_dir is None:
         args.ood_dir = ROOT / f"var/bench/wild-ood{suffix}"
-    second_width, second_height = args.ood_second_size
-    second_recipe = OodRecipe(
-        n=args.n_ood_second, width=second_width, height=second_height, samples=args.ood_samples,
-        seed=args.ood_second_seed, classes=classes, factors=factors,
-    )
-    if args.ood_second_dir is None:
-        args.ood_second_dir = ROOT / f"var/bench/wild-ood-b{suffix}"
+    # Each out-of-domain set: (report key suffix, recipe, folder); a set of 0 images is skipped.
+    ood_sets = [("", recipe, args.ood_dir)]
+    for name, n, (frame_width, frame_height), seed, folder, photos in (
+        ("second", args.n_ood_second, args.ood_second_size, args.ood_second_seed, args.ood_second_dir, "training"),
+        ("apart", args.n_ood_apart, args.ood_apart_size, args.ood_apart_seed, args.ood_apart_dir, "held_apart"),
+    ):
+        if n:
+            extra = OodRecipe(
+                n=n, width=frame_width, height=frame_height, samples=args.ood_samples, seed=seed, classes=classes,
+                factors=factors, photos=photos,
+            )
+            default_folder = ROOT / f"var/bench/wild-ood-{'b' if name == 'second' else name}{suffix}"
+            ood_sets.append((f"_{name}", extra, folder or default_folder))
 
     report: dict = {"config": str(args.config), "protocol": {"score_threshold": args.threshold, "iou_threshold": args.iou}}
-    started = time.perf_counter()
-    ood_dir = make_ood_set(args.ood_dir, recipe, echo)
-    report["ood_set"] = {"dir": str(ood_dir), "recipe": asdict(recipe), "seconds": time.perf_counter() - started}
-    if args.n_ood_second:
+    ood_dirs = []
+    for key, set_recipe, folder in ood_sets:
         started = time.perf_counter()
-        second_dir = make_ood_set(args.ood_second_dir, second_recipe, echo)
-        report["ood_set_second"] = {
-            "dir": str(second_dir), "recipe": asdict(second_recipe), "seconds": time.perf_counter() - started
-        }
+        ood_dirs.append(make_ood_set(folder, set_recipe, echo))
+        report[f"ood_set{key}"] = {"dir": str(ood_dirs[-1]), "recipe": asdict(set_recipe), "seconds": time.perf_counter() - started}
 
     if args.model is None:
         train_dir = args.train_dir or Path(tempfile.mkdtemp(prefix="foldwise-wild-train-"))
@@ -891,15 +945,12 @@ def main(argv=None) -> dict:
     report["in_domain_reframed"] = score(checkpoint, reframed_dir, args.threshold, args.iou, **views)
     rotated_dir = make_rotated_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-rotated"))
     report["in_domain_rotated"] = score(checkpoint, rotated_dir, args.threshold, args.iou, **views)
-    report["out_of_domain"] = score(checkpoint, ood_dir, args.threshold, args.iou, **views)
-    in_map, ood_map = report["in_domain"]["map"], report["out_of_domain"]["map"]
-    report["ratio"] = None if not in_map else ood_map / in_map
-    ratios = [report["ratio"]]
-    if args.n_ood_second:
-        report["out_of_domain_second"] = score(checkpoint, second_dir, args.threshold, args.iou, **views)
-        second_map = report["out_of_domain_second"]["map"]
-        report["ratio_second"] = None if not in_map else second_map / in_map
-        ratios.append(report["ratio_second"])
+    in_map = report["in_domain"]["map"]
+    ratios = []
+    for (key, _recipe, _folder), ood_dir in zip(ood_sets, ood_dirs):
+        report[f"out_of_domain{key}"] = score(checkpoint, ood_dir, args.threshold, args.iou, **views)
+        report[f"ratio{key}"] = None if not in_map else report[f"out_of_domain{key}"]["map"] / in_map
+        ratios.append(report[f"ratio{key}"])
     report["goal"] = {"ratio_at_least": 0.8, "met": all(ratio is not None and ratio >= 0.8 for ratio in ratios)}
     from bench.render import cpu_model
 

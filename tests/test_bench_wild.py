@@ -81,7 +81,7 @@ def test_a_fully_visible_target_is_boxed_at_its_projected_outline():
     assert checked == 2, "no fully visible target in 40 scenes"
 
 
-def test_the_benchmark_trains_scores_both_sets_and_reports_the_ratio(tmp_path):
+def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
     out = tmp_path / "wild.json"
     command = [
         sys.executable, str(ROOT / "bench" / "wild.py"), "--config", str(ROOT / "configs" / "smoke.yaml"),
@@ -89,6 +89,7 @@ def test_the_benchmark_trains_scores_both_sets_and_reports_the_ratio(tmp_path):
         "--ood-dir", str(tmp_path / "ood"), "--in-domain-dir", str(tmp_path / "in"),
         "--n-ood-second", "3", "--ood-second-size", "48x64", "--ood-second-seed", "11",
         "--ood-second-dir", str(tmp_path / "ood-second"),
+        "--n-ood-apart", "2", "--ood-apart-size", "64x48", "--ood-apart-dir", str(tmp_path / "ood-apart"),
         "--train-dir", str(tmp_path / "train"), "--out", str(out),
     ]
     finished = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
@@ -107,8 +108,14 @@ def test_the_benchmark_trains_scores_both_sets_and_reports_the_ratio(tmp_path):
     assert second["images"] == 3 and 0.0 <= second["map"] <= 1.0
     assert report["ood_set_second"]["recipe"]["seed"] == 11 and report["ood_set_second"]["recipe"]["width"] == 48
     assert report["ratio_second"] == (None if not in_map else second["map"] / in_map)
+    # The third set covers ground and clutter with photographs no training path reads.
+    apart = report["out_of_domain_apart"]
+    assert apart["images"] == 2 and 0.0 <= apart["map"] <= 1.0
+    assert report["ood_set_apart"]["recipe"]["photos"] == "held_apart" and report["ood_set_apart"]["recipe"]["seed"] == 11
+    assert report["ratio_apart"] == (None if not in_map else apart["map"] / in_map)
     assert report["goal"]["ratio_at_least"] == 0.8
-    assert report["goal"]["met"] == all(r is not None and r >= 0.8 for r in (report["ratio"], report["ratio_second"]))
+    ratios = (report["ratio"], report["ratio_second"], report["ratio_apart"])
+    assert report["goal"]["met"] == all(r is not None and r >= 0.8 for r in ratios)
     assert report["machine"]["cpu"]
     for part in ("in_domain", "out_of_domain"):  # finding the sheet is never harder than naming it too
         assert report[part]["class_agnostic"]["map_unthresholded"] >= report[part]["map_unthresholded"] - 1e-9
@@ -242,11 +249,61 @@ def test_test_turns_are_read_as_the_config_reads_them_and_bad_ones_refused(capsy
         assert f"argument --test-turns: {bad!r}" in error and problem in error
 
 
-def test_frame_sizes_of_both_out_of_domain_sets_are_read_alike_and_bad_ones_refused(capsys):
+def test_frame_sizes_of_every_out_of_domain_set_are_read_alike_and_bad_ones_refused(capsys):
     assert wild._frame_argument("480X360") == (480, 360)
-    for option in ("--ood-size", "--ood-second-size"):
+    for option in ("--ood-size", "--ood-second-size", "--ood-apart-size"):
         for bad, problem in (("480", "is not WIDTHxHEIGHT"), ("4x3x2", "is not WIDTHxHEIGHT"), ("0x240", "at least 1 pixel")):
             with pytest.raises(SystemExit):
                 wild.main([option, bad])
             error = capsys.readouterr().err
             assert f"argument {option}: {bad!r}" in error and problem in error
+
+
+def test_the_held_apart_photographs_are_none_of_foldwises_training_images():
+    """The third set's ground and clutter share no photograph with the default catalog's
+    backgrounds and occluders (by name or by pixels), and the first two sets' do: that is
+    what the third one measures."""
+    from workers.render.assets import load_assets
+
+    catalog = load_assets()
+    training = {asset.name for asset in catalog.backgrounds + catalog.occluders}
+    ground, clutter = wild.PHOTO_POOLS["held_apart"]
+    assert not (set(ground) | set(clutter)) & training
+    assert set(wild.GROUND_PHOTOS) | set(wild.CLUTTER_PHOTOS) <= training
+    held_apart = wild.load_textures((), "held_apart")
+    training_pixels = {
+        asset.name: catalog.occluder(asset.name)[0] if asset in catalog.occluders else asset.load()
+        for asset in catalog.backgrounds + catalog.occluders
+        if not asset.procedural
+    }
+    for name, pixels in held_apart.items():
+        for other, other_pixels in training_pixels.items():
+            assert pixels.shape != other_pixels.shape or not np.array_equal(pixels, other_pixels), (name, other)
+    assert wild.OodRecipe(classes=CLASSES, photos="held_apart").key() != wild.OodRecipe(classes=CLASSES).key()
+    with pytest.raises(ValueError, match="unknown photo pool"):
+        wild.OodRecipe(classes=CLASSES, photos="mine")
+
+
+def test_the_committed_panoramas_are_what_derive_makes_from_bpys(tmp_path):
+    # A process of its own: OpenCV reads OpenEXR only when enabled before its first EXR read.
+    script = f"from pathlib import Path; from bench.panoramas import derive; derive(Path({str(tmp_path)!r}))"
+    subprocess.run([sys.executable, "-c", script], check=True, cwd=ROOT, timeout=120)
+    from bench import panoramas
+
+    assert panoramas.NAMES == wild.HELD_APART_PANORAMAS
+    for name in panoramas.NAMES:
+        assert (tmp_path / f"{name}.jpg").read_bytes() == panoramas.path(name).read_bytes(), name
+    with pytest.raises(KeyError, match="unknown panorama 'beach'"):
+        panoramas.path("beach")
+
+
+def test_an_empty_first_set_is_refused_before_it_can_replace_a_cached_one(tmp_path, capsys):
+    cached = tmp_path / "ood"
+    cached.mkdir()
+    (cached / "annotations.json").write_text('{"info": {"recipe": "kept"}}')
+    for bad, problem in (("0", "needs at least 1 image"), ("-3", "needs at least 1 image"), ("many", "not a whole number")):
+        with pytest.raises(SystemExit):
+            wild.main(["--n-ood", bad, "--ood-dir", str(cached)])
+        error = capsys.readouterr().err
+        assert "argument --n-ood: " in error and problem in error
+    assert json.loads((cached / "annotations.json").read_text())["info"]["recipe"] == "kept"
