@@ -70,6 +70,8 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
+from bench import panoramas  # noqa: E402  (no heavy imports: paths and a derivation run by hand)
+
 RECIPE_VERSION = 2
 # Photographs for clutter sheets: none of them shows what one of the five default object
 # textures shows (skimage's stereo_motorcycle is the motorcycle from another viewpoint, its cat
@@ -80,7 +82,7 @@ GROUND_PHOTOS = ("brick", "grass", "gravel", "hubble_deep_field", "moon")
 # held-apart pool is not: three of Blender's panoramas (bench/panoramas.py), and matplotlib's and
 # skimage's sample photographs that no training path reads. A detector that learnt its training
 # backgrounds by heart fails there.
-HELD_APART_PANORAMAS = ("night", "studio", "sunrise")  # bench/panoramas.NAMES
+HELD_APART_PANORAMAS = panoramas.NAMES
 HELD_APART_CLUTTER = ("grace_hopper", "Minduka_Present_Blue_Pack", "horse", "microaneurysms", *HELD_APART_PANORAMAS)
 HELD_APART_GROUND = (*HELD_APART_PANORAMAS, "grace_hopper", "Minduka_Present_Blue_Pack")
 PHOTO_POOLS = {  # recipe.photos -> (ground photographs, clutter photographs)
@@ -565,26 +567,22 @@ def _scene_kind(objects, fill: float, negative: bool) -> str:
 
 def load_textures(classes, photos: str = "training") -> dict[str, np.ndarray]:
     """The object textures foldwise uses (same files), and the ground/clutter photographs of pool ``photos``."""
-    import cv2
     import skimage.data
 
-    from bench import panoramas
-    from workers.render.assets import _to_uint8_rgb, load_assets
+    from workers.render.assets import _file_image, _to_uint8_rgb, load_assets
 
     catalog = load_assets()
     textures = {name: catalog.texture(name) for name in classes}
     ground, clutter = PHOTO_POOLS[photos]
     for name in sorted(set(ground) | set(clutter)):
         if name in panoramas.NAMES:
-            image = cv2.cvtColor(cv2.imread(str(panoramas.path(name)), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+            textures[name] = _file_image(str(panoramas.path(name)), False)  # as foldwise reads an asset file
         elif name in MATPLOTLIB_PHOTOS:
             import matplotlib.cbook
 
-            sample = matplotlib.cbook.get_sample_data(MATPLOTLIB_PHOTOS[name], asfileobj=False)
-            image = cv2.cvtColor(cv2.imread(str(sample), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
+            textures[name] = _file_image(str(matplotlib.cbook.get_sample_data(MATPLOTLIB_PHOTOS[name], asfileobj=False)), False)
         else:
-            image = getattr(skimage.data, name)()
-        textures[name] = _to_uint8_rgb(np.asarray(image), name)
+            textures[name] = _to_uint8_rgb(np.asarray(getattr(skimage.data, name)()), f"skimage.data.{name}")
     return textures
 
 
