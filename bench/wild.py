@@ -776,16 +776,19 @@ def class_agnostic(predictions: list[dict], ground_truth: list[dict]) -> tuple[l
     return merged, truth
 
 
-def score(checkpoint: Path, data: Path, score_threshold: float, iou_threshold: float, test_sizes=None, test_turns=None) -> dict:
+def score(checkpoint, data: Path, score_threshold: float, iou_threshold: float, test_sizes=None, test_turns=None) -> dict:
+    """The detector's scores on a COCO folder. ``checkpoint``: one path, or a list of paths whose
+    detectors are scored as one (``workers.train.checkpoint.detect_ensemble``)."""
     from workers.train.checkpoint import load_detector
     from workers.train.data import load_coco_dataset
     from workers.train.evaluation import detector_predictions, evaluate_predictions
 
     samples, classes = load_coco_dataset(data)
-    detector = load_detector(checkpoint, device="cpu")
+    checkpoints = [checkpoint] if isinstance(checkpoint, (str, Path)) else list(checkpoint)
+    detectors = [load_detector(path, device="cpu") for path in checkpoints]
     started = time.perf_counter()
     predictions, truth, groups, model_classes = detector_predictions(
-        detector, samples, classes, test_sizes=test_sizes, test_turns=test_turns
+        detectors, samples, classes, test_sizes=test_sizes, test_turns=test_turns
     )
     protocol = {"score_threshold": score_threshold, "iou_threshold": iou_threshold, "coco": False}
     payload = evaluate_predictions(predictions, truth, model_classes, groups=groups, **protocol).to_dict()
@@ -849,7 +852,10 @@ _test_turns_argument = _config_argument("parse_test_turns")
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", type=Path, default=ROOT / "configs/quick.yaml")
-    parser.add_argument("--model", type=Path, help="score this checkpoint instead of training")
+    parser.add_argument(
+        "--model", type=Path, action="append",
+        help="score this checkpoint instead of training; given again, the checkpoints are scored as one ensemble",
+    )
     parser.add_argument("--n-ood", type=_positive_count, default=200, help="out-of-domain images (at least 1)")
     parser.add_argument("--ood-size", type=_frame_argument, default="320x240", help="WIDTHxHEIGHT of out-of-domain images")
     parser.add_argument("--ood-samples", type=int, default=24, help="Cycles samples per out-of-domain image")
@@ -930,8 +936,8 @@ def main(argv=None) -> dict:
         checkpoint, training = train_with_config(args.config, train_dir, echo)
         report["training"] = training
     else:
-        checkpoint = args.model
-    report["model"] = str(checkpoint)
+        checkpoint = args.model[0] if len(args.model) == 1 else args.model
+    report["model"] = str(checkpoint) if isinstance(checkpoint, Path) else [str(path) for path in checkpoint]
     report["test_sizes"] = list(args.test_sizes) if args.test_sizes is not None else "the model's"
     report["test_turns"] = list(args.test_turns) if args.test_turns is not None else "the model's"
     views = {"test_sizes": args.test_sizes, "test_turns": args.test_turns}

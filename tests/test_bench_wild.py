@@ -307,3 +307,43 @@ def test_an_empty_first_set_is_refused_before_it_can_replace_a_cached_one(tmp_pa
         error = capsys.readouterr().err
         assert "argument --n-ood: " in error and problem in error
     assert json.loads((cached / "annotations.json").read_text())["info"]["recipe"] == "kept"
+
+
+def _coco_folder(samples, classes, folder: Path) -> Path:
+    """The samples (images already under ``folder / 'images'``) as a COCO folder wild.score reads."""
+    document = {
+        "images": [
+            {"id": i + 1, "file_name": f"images/{s.image_path.name}", "width": 64, "height": 64} for i, s in enumerate(samples)
+        ],
+        "annotations": [
+            {"id": i + 1, "image_id": i + 1, "category_id": int(label) + 1, "bbox": [x0, y0, x1 - x0, y1 - y0]}
+            for i, s in enumerate(samples)
+            for (x0, y0, x1, y1), label in zip(s.boxes.tolist(), s.labels.tolist())
+        ],
+        "categories": [{"id": i + 1, "name": name} for i, name in enumerate(classes)],
+    }
+    (folder / "annotations.json").write_text(json.dumps(document))
+    return folder
+
+
+def test_several_checkpoints_score_as_one_ensemble(tmp_path):
+    """--model given twice scores the detectors as one: each detects, the detections merge by
+    per-class NMS. A model with itself is the model; models whose class lists differ are refused."""
+    from tests.workers.train.test_training import CLASSES as COLOURS
+    from tests.workers.train.test_training import config, synthetic_samples
+    from workers.train.training import train_detector
+
+    samples = synthetic_samples(tmp_path / "set" / "images", n=6)
+    data = _coco_folder(samples, COLOURS, tmp_path / "set")
+    first, second, other = tmp_path / "a.pt", tmp_path / "b.pt", tmp_path / "other.pt"
+    train_detector(samples, None, 2, config(), COLOURS, first, seed=0)
+    train_detector(samples, None, 2, config(), COLOURS, second, seed=1)
+    alone = wild.score(first, data, 0.0, 0.5)
+    with_itself = wild.score([first, first], data, 0.0, 0.5)
+    assert with_itself["map"] == alone["map"] and with_itself["map_unthresholded"] == alone["map_unthresholded"]
+    pair = wild.score([first, second], data, 0.0, 0.5)
+    assert pair["images"] == 6 and 0.0 <= pair["map"] <= 1.0
+    # The same classes in another order: its label 0 is another class, so merging would mix them.
+    train_detector(samples, None, 1, config(), COLOURS[::-1], other, seed=0)
+    with pytest.raises(ValueError, match="an ensemble needs one class list"):
+        wild.score([first, other], data, 0.0, 0.5)

@@ -288,7 +288,14 @@ def draw_detections(image_rgb, detections: dict, classes: list[str], score_thres
 
 
 def detect(
-    model: Annotated[Path, typer.Option("--model", help="Checkpoint written by `foldwise train`.")],
+    model: Annotated[
+        list[Path],
+        typer.Option(
+            "--model",
+            help="Checkpoint written by `foldwise train` or an experiment; given again (one class list), "
+            "the detectors detect as one ensemble, their detections merged.",
+        ),
+    ],
     images: Annotated[list[Path], typer.Argument(help="Image files to run the detector on.")],
     out_dir: Annotated[Path, typer.Option("--out-dir", help="Where the annotated copies go.")] = Path("detections"),
     score_threshold: Annotated[
@@ -332,14 +339,14 @@ def detect(
         except DatasetError as error:
             _fail(str(error))
     _set_threads(threads)
-    detector = _load_model(model, device)
-    classes = [str(name) for name in detector.meta.get("classes", [])]
+    detectors = [_load_model(path, device) for path in model]
+    classes = [str(name) for name in detectors[0].meta.get("classes", [])]
 
-    from workers.train.checkpoint import detect_object
+    from workers.train.checkpoint import detect_ensemble
 
     try:
-        detections = detect_object(detector, pictures, batch_size=batch_size, test_sizes=test_sizes, test_turns=test_turns)
-    except ValueError as error:  # e.g. --sizes or --turns for a yolo detector
+        detections = detect_ensemble(detectors, pictures, batch_size=batch_size, test_sizes=test_sizes, test_turns=test_turns)
+    except ValueError as error:  # e.g. --sizes or --turns for a yolo detector, or ensemble members of other classes
         _fail(str(error))
     out_dir.mkdir(parents=True, exist_ok=True)
     used: set[str] = set()

@@ -525,9 +525,12 @@ def detector_predictions(
     ``detect_object`` on the samples' images, and their boxes with labels mapped to the detector's
     own class list by name (a dataset whose categories come in another order still scores right;
     a dataset class the detector does not know is an error). Groups are condition and difficulty.
-    ``test_sizes`` and ``test_turns`` override the detector config's (see ``detect_object``)."""
-    from workers.train.checkpoint import detect_object
+    ``test_sizes`` and ``test_turns`` override the detector config's (see ``detect_object``).
+    ``detector`` may be a list of detectors of one class list, scored as one (``detect_ensemble``)."""
+    from workers.train.checkpoint import detect_ensemble
 
+    detectors = list(detector) if isinstance(detector, (list, tuple)) else [detector]
+    detector = detectors[0]
     model_classes = [str(name) for name in detector.meta.get("classes", classes)]
     unknown = [name for name in classes if name not in model_classes]
     if unknown:
@@ -535,8 +538,8 @@ def detector_predictions(
             f"the dataset has classes the detector was not trained on: {unknown} (detector classes: {model_classes})"
         )
     to_model = np.array([model_classes.index(name) for name in classes], dtype=np.int64)
-    predictions = detect_object(
-        detector, [sample.image_path for sample in samples], batch_size=batch_size, on_batch=on_batch,
+    predictions = detect_ensemble(
+        detectors, [sample.image_path for sample in samples], batch_size=batch_size, on_batch=on_batch,
         test_sizes=test_sizes, test_turns=test_turns,
     )
     ground_truth = [

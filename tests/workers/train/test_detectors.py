@@ -13,6 +13,7 @@ from workers.train.detectors import (
     anchor_sizes,
     build_detector,
     imagenet_weights_path,
+    merge_detections,
 )
 from workers.train.detectors.fast_rcnn import tensor_to_uint8
 
@@ -197,3 +198,31 @@ def test_pretrained_imagenet_loads_the_cached_classifier_weights(tmp_path, monke
     torch.testing.assert_close(body["16"][1].running_mean, classifier.features[16][1].running_mean)
     assert not body["0"][0].weight.requires_grad  # early stages frozen when fine-tuning
     assert body["16"][0].weight.requires_grad
+
+
+def test_merging_runs_keeps_the_best_box_per_class_and_place_best_first_and_capped():
+    """Views (or several detectors) merge by per-class NMS: of two overlapping boxes of one class
+    the better stays; boxes of other classes at the same place stay too; the cap keeps the best.
+    Arrays in, arrays out (a detector's numpy output); tensors in, tensors out (the model's)."""
+    first = {
+        "boxes": np.array([[0, 0, 10, 10], [20, 20, 30, 30]], np.float32),
+        "scores": np.array([0.9, 0.5], np.float32),
+        "labels": np.array([0, 1]),
+    }
+    second = {
+        "boxes": np.array([[1, 1, 10, 10], [0, 0, 10, 10], [40, 40, 50, 50]], np.float32),
+        "scores": np.array([0.95, 0.7, 0.6], np.float32),
+        "labels": np.array([0, 2, 0]),
+    }
+    merged = merge_detections([first, second], 0.5, 20)
+    assert isinstance(merged["boxes"], np.ndarray)
+    assert merged["scores"].tolist() == pytest.approx([0.95, 0.7, 0.6, 0.5])
+    assert merged["labels"].tolist() == [0, 2, 0, 1]
+    assert merged["boxes"][0].tolist() == [1, 1, 10, 10]  # the 0.9 box of class 0 there is suppressed
+    capped = merge_detections([first, second], 0.5, 2)
+    assert capped["scores"].tolist() == pytest.approx([0.95, 0.7])
+    as_tensors = merge_detections([{k: torch.as_tensor(v) for k, v in run.items()} for run in (first, second)], 0.5, 20)
+    assert isinstance(as_tensors["boxes"], torch.Tensor)
+    assert as_tensors["scores"].tolist() == pytest.approx(merged["scores"].tolist())
+    empty = {"boxes": np.zeros((0, 4), np.float32), "scores": np.zeros(0, np.float32), "labels": np.zeros(0, np.int64)}
+    assert len(merge_detections([empty, empty], 0.5, 20)["scores"]) == 0

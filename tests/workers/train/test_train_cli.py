@@ -277,3 +277,32 @@ def test_detect_at_chosen_sizes_and_bad_sizes_named(trained, dataset, tmp_path):
         assert result.exit_code == 1 and f"--turns {bad!r}" in result.output and problem in result.output
     yolo = runner.invoke(app, ["detect", "--model", str(trained["checkpoints"]["yolo"]), *images, "--turns", "0,2"])
     assert yolo.exit_code == 1 and "only the R-CNN families" in yolo.output
+
+
+def test_detect_with_several_models_merges_them_and_refuses_other_classes(trained, dataset, tmp_path):
+    """--model given twice: one ensemble. A model with itself detects as alone; another model adds
+    its boxes; members whose class lists differ are a clear error, not mixed labels."""
+    import torch
+
+    from workers.train.checkpoint import read_checkpoint
+
+    images = [str(sorted((dataset / "images").glob("*.png"))[0])]
+    faster, yolo = str(trained["checkpoints"]["faster_rcnn"]), str(trained["checkpoints"]["yolo"])
+    app = make_app()
+
+    def detect(*models: str, out: str) -> str:
+        arguments = [part for model in models for part in ("--model", model)]
+        result = runner.invoke(app, ["detect", *arguments, *images, "--out-dir", str(tmp_path / out), "--threshold", "0.0"])
+        assert result.exit_code == 0, result.output
+        return result.output.replace(out, "OUT")
+
+    alone = detect(faster, out="alone")
+    assert detect(faster, faster, out="twice") == alone
+    # The untrained yolo's boxes score below the faster R-CNN's, which fill the cap of 20.
+    assert detect(yolo, faster, out="pair") != detect(yolo, out="yolo")
+    checkpoint = read_checkpoint(faster)
+    checkpoint["meta"]["classes"] = checkpoint["meta"]["classes"][::-1]
+    reordered = tmp_path / "reordered.pt"
+    torch.save(checkpoint, reordered)
+    result = runner.invoke(app, ["detect", "--model", faster, "--model", str(reordered), *images, "--out-dir", str(tmp_path / "bad")])
+    assert result.exit_code == 1 and "one class list" in result.output

@@ -260,9 +260,6 @@ def detect_at_views(
     mapped back to the images' own pixels (resize and turn undone), so they merge as they are.
     The size is restored after, also when a run fails.
     """
-    import torch
-    from torchvision.ops import batched_nms
-
     transform, heads = model.transform, model.roi_heads
     saved = transform.min_size, transform.max_size
     runs = []
@@ -281,14 +278,24 @@ def detect_at_views(
                 runs.append(outputs)
     finally:
         transform.min_size, transform.max_size = saved
-    merged = []
-    for outputs in zip(*runs):
-        boxes = torch.cat([output["boxes"] for output in outputs])
-        scores = torch.cat([output["scores"] for output in outputs])
-        labels = torch.cat([output["labels"] for output in outputs])
-        keep = batched_nms(boxes, scores, labels, heads.nms_thresh)[: heads.detections_per_img]
-        merged.append({"boxes": boxes[keep], "scores": scores[keep], "labels": labels[keep]})
-    return merged
+    return [merge_detections(outputs, heads.nms_thresh, heads.detections_per_img) for outputs in zip(*runs)]
+
+
+def merge_detections(outputs: Sequence[dict], iou_threshold: float, limit: int) -> dict:
+    """One image's detections from several runs (views, or several detectors) as one: per-class
+    NMS at ``iou_threshold`` over all their boxes, the best ``limit`` kept, best first. Each
+    run is a dict of ``boxes`` (n, 4) xyxy, ``scores`` (n,), ``labels`` (n,), tensors or arrays
+    (the result is of the first run's kind)."""
+    import torch
+    from torchvision.ops import batched_nms
+
+    arrays = not isinstance(outputs[0]["boxes"], torch.Tensor)
+    boxes = torch.cat([torch.as_tensor(output["boxes"]).reshape(-1, 4) for output in outputs])
+    scores = torch.cat([torch.as_tensor(output["scores"]) for output in outputs])
+    labels = torch.cat([torch.as_tensor(output["labels"]) for output in outputs])
+    keep = batched_nms(boxes, scores, labels, iou_threshold)[:limit]
+    merged = {"boxes": boxes[keep], "scores": scores[keep], "labels": labels[keep]}
+    return {key: value.numpy() for key, value in merged.items()} if arrays else merged
 
 
 def turn_image(image, turn: int):
