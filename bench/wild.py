@@ -931,13 +931,13 @@ def main(argv=None) -> dict:
         ood_dirs.append(make_ood_set(folder, set_recipe, echo))
         report[f"ood_set{key}"] = {"dir": str(ood_dirs[-1]), "recipe": asdict(set_recipe), "seconds": time.perf_counter() - started}
 
-    if args.model is None:
+    checkpoint = args.model  # several: scored as one ensemble
+    if checkpoint is None:
         train_dir = args.train_dir or Path(tempfile.mkdtemp(prefix="foldwise-wild-train-"))
-        checkpoint, training = train_with_config(args.config, train_dir, echo)
+        trained, training = train_with_config(args.config, train_dir, echo)
         report["training"] = training
-    else:
-        checkpoint = args.model[0] if len(args.model) == 1 else args.model
-    report["model"] = str(checkpoint) if isinstance(checkpoint, Path) else [str(path) for path in checkpoint]
+        checkpoint = [trained]
+    report["model"] = str(checkpoint[0]) if len(checkpoint) == 1 else [str(path) for path in checkpoint]
     report["test_sizes"] = list(args.test_sizes) if args.test_sizes is not None else "the model's"
     report["test_turns"] = list(args.test_turns) if args.test_turns is not None else "the model's"
     views = {"test_sizes": args.test_sizes, "test_turns": args.test_turns}

@@ -258,13 +258,12 @@ def detect_object(
 def detect_ensemble(
     detectors: Sequence[Detector],
     images: Sequence[np.ndarray | str | Path],
-    batch_size: int = 8,
     on_batch: Callable[[int], None] | None = None,
-    test_sizes: Sequence[int] | None = None,
-    test_turns: Sequence[int] | None = None,
+    **options: Any,
 ) -> list[dict[str, np.ndarray]]:
     """Several detectors of one class list detecting as one (an ensemble, e.g. the final models of
-    two runs with other seeds): each runs ``detect_object`` at its views, and their detections
+    two runs with other seeds): each runs ``detect_object`` (with ``options``: batch_size,
+    test_sizes, test_turns) at its views, and their detections
     merge per image as a detector's views do (per-class NMS at the first detector's IoU, its
     detection cap). One detector is ``detect_object`` itself. Two runs of ``quick.yaml`` (seeds 0
     and 1) merged scored 0.01-0.06 more on each out-of-domain set than either alone (bench/README.md,
@@ -287,8 +286,7 @@ def detect_ensemble(
         return lambda done: on_batch((member * len(images) + done) // len(detectors))
 
     runs = [
-        detect_object(detector, images, batch_size, progress(member), test_sizes=test_sizes, test_turns=test_turns)
-        for member, detector in enumerate(detectors)
+        detect_object(detector, images, on_batch=progress(member), **options) for member, detector in enumerate(detectors)
     ]
     if len(runs) == 1:
         return runs[0]

@@ -530,8 +530,7 @@ def detector_predictions(
     from workers.train.checkpoint import detect_ensemble
 
     detectors = list(detector) if isinstance(detector, (list, tuple)) else [detector]
-    detector = detectors[0]
-    model_classes = [str(name) for name in detector.meta.get("classes", classes)]
+    model_classes = [str(name) for name in detectors[0].meta.get("classes", classes)]
     unknown = [name for name in classes if name not in model_classes]
     if unknown:
         raise ValueError(
