@@ -4,6 +4,9 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 CONFIG ?= configs/quick.yaml
+# Curricula of CONFIG run side by side (seeds seed, seed+1, ...), their final models handed over
+# as one ensemble: on 2 cores two take no longer than one (bench/README.md). MEMBERS=1: one.
+MEMBERS ?= 2
 
 .PHONY: install run test test-integration bench constraints clean
 
@@ -18,7 +21,7 @@ install: $(STAMP)
 
 ## The main job: an experiment on the embedded default (SQLite in ./var, eager Celery).
 run: $(STAMP)
-	$(BIN)/foldwise run $(CONFIG)
+	$(BIN)/foldwise run $(CONFIG) --members $(MEMBERS)
 
 ## The test suite (tests/integration runs against local Redis + PostgreSQL, or skips saying why).
 test: $(STAMP)

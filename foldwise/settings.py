@@ -37,6 +37,10 @@ class Settings(BaseSettings):
     # asset folders; unset, the API accepts none (workers would read any folder a token holder
     # names). `foldwise run`, a user's own process, is not limited.
     asset_roots: str = ""
+    # The most torch threads this process trains and detects with (0: as the detector config
+    # says). Processes that share a machine each take a part of it: `foldwise run --members 2`
+    # gives each of its two curricula one of two cores.
+    threads: int = Field(default=0, ge=0)
 
     @property
     def asset_root_paths(self) -> list[Path]:

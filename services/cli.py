@@ -62,11 +62,19 @@ def _load(config_path: Path, preflight: bool = False):
 def run(
     config_path: Path = typer.Argument(..., metavar="CONFIG", help="experiment YAML, e.g. configs/quick.yaml"),
     report_dir: Path | None = typer.Option(None, "--report-dir", help="where to write the PNG/CSV report"),
+    members: int = typer.Option(
+        1,
+        "--members",
+        min=1,
+        max=8,
+        help="curricula to run side by side, one process each, with the seeds seed, seed+1, ...; "
+        "their final models are handed over as one ensemble (make run: 2)",
+    ),
 ) -> None:
     """Run an experiment end to end in this process (SQLite by default, eager Celery)."""
     config = _load(config_path, preflight=True)
-    _, status = _run_experiment(config, report_dir)
-    if status != "finished":
+    handed_over = _run_members(config, members, report_dir) if members > 1 else _run_experiment(config, report_dir)[1] == "finished"
+    if not handed_over:
         raise typer.Exit(1)
 
 
@@ -85,6 +93,11 @@ def _print_final_model(config, model_id: int) -> None:
         return
     path = escape(str(checkpoint))  # a path may hold brackets: text, not markup
     console.print(f"final model: {path} (model {model_id}); foldwise detect --model {path} IMAGE...", highlight=False)
+    _print_views(config, path)
+
+
+def _print_views(config, path: str) -> None:
+    """When the loop scored at one view, that the table's mAP is not the final model's own."""
     detector = config.detector
     views = max(len(detector.test_sizes), 1) * max(len(detector.test_turns), 1)
     if config.evaluation.views == "trained" and views > 1:
@@ -135,10 +148,25 @@ def _run_experiment(config, report_dir: Path | None, study: str | None = None) -
         except KeyboardInterrupt:
             _fail(f"interrupted; experiment {experiment_id} stays recorded and can be inspected", code=130)
 
+    info = _print_stages(experiment_id, config.name, status)
+    if info["final_model_id"] is not None:
+        _print_final_model(config, info["final_model_id"])
+    files = write_report(experiment_id, report_dir or settings.data_dir / f"experiments/{experiment_id}/report")
+    console.print(f"report: {files.png}  {files.csv}", highlight=False)
+    _print_learnability(experiment_id, files)
+    _print_table2(files)
+    return experiment_id, status
+
+
+def _print_stages(experiment_id: int, name: str, status: str) -> dict:
+    """An ended experiment's stage table, failed renders and error; returns its summary."""
+    from db.session import session_scope
+    from services import queries
+
     with session_scope() as session:
         info = queries.summary(session, experiment_id)
         stage_rows = queries.stages(session, experiment_id)
-    table = Table(title=f"experiment {experiment_id} ({config.name}): {status}")
+    table = Table(title=f"experiment {experiment_id} ({name}): {status}")
     for column in ("c", "δ", "increments", "end reason", "best mAP", "failed images", "time (s)"):
         table.add_column(column, justify="right" if column not in ("c", "δ", "end reason") else "left")
     for row in stage_rows:
@@ -156,14 +184,119 @@ def _run_experiment(config, report_dir: Path | None, study: str | None = None) -
         reasons = ", ".join(f"{count} {reason}" for reason, count in info["failed_by_reason"].items())
         console.print(f"images that could not be rendered: {reasons}", highlight=False)
     if info["error"]:
-        console.print(f"[red]failed:[/] {info['error']}", highlight=False)
-    if info["final_model_id"] is not None:
-        _print_final_model(config, info["final_model_id"])
-    files = write_report(experiment_id, report_dir or settings.data_dir / f"experiments/{experiment_id}/report")
-    console.print(f"report: {files.png}  {files.csv}", highlight=False)
-    _print_learnability(experiment_id, files)
-    _print_table2(files)
-    return experiment_id, status
+        console.print(f"[red]failed:[/] {escape(info['error'])}", highlight=False)
+    return info
+
+
+def member_configs(config, members: int) -> list:
+    """The curricula of ``foldwise run --members``: ``config`` with the seeds seed, seed+1, ...,
+    each named after its seed."""
+    from foldwise.config import parse_config
+
+    variants = []
+    for index in range(members):
+        data = config.model_dump(mode="json")
+        data["seed"] = config.seed + index
+        data["name"] = f"{config.name}-seed{config.seed + index}"
+        variants.append(parse_config(data))
+    return variants
+
+
+def _run_members(config, members: int, report_dir: Path | None) -> list[str]:
+    """Run ``members`` curricula of ``config`` (seeds seed, seed+1, ...) side by side, one process
+    each with an equal share of the threads, under one study id; then hand over their final models
+    as one ensemble file. Two curricula of quick.yaml side by side on 2 cores (one thread each) take
+    no longer than one with both threads, and their models detect better as one (bench/README.md,
+    "... and seed ensembles"). Returns whether every curriculum finished and the ensemble was written."""
+    import multiprocessing
+    import time
+    from datetime import datetime, timezone
+
+    from db.session import session_scope
+    from foldwise.settings import get_settings
+    from services import queries
+    from services.artifacts import checkpoint_file
+    from services.embedded import run_member, start_experiment
+    from services.queries import NotFound
+    from services.report import write_report
+    from services.scheduler.service import experiment_status
+    from workers.train.checkpoint import CheckpointError, save_ensemble
+
+    if config.kind != "active_learning":
+        _fail(f"--members: only kind active_learning hands over a final model to join (this config's kind is {config.kind})")
+    settings = get_settings()
+    variants = member_configs(config, members)
+    share = config.detector.num_threads or os.cpu_count() or 1
+    threads = max(1, share // members)
+    study_id = f"{config.name}-members-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}"
+    console.print(
+        f"foldwise: experiment [bold]{config.name}[/] — {members} curricula side by side (seeds "
+        f"{', '.join(str(v.seed) for v in variants)}; {threads} thread{'s' if threads > 1 else ''} each), "
+        f"{len(config.stage_order())} stages each, detector {config.detector.family}/{config.detector.backbone}, "
+        f"renderer {config.render.backend}, database {settings.resolved_database_url}, study {study_id}",
+        highlight=False,
+    )
+    ids = [start_experiment(variant, study=study_id) for variant in variants]
+    context = multiprocessing.get_context("spawn")  # a fresh interpreter: no torch threads or DB connections shared
+    processes = [context.Process(target=run_member, args=(i, threads), name=f"foldwise-experiment-{i}") for i in ids]
+    planned = sum(training_progress(variant, [])[1] for variant in variants)
+
+    def progress_now() -> tuple[int, str]:
+        done, parts = 0, []
+        with session_scope() as session:
+            for experiment_id, variant in zip(ids, variants):
+                info = queries.summary(session, experiment_id)
+                done += training_progress(variant, queries.stages(session, experiment_id))[0]
+                current = info["current_stage"]
+                part = f"{current['condition']}/{current['difficulty']} k={current['k'] or 0}" if current else info["status"]
+                if info["best"]:
+                    part += f" best {info['best']['map']:.3f}"
+                parts.append(f"seed {variant.seed}: {part}")
+        return done, " · ".join(parts)
+
+    with CommandProgress(console, "starting", total=planned, unit="planned iterations") as bar:
+        try:
+            for process in processes:
+                process.start()
+            while any(process.is_alive() for process in processes):
+                time.sleep(1.0)
+                done, description = progress_now()
+                bar.update(done, description=description)
+        except KeyboardInterrupt:
+            for process in processes:
+                process.terminate()
+            _fail(f"interrupted; experiments {', '.join(map(str, ids))} stay recorded and can be inspected", code=130)
+        for process in processes:
+            process.join()
+
+    statuses, finals = [], []  # per member
+    for experiment_id, variant, process in zip(ids, variants, processes):
+        status = experiment_status(experiment_id).value
+        if status not in ("finished", "failed", "cancelled"):  # its process died before it could say so
+            with session_scope() as session:
+                queries.fail_experiment(session, experiment_id, f"its process ended with exit code {process.exitcode}")
+            status = "failed"
+        info = _print_stages(experiment_id, variant.name, status)
+        files = write_report(experiment_id, (report_dir / f"experiment-{experiment_id}") if report_dir else
+                             settings.data_dir / f"experiments/{experiment_id}/report")
+        console.print(f"report: {files.png}  {files.csv}", highlight=False)
+        statuses.append(status)
+        finals.append(info["final_model_id"])
+    if all(status == "finished" for status in statuses) and None not in finals:
+        try:
+            with session_scope() as session:
+                checkpoints = [checkpoint_file(session, model_id) for model_id in finals]
+            path = save_ensemble(checkpoints, settings.data_dir / "studies" / study_id / "ensemble.pt")
+        except (NotFound, CheckpointError) as error:
+            console.print(f"[red]no ensemble written:[/] {escape(str(error))}", highlight=False)
+            return False
+        models = ", ".join(f"model {m} (experiment {e})" for m, e in zip(finals, ids))
+        shown = escape(str(path))
+        console.print(f"final model: {shown}, an ensemble of {models}; foldwise detect --model {shown} IMAGE...", highlight=False)
+        _print_views(config, shown)
+        return True
+    console.print("no ensemble written: not every curriculum finished", highlight=False)
+    return False
 
 
 def training_progress(config, stage_rows: list[dict]) -> tuple[int, int]:

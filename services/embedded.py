@@ -6,6 +6,7 @@ differs: each task runs in-process the moment the scheduler sends it.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Callable
 
 from db.migrate import upgrade
@@ -44,3 +45,17 @@ def run_to_completion(
             # Every task ran synchronously, so nothing can be outstanding.
             raise Stalled(f"experiment {experiment_id} is {status.value} but nothing is left to do")
 
+
+
+def run_member(experiment_id: int, threads: int) -> None:
+    """One curriculum of several run side by side (``foldwise run --members``), in its own
+    process: torch trains and detects with ``threads`` threads (FOLDWISE_THREADS caps whatever
+    the detector config asks for), OpenCV renders with as many."""
+    os.environ["FOLDWISE_THREADS"] = str(threads)
+    from foldwise.settings import get_settings
+
+    get_settings.cache_clear()
+    import cv2
+
+    cv2.setNumThreads(threads)
+    run_to_completion(experiment_id)

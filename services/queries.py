@@ -72,6 +72,21 @@ def cancel_experiment(session: Session, experiment_id: int) -> Experiment:
     return experiment
 
 
+def fail_experiment(session: Session, experiment_id: int, reason: str) -> bool:
+    """Mark a pending or running experiment failed with ``reason`` (its process died, say); one
+    that has ended keeps its status (a conditional UPDATE, as in ``cancel_experiment``).
+    Returns whether it was marked."""
+    failed = session.execute(
+        update(Experiment)
+        .where(Experiment.id == experiment_id, Experiment.status.in_((ExperimentStatus.pending, ExperimentStatus.running)))
+        .values(status=ExperimentStatus.failed, error=reason, finished_at=datetime.now(timezone.utc))
+        .execution_options(synchronize_session=False)
+    ).rowcount
+    if failed:
+        discard_open_work(session, experiment_id)
+    return bool(failed)
+
+
 def discard_open_work(session: Session, experiment_id: int) -> dict[str, int]:
     """An ended experiment leaves nothing queued or running: θ sampled ahead and models not yet
     trained become ``discarded`` (workers skip them if their message still arrives); the

@@ -11,6 +11,17 @@ A checkpoint is one ``torch.save`` file holding plain data only (loadable with
 
 ``load_detector(path)`` rebuilds the model from ``meta`` alone. Writes are atomic (a temp file
 in the same folder, then rename), so a crash never leaves a half-written ω behind.
+
+An ensemble (``save_ensemble``: the final models of curricula run with other seeds, say) is one
+file holding its members' checkpoints whole, so it travels alone::
+
+    {"format": "foldwise-ensemble", "format_version": 1, "members": [<checkpoint>, ...]}
+
+``load_detector`` reads both kinds: an ensemble is a :class:`Detector` whose model runs every
+member and merges their detections (:class:`EnsembleModel`), so whatever detects with one
+checkpoint (``foldwise detect``, the API, ``bench/wild.py``, evaluation) detects with an ensemble.
+Training starts from one network, so ``read_checkpoint`` (warm starts, fine-tuning) refuses an
+ensemble by name.
 """
 
 from __future__ import annotations
@@ -31,6 +42,8 @@ from foldwise.config import DetectorConfig
 
 CHECKPOINT_FORMAT = "foldwise-detector"
 CHECKPOINT_VERSION = 1
+ENSEMBLE_FORMAT = "foldwise-ensemble"
+ENSEMBLE_VERSION = 1
 # DetectorConfig fields that change the network's shape or meaning: a warm start must agree.
 ARCHITECTURE_FIELDS = ("family", "backbone")
 RCNN_FAMILIES = ("faster_rcnn", "fast_rcnn")
@@ -79,6 +92,10 @@ def save_checkpoint(model: nn.Module, meta: dict[str, Any], path: str | Path) ->
         "meta": meta,
         "state_dict": {name: tensor.detach().cpu() for name, tensor in model.state_dict().items()},
     }
+    return _write_atomically(payload, path)
+
+
+def _write_atomically(payload: dict[str, Any], path: Path) -> Path:
     descriptor, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(descriptor, "wb") as handle:
@@ -94,8 +111,8 @@ def save_checkpoint(model: nn.Module, meta: dict[str, Any], path: str | Path) ->
     return path
 
 
-def read_checkpoint(path: str | Path) -> dict[str, Any]:
-    """The raw checkpoint payload, checked for format and version."""
+def _load_payload(path: str | Path) -> dict[str, Any]:
+    """A checkpoint or ensemble file's payload, checked for format and version."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
@@ -103,14 +120,62 @@ def read_checkpoint(path: str | Path) -> dict[str, Any]:
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # noqa: BLE001 (torch raises many types for a corrupt or foreign file)
         raise CheckpointError(f"checkpoint {path} cannot be read: {type(error).__name__}: {error}") from None
-    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+    kind = payload.get("format") if isinstance(payload, dict) else None
+    if kind == ENSEMBLE_FORMAT:
+        version, expected = payload.get("format_version"), ENSEMBLE_VERSION
+        members = payload.get("members")
+        if not isinstance(members, list) or not members:
+            raise CheckpointError(f"ensemble {path} holds no members")
+        for index, member in enumerate(members, start=1):
+            _check_detector_payload(member, f"{path} (member {index})")
+    elif kind == CHECKPOINT_FORMAT:
+        _check_detector_payload(payload, str(path))
+        version, expected = payload.get("format_version"), CHECKPOINT_VERSION
+    else:
         raise CheckpointError(f"{path} is not a foldwise detector checkpoint")
+    if version != expected:
+        raise CheckpointError(f"checkpoint {path} has format version {version}; this foldwise reads version {expected}")
+    return payload
+
+
+def _check_detector_payload(payload: Any, where: str) -> None:
+    if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
+        raise CheckpointError(f"{where} is not a foldwise detector checkpoint")
     version = payload.get("format_version")
     if version != CHECKPOINT_VERSION:
         raise CheckpointError(
-            f"checkpoint {path} has format version {version}; this foldwise reads version {CHECKPOINT_VERSION}"
+            f"checkpoint {where} has format version {version}; this foldwise reads version {CHECKPOINT_VERSION}"
+        )
+
+
+def read_checkpoint(path: str | Path) -> dict[str, Any]:
+    """The raw payload of one detector's checkpoint (what training starts from), checked for
+    format and version; an ensemble is refused by name."""
+    payload = _load_payload(path)
+    if payload["format"] == ENSEMBLE_FORMAT:
+        raise CheckpointError(
+            f"{path} is an ensemble of {len(payload['members'])} detectors: it detects as one, but training "
+            "starts from one network; start from one of the checkpoints it was made from"
         )
     return payload
+
+
+def save_ensemble(checkpoints: Sequence[str | Path], path: str | Path) -> Path:
+    """Write the detector checkpoints at ``checkpoints`` (one class list, in one order) as one
+    ensemble file at ``path``, atomically; returns the path."""
+    members = [read_checkpoint(checkpoint) for checkpoint in checkpoints]
+    if not members:
+        raise CheckpointError("an ensemble needs at least one checkpoint")
+    first = list(members[0]["meta"]["classes"])
+    for checkpoint, member in zip(checkpoints, members):
+        if list(member["meta"]["classes"]) != first:
+            raise CheckpointError(
+                f"{checkpoint} has the classes {list(member['meta']['classes'])}, {checkpoints[0]} {first}: "
+                "an ensemble needs one class list, in one order"
+            )
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return _write_atomically({"format": ENSEMBLE_FORMAT, "format_version": ENSEMBLE_VERSION, "members": members}, path)
 
 
 def check_compatible(meta: dict[str, Any], config: DetectorConfig, classes: Sequence[str], path: str | Path) -> None:
@@ -136,6 +201,11 @@ def torch_threads(count: int) -> Iterator[None]:
     On a shared, oversubscribed CPU, more threads than free cores makes torch several times
     slower (its OpenMP workers spin), so the config's thread count matters in inference too.
     """
+    from foldwise.settings import get_settings
+
+    cap = get_settings().threads  # this process's share of a machine it shares (FOLDWISE_THREADS)
+    if cap > 0:
+        count = min(count, cap) if count > 0 else cap
     previous = torch.get_num_threads()
     if count > 0:
         torch.set_num_threads(count)
@@ -172,14 +242,84 @@ def load_state(model: nn.Module, state_dict: dict[str, torch.Tensor], path: str 
 
 
 def load_detector(path: str | Path, device: str | torch.device | None = None) -> Detector:
-    """Rebuild the detector stored at ``path`` from its metadata alone, in eval mode."""
-    payload = read_checkpoint(path)
-    meta = payload["meta"]
-    model = model_from_meta(meta)
-    load_state(model, payload["state_dict"], path)
+    """Rebuild the detector stored at ``path`` from its metadata alone, in eval mode; an
+    ensemble file gives its members as one detector (:func:`combine_detectors`)."""
+    payload = _load_payload(path)
     target = resolve_device(device)
-    model.to(target).eval()
-    return Detector(model=model, meta=meta, device=target)
+    members = payload["members"] if payload["format"] == ENSEMBLE_FORMAT else [payload]
+    detectors = []
+    for member in members:
+        model = model_from_meta(member["meta"])
+        load_state(model, member["state_dict"], path)
+        model.to(target).eval()
+        detectors.append(Detector(model=model, meta=member["meta"], device=target))
+    if payload["format"] == CHECKPOINT_FORMAT:
+        return detectors[0]
+    try:
+        return combine_detectors(detectors)
+    except ValueError as error:
+        raise CheckpointError(f"ensemble {path}: {error}") from None
+
+
+class EnsembleModel(nn.Module):
+    """Several detectors' models as one (eval only): each detects at its own views, and their
+    detections merge per image as a detector's views do (per-class NMS at ``iou``, the best
+    ``limit`` kept). Setting ``test_sizes`` or ``test_turns`` sets every member's."""
+
+    def __init__(self, members: Sequence[nn.Module], iou: float, limit: int) -> None:
+        super().__init__()
+        self.members = nn.ModuleList(members)
+        self.iou, self.limit = float(iou), int(limit)
+
+    def forward(self, images):
+        from workers.train.detectors import merge_detections
+
+        if self.training:
+            raise RuntimeError("an ensemble only detects: train each member")
+        runs = [member(images) for member in self.members]
+        return [merge_detections(outputs, self.iou, self.limit) for outputs in zip(*runs)]
+
+    def _views(name: str):  # noqa: N805 (a property factory, not a method)
+        def get(self):
+            return getattr(self.members[0], name)
+
+        def set_(self, value) -> None:
+            for member in self.members:
+                setattr(member, name, value)
+
+        return property(get, set_)
+
+    test_sizes = _views("test_sizes")
+    test_turns = _views("test_turns")
+    del _views
+
+
+def combine_detectors(detectors: Sequence[Detector]) -> Detector:
+    """Several detectors of one class list, on one device, as one :class:`Detector` (one
+    detector: itself). Its ``meta`` is the first member's, with every member's in ``members``;
+    its detections are the members' merged at the first member's NMS IoU and detection cap."""
+    if not detectors:
+        raise ValueError("an ensemble needs at least one detector")
+    if len(detectors) == 1:
+        return detectors[0]
+    first = detectors[0]
+    for index, detector in enumerate(detectors[1:], start=2):
+        if detector.classes != first.classes:
+            raise ValueError(
+                f"detector {index} has the classes {detector.classes}, detector 1 {first.classes}: "
+                "an ensemble needs one class list, in one order"
+            )
+        if detector.device != first.device:
+            raise ValueError(f"detector {index} is on {detector.device}, detector 1 on {first.device}")
+    heads = getattr(first.model, "roi_heads", None)  # yolo has none: torchvision's NMS IoU, the config's cap
+    iou, limit = (heads.nms_thresh, heads.detections_per_img) if heads is not None else (0.5, first.config.detections_per_image)
+    meta = {**first.meta, "members": [detector.meta for detector in detectors]}
+    return Detector(model=EnsembleModel([d.model for d in detectors], iou, limit), meta=meta, device=first.device)
+
+
+def member_families(detector: Detector) -> list[str]:
+    """The detector family of each member (one detector: its own)."""
+    return [meta["family"] for meta in detector.meta.get("members", [detector.meta])]
 
 
 def _image_array(image: np.ndarray | str | Path, index: int) -> tuple[np.ndarray, Path | None]:
@@ -223,10 +363,11 @@ def detect_object(
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be at least 1, got {batch_size}")
-    if test_sizes is not None and detector.meta["family"] not in RCNN_FAMILIES:
-        raise ValueError(f"test_sizes: only the R-CNN families detect at several sizes, not {detector.meta['family']}")
-    if test_turns is not None and detector.meta["family"] not in RCNN_FAMILIES:
-        raise ValueError(f"test_turns: only the R-CNN families detect on turned views, not {detector.meta['family']}")
+    others = sorted(set(member_families(detector)) - set(RCNN_FAMILIES))
+    if test_sizes is not None and others:
+        raise ValueError(f"test_sizes: only the R-CNN families detect at several sizes, not {', '.join(others)}")
+    if test_turns is not None and others:
+        raise ValueError(f"test_turns: only the R-CNN families detect on turned views, not {', '.join(others)}")
     model = detector.model
     model.eval()
     results: list[dict[str, np.ndarray]] = []
@@ -262,34 +403,8 @@ def detect_ensemble(
     **options: Any,
 ) -> list[dict[str, np.ndarray]]:
     """Several detectors of one class list detecting as one (an ensemble, e.g. the final models of
-    two runs with other seeds): each runs ``detect_object`` (with ``options``: batch_size,
-    test_sizes, test_turns) at its views, and their detections
-    merge per image as a detector's views do (per-class NMS at the first detector's IoU, its
-    detection cap). One detector is ``detect_object`` itself. Two runs of ``quick.yaml`` (seeds 0
-    and 1) merged scored 0.01-0.06 more on each out-of-domain set than either alone (bench/README.md,
+    two runs with other seeds): ``detect_object`` (with ``options``: batch_size, test_sizes,
+    test_turns) on :func:`combine_detectors`. Two runs of ``quick.yaml`` (seeds 0 and 1) merged
+    scored 0.01-0.06 more on each out-of-domain set than either alone (bench/README.md,
     "... and seed ensembles")."""
-    from workers.train.detectors import merge_detections
-
-    if not detectors:
-        raise ValueError("an ensemble needs at least one detector")
-    first = detectors[0]
-    for index, detector in enumerate(detectors[1:], start=2):
-        if detector.classes != first.classes:
-            raise ValueError(
-                f"detector {index} has the classes {detector.classes}, detector 1 {first.classes}: "
-                "an ensemble needs one class list, in one order"
-            )
-
-    def progress(member: int):  # images done across the members, 0..len(images) once
-        if on_batch is None:
-            return None
-        return lambda done: on_batch((member * len(images) + done) // len(detectors))
-
-    runs = [
-        detect_object(detector, images, on_batch=progress(member), **options) for member, detector in enumerate(detectors)
-    ]
-    if len(runs) == 1:
-        return runs[0]
-    heads = getattr(first.model, "roi_heads", None)  # yolo has none: torchvision's NMS IoU, the config's cap
-    iou, limit = (heads.nms_thresh, heads.detections_per_img) if heads is not None else (0.5, first.config.detections_per_image)
-    return [merge_detections(outputs, iou, limit) for outputs in zip(*runs)]
+    return detect_object(combine_detectors(detectors), images, on_batch=on_batch, **options)

@@ -369,6 +369,32 @@ def detect(
         typer.echo(f"{path} -> {target}: {len(kept)} detection(s){': ' + ', '.join(kept) if kept else ''}")
 
 
+# --------------------------------------------------------------------------- ensemble
+
+
+def ensemble(
+    model: Annotated[
+        list[Path],
+        typer.Option("--model", help="A checkpoint to join (two or more, one class list): final models of runs with other seeds, say."),
+    ],
+    out: Annotated[Path, typer.Option("--out", help="The ensemble file to write, e.g. ensemble.pt.")],
+) -> None:
+    """Join detectors into one ensemble file that detects as one (their detections merged), as
+    `foldwise run --members` does with its curricula' final models."""
+    from workers.train.checkpoint import CheckpointError, save_ensemble
+
+    if len(model) < 2:
+        _fail("--model: an ensemble joins two or more checkpoints")
+    missing = [str(path) for path in model if not path.is_file()]
+    if missing:
+        _fail(f"checkpoint(s) not found: {', '.join(missing)}")
+    try:
+        written = save_ensemble(model, out)
+    except CheckpointError as error:
+        _fail(str(error))
+    typer.echo(f"wrote {written} ({written.stat().st_size / 1e6:.1f} MB): an ensemble of {len(model)} detectors")
+
+
 # --------------------------------------------------------------------------- export
 
 
@@ -429,6 +455,8 @@ def finetune(
     if not sizes or sizes[0] < 0:
         bad_input(f"--sweep: {sweep!r} needs one or more counts >= 0")
     detector = _load_model(model)
+    if "members" in detector.meta:
+        bad_input(f"{model} is an ensemble of {len(detector.meta['members'])} detectors: fine-tune one of the checkpoints it joins")
     model_classes = [str(name) for name in detector.meta["classes"]]
     try:
         samples, classes = load_real_dataset(data)
@@ -457,3 +485,4 @@ def register(app: typer.Typer) -> None:
     app.command("evaluate")(evaluate)
     app.command("detect")(detect)
     app.command("export")(export)
+    app.command("ensemble")(ensemble)

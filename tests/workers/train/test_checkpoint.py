@@ -332,3 +332,99 @@ def test_detection_on_quarter_turns_merges_each_turns_detections_mapped_back(tra
 def test_bad_test_views_are_refused_with_the_reason(changes, problem):
     with pytest.raises(ValueError, match=problem):
         config(**changes)
+
+
+def second_member(trained, tmp_path):
+    """Another detector of the same family and classes (other seed): another network."""
+    family, _, paths, _ = trained
+    samples = [Sample(path, [[12, 10, 50, 40]], [index % 2]) for index, path in enumerate(paths)]
+    train_detector(samples, None, 2, config(family=family), CLASSES, tmp_path / "other.pt", seed=1)
+    return tmp_path / "other.pt"
+
+
+def same_detections(first, second) -> bool:
+    return len(first) == len(second) and all(
+        np.array_equal(a[key], b[key]) for a, b in zip(first, second) for key in ("boxes", "scores", "labels")
+    )
+
+
+def test_an_ensemble_file_detects_as_its_members_merged(trained, tmp_path):
+    """save_ensemble holds its members whole (the file travels alone); load_detector gives one
+    detector whose detections are the members' pooled by per-class NMS, each box one a member
+    found; at its members' views too; and a member with itself detects as the member alone."""
+    from workers.train.checkpoint import ENSEMBLE_FORMAT, detect_ensemble, save_ensemble
+
+    _, path, paths, arrays = trained
+    other = second_member(trained, tmp_path)
+    ensemble_path = save_ensemble([path, other], tmp_path / "ensemble.pt")
+    moved = tmp_path / "elsewhere" / "copy.pt"
+    moved.parent.mkdir()
+    ensemble_path.rename(moved)
+    other.unlink()  # the file holds the members: nothing else is read
+    payload = torch.load(moved, weights_only=True)
+    assert payload["format"] == ENSEMBLE_FORMAT and len(payload["members"]) == 2
+    ensemble = load_detector(moved)
+    assert ensemble.classes == CLASSES and [m["family"] for m in ensemble.meta["members"]] == [trained[0]] * 2
+    members = [load_detector(path), load_detector(save_checkpoint(ensemble.model.members[1], payload["members"][1]["meta"], tmp_path / "m2.pt"))]
+    alone = [detect_object(member, arrays) for member in members]
+    together = detect_object(ensemble, arrays)
+    assert all(len(result["boxes"]) <= 10 for result in together)  # the first member's cap (detections_per_image)
+    for index, result in enumerate(together):
+        pool = [(b, s, l) for run in alone for b, s, l in zip(run[index]["boxes"], run[index]["scores"], run[index]["labels"])]
+        assert len(result["boxes"]) > 0 and result["scores"][0] == max(s for _, s, _ in pool)
+        for box, score, label in zip(result["boxes"], result["scores"], result["labels"]):
+            assert any(np.allclose(box, b) and score == s and label == l for b, s, l in pool)
+    listed = detect_ensemble(members, paths)  # a list of detectors: the same ensemble
+    assert same_detections(together, listed)
+    turned = detect_object(ensemble, arrays, test_turns=(0, 2))
+    assert not same_detections(turned, together)  # the views reach every member...
+    assert [member.test_turns for member in ensemble.model.members] == [(), ()]  # ...and are restored
+    self_pair = load_detector(save_ensemble([path, path], tmp_path / "self.pt"))
+    assert same_detections(detect_object(self_pair, arrays), alone[0])
+
+
+def test_an_ensemble_is_refused_where_one_network_is_needed_and_with_other_classes(trained, tmp_path):
+    from workers.train.checkpoint import save_ensemble
+
+    _, path, paths, _ = trained
+    ensemble_path = save_ensemble([path, path], tmp_path / "ensemble.pt")
+    with pytest.raises(CheckpointError, match="is an ensemble of 2 detectors.*start from one of the checkpoints"):
+        read_checkpoint(ensemble_path)  # warm starts and fine-tuning read one network
+    with pytest.raises(CheckpointError, match="is an ensemble of 2 detectors"):
+        train_detector([Sample(paths[0], [[12, 10, 50, 40]], [0])], ensemble_path, 1, config(family=trained[0]), CLASSES, tmp_path / "w.pt")
+    payload = read_checkpoint(path)
+    payload["meta"]["classes"] = CLASSES[::-1]
+    reordered = tmp_path / "reordered.pt"
+    torch.save(payload, reordered)
+    with pytest.raises(CheckpointError, match="an ensemble needs one class list"):
+        save_ensemble([path, reordered], tmp_path / "bad.pt")
+    assert not (tmp_path / "bad.pt").exists()
+    broken = tmp_path / "broken.pt"
+    torch.save({"format": "foldwise-ensemble", "format_version": 1, "members": [{"format": "other"}]}, broken)
+    with pytest.raises(CheckpointError, match=r"broken.pt \(member 1\) is not a foldwise detector checkpoint"):
+        load_detector(broken)
+    torch.save({"format": "foldwise-ensemble", "format_version": 1, "members": []}, broken)
+    with pytest.raises(CheckpointError, match="holds no members"):
+        load_detector(broken)
+
+
+def test_foldwise_threads_caps_what_the_config_asks_for(monkeypatch):
+    """FOLDWISE_THREADS: a process's share of a machine others share (foldwise run --members)."""
+    from foldwise.settings import get_settings
+
+    monkeypatch.setenv("FOLDWISE_THREADS", "1")
+    get_settings.cache_clear()
+    try:
+        torch.set_num_threads(3)
+        with torch_threads(2):
+            assert torch.get_num_threads() == 1
+        with torch_threads(0):  # "torch's choice" within the share
+            assert torch.get_num_threads() == 1
+        assert torch.get_num_threads() == 3
+        monkeypatch.setenv("FOLDWISE_THREADS", "0")
+        get_settings.cache_clear()
+        with torch_threads(2):
+            assert torch.get_num_threads() == 2
+    finally:
+        get_settings.cache_clear()
+        torch.set_num_threads(1)
