@@ -171,3 +171,67 @@ def test_a_final_model_whose_checkpoint_is_gone_is_named_as_missing(database, ca
 
     _print_final_model(parse_config({"name": "gone"}), 999)
     assert "final model: model 999 does not exist" in capsys.readouterr().out
+
+
+def test_members_run_side_by_side_and_hand_over_one_ensemble(database, tmp_path):
+    """foldwise run --members 2: two curricula (seeds seed and seed+1), each in its own process
+    with its share of the threads, under one study; their final models, joined whole into one
+    ensemble file, are what the run hands over."""
+    import torch
+    import yaml
+
+    from foldwise.settings import get_settings
+    from services.artifacts import checkpoint_file
+    from services.cli import _register_worker_commands, app
+    from workers.train.checkpoint import load_detector, read_checkpoint
+
+    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
+    config["curriculum"]["difficulties"] = ["easy"]
+    path = tmp_path / "one-stage.yaml"
+    path.write_text(yaml.safe_dump(config))
+    _register_worker_commands()
+    result = CliRunner().invoke(app, ["run", str(path), "--members", "2"])
+    assert result.exit_code == 0, result.output
+    assert "2 curricula side by side (seeds 1, 2; 1 thread each)" in result.output
+
+    with session_scope() as session:
+        experiments = session.scalars(select(Experiment).order_by(Experiment.id)).all()
+        assert [(e.name, e.seed, e.status.value) for e in experiments] == [("smoke-seed1", 1, "finished"), ("smoke-seed2", 2, "finished")]
+        (study,) = {e.study for e in experiments}
+        finals = [checkpoint_file(session, e.final_model_id) for e in experiments]
+    ensemble_path = get_settings().data_dir / "studies" / study / "ensemble.pt"
+    assert f"final model: {ensemble_path}, an ensemble of model" in result.output.replace("\n", "")
+    ensemble = load_detector(ensemble_path)
+    assert len(ensemble.meta["members"]) == 2
+    for member, final in zip(ensemble.model.members, finals):
+        for name, tensor in read_checkpoint(final)["state_dict"].items():
+            assert torch.equal(member.state_dict()[name], tensor), name
+    assert not all(
+        torch.equal(a, b) for a, b in zip(ensemble.model.members[0].state_dict().values(), ensemble.model.members[1].state_dict().values())
+    )  # two seeds, two networks
+
+
+def test_members_need_a_kind_that_hands_over_a_final_model(database):
+    from services.cli import app
+
+    result = CliRunner().invoke(app, ["run", str(REPO_ROOT / "configs/learnability_quick.yaml"), "--members", "2"])
+    assert result.exit_code == 2 and "--members: only kind active_learning" in result.output
+    with session_scope() as session:
+        assert session.scalars(select(Experiment)).all() == []
+
+
+def test_an_experiment_whose_process_died_is_marked_failed_and_an_ended_one_keeps_its_status(database):
+    from foldwise.config import parse_config
+    from services import queries
+
+    with session_scope() as session:
+        running = queries.create_experiment(session, parse_config({"name": "a"}))
+        finished = queries.create_experiment(session, parse_config({"name": "b"}))
+        finished.status = finished.status.__class__.finished
+        session.flush()
+        assert queries.fail_experiment(session, running.id, "its process ended with exit code -9")
+        assert not queries.fail_experiment(session, finished.id, "too late")
+    with session_scope() as session:
+        assert queries.get_experiment(session, running.id).status.value == "failed"
+        assert queries.get_experiment(session, running.id).error == "its process ended with exit code -9"
+        assert queries.get_experiment(session, finished.id).status.value == "finished"

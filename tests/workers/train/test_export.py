@@ -155,6 +155,31 @@ def test_a_detector_with_test_turns_exports_its_merged_detections(exported, rend
         assert not np.array_equal(expected["scores"], upright["scores"])
 
 
+def test_an_ensemble_exports_as_one_graph_of_its_members_and_their_merge(exported, rendered, tmp_path):
+    """An ensemble file of Faster R-CNNs is one graph: each member at any size, their detections
+    merged by per-class NMS as torch merges them."""
+    import cv2
+    import torch
+
+    from workers.train.checkpoint import detect_object, load_detector, save_checkpoint, save_ensemble
+    from workers.train.export import OnnxDetector, export_onnx
+
+    first = exported["faster_rcnn"][0]
+    other = load_detector(first, device="cpu")
+    with torch.no_grad():  # another network: the box head's last layer moved
+        for parameter in other.model.roi_heads.box_predictor.parameters():
+            parameter.add_(torch.randn_like(parameter, generator=torch.Generator().manual_seed(5)) * 0.5)
+    second = save_checkpoint(other.model, other.meta, tmp_path / "other.pt")
+    ensemble = load_detector(save_ensemble([first, second], tmp_path / "ensemble.pt"), device="cpu")
+    model = OnnxDetector.load(export_onnx(ensemble, tmp_path / "ensemble.onnx"))
+    images = rendered_images(rendered)[:3]
+    images.append(cv2.resize(images[0], (96, 80)))
+    alone = detect_object(load_detector(first, device="cpu"), images)
+    for image, expected, single in zip(images, detect_object(ensemble, images), alone):
+        assert_same_detections(model.detect(image), expected)
+        assert not np.array_equal(expected["scores"], single["scores"])
+
+
 def test_fast_rcnn_cannot_export_and_says_why(exported):
     _, onnx_file, result = exported["fast_rcnn"]
     assert result.exit_code == 1
