@@ -4,9 +4,10 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 CONFIG ?= configs/quick.yaml
-# Curricula of CONFIG run side by side (seeds seed, seed+1, ...), their final models handed over
-# as one ensemble: on 2 cores two take no longer than one (bench/README.md). MEMBERS=1: one.
-MEMBERS ?= 2
+# Curricula of CONFIG run side by side (seeds seed, seed+1, ...), a process each, their final
+# models handed over as one ensemble. MEMBERS=2 detects better out of domain but took 1.17x one
+# curriculum's time on a 2-core machine (17 min 58 s): bench/README.md, "Two curricula".
+MEMBERS ?= 1
 
 .PHONY: install run test test-integration bench constraints clean
 

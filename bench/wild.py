@@ -1,7 +1,7 @@
 """Out-of-domain benchmark: does the detector foldwise trains find the object in images foldwise did not render?
 
-Trains with a config (default ``configs/quick.yaml``, as ``make run`` does) or takes a
-checkpoint, then scores the model, under the paper's protocol (score ≥ 0.8, IoU 0.5) and
+Trains with a config (default ``configs/quick.yaml``, as ``make run`` does; ``--members 2``: two
+curricula handed over as one ensemble, as ``make run MEMBERS=2``) or takes a checkpoint, then scores the model, under the paper's protocol (score ≥ 0.8, IoU 0.5) and
 unthresholded, on two sets:
 
 * **in-domain**: foldwise's own renders, every (condition, difficulty) of the config's
@@ -643,18 +643,26 @@ def make_ood_set(out: Path, recipe: OodRecipe, echo=print) -> Path:
 # --------------------------------------------------------------------------- training and scoring
 
 
-def train_with_config(config_path: Path, data_dir: Path, echo=print) -> tuple[Path, dict]:
-    """Run ``foldwise run CONFIG`` in a data directory of its own; return the final model's checkpoint."""
+def train_with_config(config_path: Path, data_dir: Path, echo=print, members: int = 1) -> tuple[Path, dict]:
+    """Run ``foldwise run CONFIG --members N`` in a data directory of its own; return the final
+    model's checkpoint (with several members, the ensemble file the run hands over)."""
     env = {**os.environ, "FOLDWISE_DATA_DIR": str(data_dir), "FOLDWISE_DATABASE_URL": ""}
     env.pop("FOLDWISE_DATABASE_URL")
     started = time.perf_counter()
     completed = subprocess.run(
-        [sys.executable, "-m", "services.cli", "run", str(config_path)], cwd=ROOT, env=env, capture_output=True, text=True
-    )
+        [sys.executable, "-m", "services.cli", "run", str(config_path), "--members", str(members)],
+        cwd=ROOT, env=env, capture_output=True, text=True,
+    )  # fmt: skip
     seconds = time.perf_counter() - started
     if completed.returncode != 0:
         raise RuntimeError(f"foldwise run {config_path} failed ({completed.returncode}):\n{completed.stdout[-3000:]}{completed.stderr[-3000:]}")
     echo(f"trained {config_path} in {seconds:.0f} s")
+    training = {"config": str(config_path), "members": members, "seconds": seconds}
+    if members > 1:
+        ensembles = sorted((data_dir / "studies").glob("*/ensemble.pt"), key=lambda path: path.stat().st_mtime)
+        if not ensembles:
+            raise RuntimeError(f"{config_path}: the run finished without an ensemble file under {data_dir / 'studies'}")
+        return ensembles[-1], training
     import sqlite3
 
     with sqlite3.connect(data_dir / "foldwise.db") as connection:
@@ -666,7 +674,7 @@ def train_with_config(config_path: Path, data_dir: Path, echo=print) -> tuple[Pa
     checkpoint = Path(row[0])
     if not checkpoint.is_absolute():
         checkpoint = data_dir / checkpoint
-    return checkpoint, {"config": str(config_path), "seconds": seconds}
+    return checkpoint, training
 
 
 def make_in_domain_set(config, out: Path, n_per_pair: int, seed: int, echo=print) -> Path:
@@ -856,6 +864,10 @@ def main(argv=None) -> dict:
         "--model", type=Path, action="append",
         help="score this checkpoint instead of training; given again, the checkpoints are scored as one ensemble",
     )
+    parser.add_argument(
+        "--members", type=_positive_count, default=1,
+        help="when training: curricula side by side, handed over as one ensemble (make run's MEMBERS)",
+    )
     parser.add_argument("--n-ood", type=_positive_count, default=200, help="out-of-domain images (at least 1)")
     parser.add_argument("--ood-size", type=_frame_argument, default="320x240", help="WIDTHxHEIGHT of out-of-domain images")
     parser.add_argument("--ood-samples", type=int, default=24, help="Cycles samples per out-of-domain image")
@@ -934,7 +946,7 @@ def main(argv=None) -> dict:
     checkpoint = args.model  # several: scored as one ensemble
     if checkpoint is None:
         train_dir = args.train_dir or Path(tempfile.mkdtemp(prefix="foldwise-wild-train-"))
-        trained, training = train_with_config(args.config, train_dir, echo)
+        trained, training = train_with_config(args.config, train_dir, echo, members=args.members)
         report["training"] = training
         checkpoint = [trained]
     report["model"] = str(checkpoint[0]) if len(checkpoint) == 1 else [str(path) for path in checkpoint]

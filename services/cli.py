@@ -68,7 +68,7 @@ def run(
         min=1,
         max=8,
         help="curricula to run side by side, one process each, with the seeds seed, seed+1, ...; "
-        "their final models are handed over as one ensemble (make run: 2)",
+        "their final models are handed over as one ensemble (make run MEMBERS=2)",
     ),
 ) -> None:
     """Run an experiment end to end in this process (SQLite by default, eager Celery)."""

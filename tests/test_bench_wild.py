@@ -90,7 +90,7 @@ def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
         "--n-ood-second", "3", "--ood-second-size", "48x64", "--ood-second-seed", "11",
         "--ood-second-dir", str(tmp_path / "ood-second"),
         "--n-ood-apart", "2", "--ood-apart-size", "64x48", "--ood-apart-dir", str(tmp_path / "ood-apart"),
-        "--train-dir", str(tmp_path / "train"), "--out", str(out),
+        "--train-dir", str(tmp_path / "train"), "--members", "2", "--out", str(out),
     ]
     finished = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert finished.returncode == 0, finished.stderr[-3000:]
@@ -101,6 +101,7 @@ def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
     for part in ("in_domain", "out_of_domain"):
         assert 0.0 <= report[part]["map"] <= 1.0
     assert Path(report["model"]).is_file()
+    assert report["training"]["members"] == 2 and Path(report["model"]).name == "ensemble.pt"  # two curricula, one file
     in_map, ood_map = report["in_domain"]["map"], report["out_of_domain"]["map"]
     assert report["ratio"] == (None if not in_map else ood_map / in_map)
     # The second out-of-domain set is drawn apart (its own seed and frame) and scored beside the first.
@@ -291,8 +292,16 @@ def test_the_committed_panoramas_are_what_derive_makes_from_bpys(tmp_path):
     from bench import panoramas
 
     assert panoramas.NAMES == wild.HELD_APART_PANORAMAS
+    import cv2
+
     for name in panoramas.NAMES:
-        assert (tmp_path / f"{name}.jpg").read_bytes() == panoramas.path(name).read_bytes(), name
+        # Pixels, not bytes: the tone mapping's float sums round apart on other CPUs (measured on
+        # one machine of this kind: 0.06% of the values off, by 3 at most).
+        derived = cv2.imread(str(tmp_path / f"{name}.jpg")).astype(np.int16)
+        committed = cv2.imread(str(panoramas.path(name))).astype(np.int16)
+        assert derived.shape == committed.shape, name
+        difference = np.abs(derived - committed)
+        assert difference.max() <= 4 and (difference > 0).mean() < 0.01, (name, difference.max(), (difference > 0).mean())
     with pytest.raises(KeyError, match="unknown panorama 'beach'"):
         panoramas.path("beach")
 

@@ -48,7 +48,7 @@ def test_progress_counts_planned_training_iterations_not_stages():
     from services.cli import training_progress
 
     config = load_config(REPO_ROOT / "configs/quick.yaml")
-    singles, mixed = 21 * 1 * 14, 5 * 240  # cap x t per stage
+    singles, mixed = 21 * 1 * 8, 5 * 240  # cap x t per stage
     assert training_progress(config, []) == (0, singles + mixed)
     rows = [{"condition": c, "difficulty": d, "status": "done", "increments": 1} for c, d in config.stage_order()[:21]]
     rows.append({"condition": "mixed", "difficulty": "hard", "status": "running", "increments": 2})

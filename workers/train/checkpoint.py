@@ -19,7 +19,8 @@ file holding its members' checkpoints whole, so it travels alone::
 
 ``load_detector`` reads both kinds: an ensemble is a :class:`Detector` whose model runs every
 member and merges their detections (:class:`EnsembleModel`), so whatever detects with one
-checkpoint (``foldwise detect``, the API, ``bench/wild.py``, evaluation) detects with an ensemble.
+checkpoint (``foldwise detect``, ``foldwise evaluate``, ``bench/wild.py``, ONNX export) detects with
+an ensemble.
 Training starts from one network, so ``read_checkpoint`` (warm starts, fine-tuning) refuses an
 ensemble by name.
 """
