@@ -205,9 +205,9 @@ def member_configs(config, members: int) -> list:
 def _run_members(config, members: int, report_dir: Path | None) -> list[str]:
     """Run ``members`` curricula of ``config`` (seeds seed, seed+1, ...) side by side, one process
     each with an equal share of the threads, under one study id; then hand over their final models
-    as one ensemble file. Two curricula of quick.yaml side by side on 2 cores (one thread each) take
-    no longer than one with both threads, and their models detect better as one (bench/README.md,
-    "... and seed ensembles"). Returns whether every curriculum finished and the ensemble was written."""
+    as one ensemble file. Their models detect better as one than either alone; on 2 cores two
+    curricula of quick.yaml took 1.0-1.17x one curriculum's time (bench/README.md, "Two curricula
+    in make run's time"). Returns whether every curriculum finished and the ensemble was written."""
     import multiprocessing
     import time
     from datetime import datetime, timezone
@@ -277,8 +277,8 @@ def _run_members(config, members: int, report_dir: Path | None) -> list[str]:
                 queries.fail_experiment(session, experiment_id, f"its process ended with exit code {process.exitcode}")
             status = "failed"
         info = _print_stages(experiment_id, variant.name, status)
-        files = write_report(experiment_id, (report_dir / f"experiment-{experiment_id}") if report_dir else
-                             settings.data_dir / f"experiments/{experiment_id}/report")
+        out = report_dir / f"experiment-{experiment_id}" if report_dir else settings.data_dir / f"experiments/{experiment_id}/report"
+        files = write_report(experiment_id, out)
         console.print(f"report: {files.png}  {files.csv}", highlight=False)
         statuses.append(status)
         finals.append(info["final_model_id"])
@@ -303,7 +303,7 @@ def training_progress(config, stage_rows: list[dict]) -> tuple[int, int]:
     """(training iterations done, planned) for the progress bar and its ETA.
 
     Training is most of a run's time, and stages differ in it by two orders of magnitude
-    (quick.yaml: 14 iterations per single-condition stage, 1,200 in the mixed stage), so a
+    (quick.yaml: 8 iterations per single-condition stage, 1,200 in the mixed stage), so a
     count of stages made the ETA wrong by minutes. Each stage plans its cap (κ for
     learnability) times its t; a stage that ended early counts as planned, so the bar ends at
     100% and the ETA is an upper bound while a stopping rule can still end stages early."""
