@@ -220,7 +220,6 @@ def _run_members(config, members: int, report_dir: Path | None) -> list[str]:
     from services.queries import NotFound
     from services.report import write_report
     from services.scheduler.service import experiment_status
-    from workers.train.checkpoint import CheckpointError, save_ensemble
 
     if config.kind != "active_learning":
         _fail(f"--members: only kind active_learning hands over a final model to join (this config's kind is {config.kind})")
@@ -283,6 +282,8 @@ def _run_members(config, members: int, report_dir: Path | None) -> list[str]:
         statuses.append(status)
         finals.append(info["final_model_id"])
     if all(status == "finished" for status in statuses) and None not in finals:
+        from workers.train.checkpoint import CheckpointError, save_ensemble  # torch: only now
+
         try:
             with session_scope() as session:
                 checkpoints = [checkpoint_file(session, model_id) for model_id in finals]

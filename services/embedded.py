@@ -46,7 +46,6 @@ def run_to_completion(
             raise Stalled(f"experiment {experiment_id} is {status.value} but nothing is left to do")
 
 
-
 def run_member(experiment_id: int, threads: int) -> None:
     """One curriculum of several run side by side (``foldwise run --members``), in its own
     process: torch trains and detects with ``threads`` threads (FOLDWISE_THREADS caps whatever

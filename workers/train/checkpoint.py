@@ -124,18 +124,15 @@ def _load_payload(path: str | Path) -> dict[str, Any]:
     kind = payload.get("format") if isinstance(payload, dict) else None
     if kind == ENSEMBLE_FORMAT:
         version, expected = payload.get("format_version"), ENSEMBLE_VERSION
+        if version != expected:  # before its members: another version may hold them otherwise
+            raise CheckpointError(f"ensemble {path} has format version {version}; this foldwise reads version {expected}")
         members = payload.get("members")
         if not isinstance(members, list) or not members:
             raise CheckpointError(f"ensemble {path} holds no members")
         for index, member in enumerate(members, start=1):
             _check_detector_payload(member, f"{path} (member {index})")
-    elif kind == CHECKPOINT_FORMAT:
-        _check_detector_payload(payload, str(path))
-        version, expected = payload.get("format_version"), CHECKPOINT_VERSION
     else:
-        raise CheckpointError(f"{path} is not a foldwise detector checkpoint")
-    if version != expected:
-        raise CheckpointError(f"checkpoint {path} has format version {version}; this foldwise reads version {expected}")
+        _check_detector_payload(payload, str(path))
     return payload
 
 
@@ -167,13 +164,10 @@ def save_ensemble(checkpoints: Sequence[str | Path], path: str | Path) -> Path:
     members = [read_checkpoint(checkpoint) for checkpoint in checkpoints]
     if not members:
         raise CheckpointError("an ensemble needs at least one checkpoint")
-    first = list(members[0]["meta"]["classes"])
-    for checkpoint, member in zip(checkpoints, members):
-        if list(member["meta"]["classes"]) != first:
-            raise CheckpointError(
-                f"{checkpoint} has the classes {list(member['meta']['classes'])}, {checkpoints[0]} {first}: "
-                "an ensemble needs one class list, in one order"
-            )
+    try:
+        _check_one_class_list([member["meta"]["classes"] for member in members], [str(c) for c in checkpoints])
+    except ValueError as error:
+        raise CheckpointError(str(error)) from None
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     return _write_atomically({"format": ENSEMBLE_FORMAT, "format_version": ENSEMBLE_VERSION, "members": members}, path)
@@ -304,18 +298,24 @@ def combine_detectors(detectors: Sequence[Detector]) -> Detector:
     if len(detectors) == 1:
         return detectors[0]
     first = detectors[0]
+    _check_one_class_list([d.classes for d in detectors], [f"detector {i}" for i in range(1, len(detectors) + 1)])
     for index, detector in enumerate(detectors[1:], start=2):
-        if detector.classes != first.classes:
-            raise ValueError(
-                f"detector {index} has the classes {detector.classes}, detector 1 {first.classes}: "
-                "an ensemble needs one class list, in one order"
-            )
         if detector.device != first.device:
             raise ValueError(f"detector {index} is on {detector.device}, detector 1 on {first.device}")
     heads = getattr(first.model, "roi_heads", None)  # yolo has none: torchvision's NMS IoU, the config's cap
     iou, limit = (heads.nms_thresh, heads.detections_per_img) if heads is not None else (0.5, first.config.detections_per_image)
     meta = {**first.meta, "members": [detector.meta for detector in detectors]}
     return Detector(model=EnsembleModel([d.model for d in detectors], iou, limit), meta=meta, device=first.device)
+
+
+def _check_one_class_list(class_lists: Sequence[Sequence[str]], names: Sequence[str]) -> None:
+    """ValueError naming the first member whose classes differ from the first's (names, order)."""
+    first = list(class_lists[0])
+    for name, classes in zip(names[1:], class_lists[1:]):
+        if list(classes) != first:
+            raise ValueError(
+                f"{name} has the classes {list(classes)}, {names[0]} {first}: an ensemble needs one class list, in one order"
+            )
 
 
 def member_families(detector: Detector) -> list[str]:
