@@ -23,6 +23,7 @@ Families run one after another, never in parallel. Images are rendered with the 
 folders under ``bench/results/cache/`` (git-ignored), in ``foldwise render``'s COCO layout.
 
     python bench/train.py --iterations 25 --threads 2 --out bench/results/train_fixed.json
+    python bench/train.py --families faster_rcnn --compare-roi-align --out bench/results/train_roi_align.json
     python bench/train.py --target-map 0.9 --time-budget 1800 --test-size 150 --eval-every 50 \
         --out bench/results/train_target.json
 """
@@ -30,6 +31,7 @@ folders under ``bench/results/cache/`` (git-ignored), in ``foldwise render``'s C
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import os
@@ -44,6 +46,7 @@ from workers.train.evaluation import json_safe
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
 FAMILIES = ("faster_rcnn", "fast_rcnn", "yolo")
+RCNN_FAMILIES = ("faster_rcnn", "fast_rcnn")
 # Different seeds keep the training and test θ disjoint.
 TRAIN_SEED, TEST_SEED = 1001, 2002
 # Warm-up iterations of every chunk after the first in target mode.
@@ -189,17 +192,23 @@ def fixed_budget(args, base, input_size: int, train_samples, test_samples, class
     from workers.train.training import train_detector
 
     families = {}
-    for family in args.families:
+    runs = [(family, family, False) for family in args.families]
+    if args.compare_roi_align:
+        # The same family trained again on torchvision's RoIAlign kernel, right after it.
+        runs = [r for family in args.families for r in [(family, family, False)] + (
+            [(family, f"{family}+torchvision_roi_align", True)] if family in RCNN_FAMILIES else [])]
+    for family, entry, torchvision_kernel in runs:
         config = family_config(base, family, input_size, args.threads, args.batch_size)
         checkpoint = RESULTS / "checkpoints" / f"fixed-{family}.pt"
         checkpoint.parent.mkdir(parents=True, exist_ok=True)
-        print(f"[{family}] warm-up iteration, then {args.iterations} iterations", file=sys.stderr)
-        warmup = train_detector(train_samples, None, 1, config, classes, checkpoint, seed=args.seed)
-        stats = train_detector(train_samples, None, args.iterations, config, classes, checkpoint, seed=args.seed)
+        print(f"[{entry}] warm-up iteration, then {args.iterations} iterations", file=sys.stderr)
+        with torchvision_roi_align(torchvision_kernel):
+            warmup = train_detector(train_samples, None, 1, config, classes, checkpoint, seed=args.seed)
+            stats = train_detector(train_samples, None, args.iterations, config, classes, checkpoint, seed=args.seed)
         step_seconds = stats.seconds - warmup.seconds
         per_s = (stats.images_seen - warmup.images_seen) / step_seconds if step_seconds > 0 and args.iterations > 1 else None
         scores = score(checkpoint, test_samples, classes, args.eval_batch_size)
-        families[family] = {
+        families[entry] = {
             "config": config.model_dump(mode="json"),
             "train": {k: v for k, v in stats.to_dict().items() if k != "losses"},
             "loss_first_last": [stats.losses[0], stats.final_loss] if getattr(stats, "losses", None) else None,
@@ -207,13 +216,34 @@ def fixed_budget(args, base, input_size: int, train_samples, test_samples, class
             "fixed_train_overhead_s": warmup.seconds,
             **scores,
         }
+        if torchvision_kernel and families[family]["train_images_per_s"] and per_s:
+            families[entry]["pyramid_roi_align_train_speedup"] = families[family]["train_images_per_s"] / per_s
         summary = {
-            k: families[family][k]
-            for k in ("train_images_per_s", "first_pass_images_per_s", "inference_images_per_s", "map", "map_unthresholded")
+            k: families[entry].get(k)
+            for k in ("train_images_per_s", "inference_images_per_s", "map", "map_unthresholded", "pyramid_roi_align_train_speedup")
         }
-        print(f"[{family}] {json.dumps(json_safe(summary))}", file=sys.stderr)
+        print(f"[{entry}] {json.dumps(json_safe(summary))}", file=sys.stderr)
         publish(families)
     return families
+
+
+@contextlib.contextmanager
+def torchvision_roi_align(active: bool):
+    """Within it (when active), the R-CNNs' PyramidRoIAlign runs torchvision's kernel in training
+    too: the baseline of ``--compare-roi-align``."""
+    from torchvision.ops import MultiScaleRoIAlign
+
+    from workers.train.detectors.roi_align import PyramidRoIAlign
+
+    if not active:
+        yield
+        return
+    own = PyramidRoIAlign.forward
+    PyramidRoIAlign.forward = MultiScaleRoIAlign.forward
+    try:
+        yield
+    finally:
+        PyramidRoIAlign.forward = own
 
 
 def target_summary(config, reached, iterations, seconds, train_seconds, images_seen, history) -> dict[str, Any]:
@@ -303,6 +333,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--target-map", type=float, default=None, help="target mode: stop at this mAP (paper protocol)")
     parser.add_argument("--time-budget", type=float, default=1800.0, help="target mode: seconds per family")
     parser.add_argument("--eval-every", type=int, default=50, help="target mode: iterations between evaluations")
+    parser.add_argument(
+        "--compare-roi-align",
+        action="store_true",
+        help="fixed-budget mode: train each R-CNN again on torchvision's RoIAlign kernel and report the speed-up",
+    )
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args(argv)
     args.families = [f.strip() for f in args.families.split(",") if f.strip()]

@@ -50,3 +50,29 @@ def test_score_times_a_second_pass_and_reports_the_first_beside_it(tmp_path, mon
     assert result["first_pass_images_per_s"] > 0 and result["inference_images_per_s"] > 0
     assert result["inference_images_per_s"] == pytest.approx(5 / result["inference_seconds"])
     assert 0.0 <= result["map_unthresholded"] <= 1.0
+
+
+def test_the_roi_align_baseline_runs_torchvisions_kernel_and_then_ours_again(monkeypatch):
+    """--compare-roi-align's baseline: inside the context a training PyramidRoIAlign does not
+    gather; after it (an exception included) it does."""
+    from collections import OrderedDict
+
+    import torch
+
+    import workers.train.detectors.roi_align as roi_align
+
+    gathered = []
+    real = roi_align.pyramid_roi_align
+    monkeypatch.setattr(roi_align, "pyramid_roi_align", lambda *a, **k: gathered.append(1) or real(*a, **k))
+    pool = roi_align.PyramidRoIAlign(["0"], 7, 1).train()
+    features = OrderedDict([("0", torch.randn(1, 4, 16, 16, requires_grad=True))])
+    boxes = [torch.tensor([[4.0, 4.0, 60.0, 90.0]])]
+
+    with train.torchvision_roi_align(True):
+        baseline = pool(features, boxes, [(128, 128)])
+    assert gathered == []
+    with pytest.raises(RuntimeError), train.torchvision_roi_align(True):
+        raise RuntimeError("a failed run")
+    ours = pool(features, boxes, [(128, 128)])
+    assert gathered == [1]
+    torch.testing.assert_close(ours, baseline, rtol=1e-4, atol=1e-4)

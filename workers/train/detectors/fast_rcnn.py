@@ -94,13 +94,14 @@ def build_fast_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: b
     from torchvision.models.detection.faster_rcnn import FastRCNNConvFCHead, FastRCNNPredictor, TwoMLPHead
     from torchvision.models.detection.roi_heads import RoIHeads
     from torchvision.models.detection.transform import GeneralizedRCNNTransform
-    from torchvision.ops import MultiScaleRoIAlign
 
     from workers.train.detectors import build_backbone, feature_map_names, input_normalization
+    from workers.train.detectors.roi_align import PyramidRoIAlign
 
     backbone = build_backbone(config, load_pretrained)
-    # One bilinear sample per bin (torchvision: 2x2): RoIAlign's CPU backward dominated a step.
-    roi_pool = MultiScaleRoIAlign(featmap_names=feature_map_names(backbone), output_size=7, sampling_ratio=1)
+    # One bilinear sample per bin (torchvision: 2x2), and a backward pass that gathers rather than
+    # scatters per channel (roi_align.py): RoIAlign's CPU backward dominated a step.
+    roi_pool = PyramidRoIAlign(featmap_names=feature_map_names(backbone), output_size=7, sampling_ratio=1)
     if config.backbone == "resnet50_fpn_v2":
         box_head = FastRCNNConvFCHead(
             (backbone.out_channels, 7, 7), [256, 256, 256, 256], [config.representation_size], norm_layer=nn.BatchNorm2d

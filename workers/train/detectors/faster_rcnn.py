@@ -45,9 +45,9 @@ def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained:
     """A Faster R-CNN for ``num_classes`` object classes (+ background) on ``config.backbone``."""
     from torchvision.models.detection.anchor_utils import AnchorGenerator
     from torchvision.models.detection.faster_rcnn import FastRCNNConvFCHead, FastRCNNPredictor, RPNHead, TwoMLPHead
-    from torchvision.ops import MultiScaleRoIAlign
 
     from workers.train.detectors import anchor_sizes, build_backbone, feature_map_names, input_normalization
+    from workers.train.detectors.roi_align import PyramidRoIAlign
 
     backbone = build_backbone(config, load_pretrained)
     roi_levels = feature_map_names(backbone)
@@ -55,8 +55,9 @@ def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained:
     sizes = anchor_sizes(config, levels)
     anchor_generator = AnchorGenerator(sizes=sizes, aspect_ratios=(ASPECT_RATIOS,) * levels)
     anchors_per_location = anchor_generator.num_anchors_per_location()[0]
-    # One bilinear sample per bin (torchvision: 2x2): RoIAlign's CPU backward dominated a step.
-    roi_pool = MultiScaleRoIAlign(featmap_names=roi_levels, output_size=7, sampling_ratio=1)
+    # One bilinear sample per bin (torchvision: 2x2), and a backward pass that gathers rather than
+    # scatters per channel (roi_align.py): RoIAlign's CPU backward dominated a step.
+    roi_pool = PyramidRoIAlign(featmap_names=roi_levels, output_size=7, sampling_ratio=1)
 
     if config.backbone == "resnet50_fpn_v2":
         # torchvision's v2 heads: a deeper RPN head and a conv + FC box head with BatchNorm.
