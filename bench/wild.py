@@ -1,7 +1,7 @@
 """Out-of-domain benchmark: does the detector foldwise trains find the object in images foldwise did not render?
 
-Trains with a config (default ``configs/quick.yaml``, as ``make run`` does; ``--members 2``: two
-curricula handed over as one ensemble, as ``make run MEMBERS=2``) or takes a checkpoint, then scores the model, under the paper's protocol (score ≥ 0.8, IoU 0.5) and
+Trains with a config as ``make run`` does (default ``configs/quick.yaml``, two curricula handed
+over as one ensemble; ``--members 1``: one) or takes a checkpoint, then scores the model, under the paper's protocol (score ≥ 0.8, IoU 0.5) and
 unthresholded, on two sets:
 
 * **in-domain**: foldwise's own renders, every (condition, difficulty) of the config's
@@ -677,6 +677,11 @@ def train_with_config(config_path: Path, data_dir: Path, echo=print, members: in
     return checkpoint, training
 
 
+def make_run_members(config_path: Path) -> int:
+    """The curricula ``make run`` trains for this config (the Makefile's MEMBERS default)."""
+    return 2 if Path(config_path).resolve() == (ROOT / "configs" / "quick.yaml").resolve() else 1
+
+
 def make_in_domain_set(config, out: Path, n_per_pair: int, seed: int, echo=print) -> Path:
     """foldwise's own renders of the config's curriculum (every stage, mixed included).
 
@@ -865,8 +870,9 @@ def main(argv=None) -> dict:
         help="score this checkpoint instead of training; given again, the checkpoints are scored as one ensemble",
     )
     parser.add_argument(
-        "--members", type=_positive_count, default=1,
-        help="when training: curricula side by side, handed over as one ensemble (make run's MEMBERS)",
+        "--members", type=_positive_count, default=None,
+        help="when training: curricula side by side, handed over as one ensemble (default: make run's, "
+        "2 for configs/quick.yaml, else 1)",
     )
     parser.add_argument("--n-ood", type=_positive_count, default=200, help="out-of-domain images (at least 1)")
     parser.add_argument("--ood-size", type=_frame_argument, default="320x240", help="WIDTHxHEIGHT of out-of-domain images")
@@ -946,7 +952,8 @@ def main(argv=None) -> dict:
     checkpoint = args.model  # several: scored as one ensemble
     if checkpoint is None:
         train_dir = args.train_dir or Path(tempfile.mkdtemp(prefix="foldwise-wild-train-"))
-        trained, training = train_with_config(args.config, train_dir, echo, members=args.members)
+        members = args.members or make_run_members(args.config)
+        trained, training = train_with_config(args.config, train_dir, echo, members=members)
         report["training"] = training
         checkpoint = [trained]
     report["model"] = str(checkpoint[0]) if len(checkpoint) == 1 else [str(path) for path in checkpoint]

@@ -356,3 +356,22 @@ def test_several_checkpoints_score_as_one_ensemble(tmp_path):
     train_detector(samples, None, 1, config(), COLOURS[::-1], other, seed=0)
     with pytest.raises(ValueError, match="an ensemble needs one class list"):
         wild.score([first, other], data, 0.0, 0.5)
+
+
+@pytest.mark.parametrize("config, members", [(None, 2), ("configs/quick.yaml", 2), ("configs/smoke.yaml", 1), ("configs/learnability_quick.yaml", 1)])
+def test_make_run_and_the_benchmark_train_the_same_curricula(config, members):
+    """`make run` hands over two curricula of quick.yaml as one ensemble, one of any other config
+    (learnability runs hand over no model to join); bench/wild.py trains what make run trains."""
+    import shutil
+
+    if shutil.which("make") is None:
+        pytest.skip("make is not installed")
+    overrides = [f"CONFIG={config}"] if config else []
+    # -n prints the recipe without running it; the stamp is made new so that no install is shown.
+    dry = subprocess.run(
+        ["make", "-n", "-W", ".venv/.installed", "run", *overrides], cwd=ROOT, capture_output=True, text=True, timeout=60
+    )
+    assert dry.returncode == 0, dry.stderr
+    run_line = [line for line in dry.stdout.splitlines() if " run " in line and "foldwise" in line]
+    assert run_line and run_line[-1].endswith(f"run {config or 'configs/quick.yaml'} --members {members}"), dry.stdout
+    assert wild.make_run_members(ROOT / (config or "configs/quick.yaml")) == members
