@@ -29,6 +29,11 @@ def checkpoint_path(experiment_id: int, model_id: int) -> str:
     return f"experiments/{experiment_id}/models/{model_id}.pt"
 
 
+def ensemble_path(study: str) -> str:
+    """Where a study's ensemble file goes (``foldwise run --members``), which the API serves."""
+    return f"studies/{study}/ensemble.pt"
+
+
 def uploaded_assets_root() -> Path:
     """Where ``POST /assets/{kind}`` keeps uploaded asset folders, one per content hash. The API
     takes configs naming a folder under it whatever FOLDWISE_ASSET_ROOTS says: every file in it

@@ -16,6 +16,7 @@ import typer
 from rich.markup import escape
 from rich.table import Table
 
+from foldwise import store
 from foldwise.progress import CommandProgress, command_console
 
 app = typer.Typer(no_args_is_help=True, add_completion=False, help="foldwise: teach a detector one deformable object.")
@@ -287,7 +288,7 @@ def _run_members(config, members: int, report_dir: Path | None) -> list[str]:
         try:
             with session_scope() as session:
                 checkpoints = [checkpoint_file(session, model_id) for model_id in finals]
-            path = save_ensemble(checkpoints, settings.data_dir / "studies" / study_id / "ensemble.pt")
+            path = save_ensemble(checkpoints, settings.data_dir / store.ensemble_path(study_id))
         except (NotFound, CheckpointError) as error:
             console.print(f"[red]no ensemble written:[/] {escape(str(error))}", highlight=False)
             return False

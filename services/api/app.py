@@ -23,7 +23,8 @@ from services.api.probes import BrokerProbe, SchemaCheck
 from services.api.routes import artifacts, assets, dashboard, detect, experiments, health, models, queues
 
 ROUTERS = (
-    health.router, experiments.router, models.router, detect.router, artifacts.router, assets.router, queues.router,
+    health.router, experiments.router, models.router, detect.router, detect.study_router, artifacts.router,
+    assets.router, queues.router,
     dashboard.router,
 )  # fmt: skip
 

@@ -62,6 +62,7 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
             for box, score, label in zip(found["boxes"][keep], found["scores"][keep], found["labels"][keep])
         ],
         "seconds": time.perf_counter() - started,
+        "members": len(detector.meta.get("members", ())) or 1,  # an ensemble file's detectors
     }
 
 

@@ -1,4 +1,6 @@
-"""POST /models/{id}/detect: a trained ω run on one uploaded image.
+"""POST /models/{id}/detect: a trained ω run on one uploaded image; POST /studies/{study}/detect:
+the ensemble a study handed over (``foldwise run --members``, or ``foldwise ensemble --out``
+into ``studies/<study>/ensemble.pt`` of the artifact store), the same way.
 
 The API imports no torch: the image goes to a ``foldwise worker detect`` over the ``detect``
 queue (:mod:`workers.train.serving`) and this request waits for the reply. With eager Celery
@@ -8,10 +10,11 @@ queue (:mod:`workers.train.serving`) and this request waits for the reply. With 
 import base64
 from typing import Annotated, Any
 
-from fastapi import APIRouter, HTTPException, Query, Request, status
+from fastapi import APIRouter, HTTPException, Path, Query, Request, status
 from pydantic import BaseModel, Field
 
 from db.models import Model, ModelStatus
+from foldwise import store
 from services.api.deps import ModelId, SessionDep, TokenRequired
 from services.api.schemas import NOT_FOUND, WRITE_ERRORS, ErrorDetail
 
@@ -24,6 +27,9 @@ IMAGE_TYPES = frozenset({"image/png", "image/jpeg", "application/octet-stream"})
 SIGNATURES = (b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff")
 
 router = APIRouter(prefix="/models", tags=["models"])
+study_router = APIRouter(prefix="/studies", tags=["studies"])
+# A study's name as it names a folder of the artifact store: printable, no path separator.
+STUDY_FOLDER = dict(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f/\\]+$")
 
 
 class Detection(BaseModel):
@@ -33,18 +39,35 @@ class Detection(BaseModel):
     score: float
 
 
+IMAGE_BODY = {
+    "requestBody": {
+        "required": True,
+        "description": "The image file itself (PNG or JPEG), at most 8 MiB.",
+        "content": {t: {"schema": {"type": "string", "format": "binary"}} for t in ("image/png", "image/jpeg")},
+    }
+}
+
+
 class ImageSize(BaseModel):
     width: int
     height: int
 
 
-class DetectResult(BaseModel):
-    model_id: int
+class Detections(BaseModel):
     image: ImageSize
     classes: list[str]
     detections: list[Detection] = Field(description="best score first, at or above `threshold`")
     threshold: float
     seconds: float = Field(description="time the worker took (decoding included)")
+
+
+class DetectResult(Detections):
+    model_id: int
+
+
+class StudyDetectResult(Detections):
+    study: str
+    members: int = Field(description="the detectors of the ensemble, detecting as one")
 
 
 def _send(checkpoint: str, image: bytes, threshold: float) -> dict[str, Any]:
@@ -75,13 +98,7 @@ def _send(checkpoint: str, image: bytes, threshold: float) -> dict[str, Any]:
     response_model=DetectResult,
     response_model_by_alias=True,
     dependencies=[TokenRequired],
-    openapi_extra={
-        "requestBody": {
-            "required": True,
-            "description": "The image file itself (PNG or JPEG), at most 8 MiB.",
-            "content": {t: {"schema": {"type": "string", "format": "binary"}} for t in ("image/png", "image/jpeg")},
-        }
-    },
+    openapi_extra=IMAGE_BODY,
     responses={
         **WRITE_ERRORS,
         **NOT_FOUND,
@@ -99,6 +116,31 @@ async def detect(
     threshold: Annotated[float, Query(ge=0.0, le=1.0, description="keep detections scoring at least this")] = 0.5,
 ) -> dict[str, Any]:
     """Run ω ``model_id`` on the image in the body; boxes, classes and scores as JSON."""
+    image = await _read_image(request)
+
+    model = session.get(Model, model_id)
+    if model is None:
+        raise HTTPException(status.HTTP_404_NOT_FOUND, f"model {model_id} does not exist")
+    if model.status != ModelStatus.evaluated or not model.checkpoint_path:
+        raise HTTPException(
+            status.HTTP_409_CONFLICT,
+            f"model {model_id} is {model.status.value}: only a trained and evaluated model can detect",
+        )
+    checkpoint = model.checkpoint_path
+    session.close()  # the reply may take a while; hold no connection meanwhile
+
+    from starlette.concurrency import run_in_threadpool
+
+    reply = await run_in_threadpool(_send, checkpoint, image, threshold)
+    if "error" in reply:
+        code = status.HTTP_409_CONFLICT if reply.get("missing") else status.HTTP_422_UNPROCESSABLE_CONTENT
+        raise HTTPException(code, reply["error"])
+    reply.pop("members", None)  # a recorded model is one detector
+    return {"model_id": model_id, "threshold": threshold, **reply}
+
+
+async def _read_image(request: Request) -> bytes:
+    """The body as a PNG or JPEG of at most MAX_IMAGE_BYTES, or the HTTP error that says why not."""
     media_type = (request.headers.get("content-type") or "").split(";", 1)[0].strip().lower()
     if media_type not in IMAGE_TYPES:
         raise HTTPException(
@@ -117,22 +159,46 @@ async def detect(
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "empty body: send a PNG or JPEG image")
     if not bytes(image[:8]).startswith(SIGNATURES):
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the body is not a PNG or JPEG image")
+    return bytes(image)
 
-    model = session.get(Model, model_id)
-    if model is None:
-        raise HTTPException(status.HTTP_404_NOT_FOUND, f"model {model_id} does not exist")
-    if model.status != ModelStatus.evaluated or not model.checkpoint_path:
-        raise HTTPException(
-            status.HTTP_409_CONFLICT,
-            f"model {model_id} is {model.status.value}: only a trained and evaluated model can detect",
-        )
-    checkpoint = model.checkpoint_path
-    session.close()  # the reply may take a while; hold no connection meanwhile
+
+@study_router.post(
+    "/{study}/detect",
+    response_model=StudyDetectResult,
+    response_model_by_alias=True,
+    dependencies=[TokenRequired],
+    openapi_extra=IMAGE_BODY,
+    responses={
+        **WRITE_ERRORS,
+        404: {"model": ErrorDetail, "description": "the study has no ensemble file in the artifact store"},
+        413: {"model": ErrorDetail, "description": "the image is larger than 8 MiB"},
+        415: {"model": ErrorDetail, "description": "not image/png, image/jpeg or application/octet-stream"},
+        422: {"model": ErrorDetail, "description": "a study name that is no folder name, or a body that is not an image"},
+        504: {"model": ErrorDetail, "description": "no detect worker answered in time"},
+    },
+)
+async def detect_with_study(
+    study: Annotated[str, Path(**STUDY_FOLDER, description="the study whose ensemble detects")],
+    request: Request,
+    threshold: Annotated[float, Query(ge=0.0, le=1.0, description="keep detections scoring at least this")] = 0.5,
+) -> dict[str, Any]:
+    """Run the ensemble study ``study`` handed over on the image in the body: every member
+    detects and their detections merge, as ``foldwise detect --model ENSEMBLE`` does."""
+    if study in (".", ".."):
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"study {study!r} names no folder")
+    image = await _read_image(request)
 
     from starlette.concurrency import run_in_threadpool
 
-    reply = await run_in_threadpool(_send, checkpoint, bytes(image), threshold)
+    reply = await run_in_threadpool(_send, store.ensemble_path(study), image, threshold)
     if "error" in reply:
-        code = status.HTTP_409_CONFLICT if reply.get("missing") else status.HTTP_422_UNPROCESSABLE_CONTENT
-        raise HTTPException(code, reply["error"])
-    return {"model_id": model_id, "threshold": threshold, **reply}
+        if reply.get("missing"):
+            raise HTTPException(
+                status.HTTP_404_NOT_FOUND,
+                f"study {study!r} has no ensemble ({store.ensemble_path(study)} in the artifact store): "
+                "`foldwise run CONFIG --members N` writes one, `foldwise ensemble --model A --model B --out "
+                "DATA_DIR/studies/NAME/ensemble.pt` joins recorded models into one",
+            )
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, reply["error"])
+    members = reply.pop("members", 1)
+    return {"study": study, "members": members, "threshold": threshold, **reply}

@@ -231,3 +231,58 @@ def test_no_detect_worker_is_a_504_that_says_what_to_start(served, trained, redi
     assert "no detect worker answered within 1 s" in response.json()["detail"]
     assert "foldwise worker detect" in response.json()["detail"]
     distributed.close()
+
+
+def test_a_studys_ensemble_detects_as_its_members_merged(served, trained, tmp_path):
+    """POST /studies/{study}/detect serves the ensemble file `foldwise run --members` writes for
+    a study: its detections are the merged members', as `foldwise detect` gives them."""
+    import cv2
+    import torch
+
+    from workers.train.checkpoint import detect_object, load_detector, save_ensemble
+    from workers.train.training import train_detector
+    from foldwise.config import DetectorConfig
+
+    other = tmp_path / "other.pt"  # a second member: the served model warm-started a few steps
+    config = DetectorConfig(family="yolo", backbone="mobilenet_v3_large_fpn", input_size=64, batch_size=4, num_threads=1)
+    previous = torch.get_num_threads()
+    train_detector(trained["samples"], trained["checkpoint"], 5, config, trained["classes"], other, seed=1)
+    torch.set_num_threads(previous)
+    study = "wild pair 2026"
+    save_ensemble([trained["checkpoint"], other], store.resolve(store.ensemble_path(study)))
+
+    sample = trained["samples"][2]
+    image = Path(sample.image_path).read_bytes()
+    response = served["client"].post(
+        f"/studies/{study}/detect?threshold=0", content=image, headers={**AUTH, "Content-Type": "image/png"}
+    )
+    assert response.status_code == 200, response.text
+    body = response.json()
+    assert body["study"] == study and body["members"] == 2 and body["classes"] == trained["classes"]
+    (expected,) = detect_object(
+        load_detector(store.resolve(store.ensemble_path(study))),
+        [cv2.cvtColor(cv2.imread(str(sample.image_path)), cv2.COLOR_BGR2RGB)],
+    )
+    assert [d["score"] for d in body["detections"]] == pytest.approx(expected["scores"].tolist())
+    assert [d["label"] for d in body["detections"]] == expected["labels"].tolist()
+    alone = served["client"].post(f"/models/{served['ready']}/detect?threshold=0", content=image,
+                                  headers={**AUTH, "Content-Type": "image/png"})  # fmt: skip
+    assert "members" not in alone.json() and alone.json()["detections"] != body["detections"]
+
+
+def test_a_study_without_an_ensemble_or_with_no_folder_name_is_refused(served, trained):
+    image = Path(trained["samples"][0].image_path).read_bytes()
+    headers = {**AUTH, "Content-Type": "image/png"}
+    client = served["client"]
+    missing = client.post("/studies/never-run/detect", content=image, headers=headers)
+    assert missing.status_code == 404
+    assert "study 'never-run' has no ensemble (studies/never-run/ensemble.pt" in missing.json()["detail"]
+    assert "foldwise run CONFIG --members N" in missing.json()["detail"]
+    dotted = client.post("/studies/%2E%2E/detect", content=image, headers=headers)
+    assert dotted.status_code == 422 and "names no folder" in dotted.json()["detail"]
+    for separator in ("%5C", "%2F"):  # a path separator: never a file outside the store's studies folder
+        assert client.post(f"/studies/a{separator}b/detect", content=image, headers=headers).status_code in (404, 422)
+    backslash = client.post("/studies/a%5Cb/detect", content=image, headers=headers)
+    assert backslash.status_code == 422
+    no_token = client.post("/studies/never-run/detect", content=image, headers={"Content-Type": "image/png"})
+    assert no_token.status_code == 401
