@@ -5,8 +5,8 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 CONFIG ?= configs/quick.yaml
 # Curricula of CONFIG run side by side (seeds seed, seed+1, ...), a process each, their final
-# models handed over as one ensemble. quick.yaml runs two: out of domain their ensemble beat one
-# curriculum by 0.02-0.05 in each of three measurements, for 1.07x its time on 2 cores (one
+# models handed over as one ensemble. quick.yaml runs two: out of domain their ensemble beat their
+# average member by 0.02-0.04 in each of three measurements, for 1.07x one curriculum's time on 2 cores (one
 # curriculum leaves the second core mostly idle); bench/README.md, "Two curricula". Other configs
 # run one unless MEMBERS says (learnability and canonical-baseline runs hand over no model to join).
 MEMBERS ?= $(if $(filter configs/quick.yaml,$(CONFIG)),2,1)
