@@ -47,6 +47,13 @@ IMAGE_BODY = {
     }
 }
 
+# What both detect routes may answer about the image and the worker.
+IMAGE_ERRORS = {
+    413: {"model": ErrorDetail, "description": "the image is larger than 8 MiB"},
+    415: {"model": ErrorDetail, "description": "not image/png, image/jpeg or application/octet-stream"},
+    504: {"model": ErrorDetail, "description": "no detect worker answered in time"},
+}
+
 
 class ImageSize(BaseModel):
     width: int
@@ -102,11 +109,9 @@ def _send(checkpoint: str, image: bytes, threshold: float) -> dict[str, Any]:
     responses={
         **WRITE_ERRORS,
         **NOT_FOUND,
+        **IMAGE_ERRORS,
         409: {"model": ErrorDetail, "description": "the model has no checkpoint (not trained, or failed)"},
-        413: {"model": ErrorDetail, "description": "the image is larger than 8 MiB"},
-        415: {"model": ErrorDetail, "description": "not image/png, image/jpeg or application/octet-stream"},
         422: {"model": ErrorDetail, "description": "the body is not a PNG or JPEG image that decodes"},
-        504: {"model": ErrorDetail, "description": "no detect worker answered in time"},
     },
 )
 async def detect(
@@ -170,11 +175,9 @@ async def _read_image(request: Request) -> bytes:
     openapi_extra=IMAGE_BODY,
     responses={
         **WRITE_ERRORS,
+        **IMAGE_ERRORS,
         404: {"model": ErrorDetail, "description": "the study has no ensemble file in the artifact store"},
-        413: {"model": ErrorDetail, "description": "the image is larger than 8 MiB"},
-        415: {"model": ErrorDetail, "description": "not image/png, image/jpeg or application/octet-stream"},
         422: {"model": ErrorDetail, "description": "a study name that is no folder name, or a body that is not an image"},
-        504: {"model": ErrorDetail, "description": "no detect worker answered in time"},
     },
 )
 async def detect_with_study(
