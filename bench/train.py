@@ -192,11 +192,11 @@ def fixed_budget(args, base, input_size: int, train_samples, test_samples, class
     from workers.train.training import train_detector
 
     families = {}
-    runs = [(family, family, False) for family in args.families]
-    if args.compare_roi_align:
-        # The same family trained again on torchvision's RoIAlign kernel, right after it.
-        runs = [r for family in args.families for r in [(family, family, False)] + (
-            [(family, f"{family}+torchvision_roi_align", True)] if family in RCNN_FAMILIES else [])]
+    runs = []  # (family, report entry, on torchvision's RoIAlign kernel)
+    for family in args.families:
+        runs.append((family, family, False))
+        if args.compare_roi_align and family in RCNN_FAMILIES:  # the same family again, right after it
+            runs.append((family, f"{family}+torchvision_roi_align", True))
     for family, entry, torchvision_kernel in runs:
         config = family_config(base, family, input_size, args.threads, args.batch_size)
         checkpoint = RESULTS / "checkpoints" / f"fixed-{family}.pt"
@@ -220,7 +220,10 @@ def fixed_budget(args, base, input_size: int, train_samples, test_samples, class
             families[entry]["pyramid_roi_align_train_speedup"] = families[family]["train_images_per_s"] / per_s
         summary = {
             k: families[entry].get(k)
-            for k in ("train_images_per_s", "inference_images_per_s", "map", "map_unthresholded", "pyramid_roi_align_train_speedup")
+            for k in (
+                "train_images_per_s", "first_pass_images_per_s", "inference_images_per_s", "map", "map_unthresholded",
+                "pyramid_roi_align_train_speedup",
+            )
         }
         print(f"[{entry}] {json.dumps(json_safe(summary))}", file=sys.stderr)
         publish(families)

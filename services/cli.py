@@ -69,7 +69,7 @@ def run(
         min=1,
         max=8,
         help="curricula to run side by side, one process each, with the seeds seed, seed+1, ...; "
-        "their final models are handed over as one ensemble (make run MEMBERS=2)",
+        "their final models are handed over as one ensemble (make run: 2 for configs/quick.yaml)",
     ),
 ) -> None:
     """Run an experiment end to end in this process (SQLite by default, eager Celery)."""
@@ -206,9 +206,9 @@ def member_configs(config, members: int) -> list:
 def _run_members(config, members: int, report_dir: Path | None) -> list[str]:
     """Run ``members`` curricula of ``config`` (seeds seed, seed+1, ...) side by side, one process
     each with an equal share of the threads, under one study id; then hand over their final models
-    as one ensemble file. Their models detect better as one than either alone; on 2 cores two
-    curricula of quick.yaml took 1.0-1.17x one curriculum's time (bench/README.md, "Two curricula
-    in make run's time"). Returns whether every curriculum finished and the ensemble was written."""
+    as one ensemble file. Their models detect better as one than the average member alone; on 2
+    cores two curricula of quick.yaml took 1.0-1.17x one curriculum's time (bench/README.md, "Two
+    curricula"). Returns whether every curriculum finished and the ensemble was written."""
     import multiprocessing
     import time
     from datetime import datetime, timezone

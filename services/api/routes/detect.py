@@ -134,14 +134,19 @@ async def detect(
     checkpoint = model.checkpoint_path
     session.close()  # the reply may take a while; hold no connection meanwhile
 
-    from starlette.concurrency import run_in_threadpool
-
-    reply = await run_in_threadpool(_send, checkpoint, image, threshold)
+    reply = await _ask_worker(checkpoint, image, threshold)
     if "error" in reply:
         code = status.HTTP_409_CONFLICT if reply.get("missing") else status.HTTP_422_UNPROCESSABLE_CONTENT
         raise HTTPException(code, reply["error"])
     reply.pop("members", None)  # a recorded model is one detector
     return {"model_id": model_id, "threshold": threshold, **reply}
+
+
+async def _ask_worker(checkpoint: str, image: bytes, threshold: float) -> dict[str, Any]:
+    """The detect worker's reply, waited for off the event loop."""
+    from starlette.concurrency import run_in_threadpool
+
+    return await run_in_threadpool(_send, checkpoint, image, threshold)
 
 
 async def _read_image(request: Request) -> bytes:
@@ -191,9 +196,7 @@ async def detect_with_study(
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"study {study!r} names no folder")
     image = await _read_image(request)
 
-    from starlette.concurrency import run_in_threadpool
-
-    reply = await run_in_threadpool(_send, store.ensemble_path(study), image, threshold)
+    reply = await _ask_worker(store.ensemble_path(study), image, threshold)
     if "error" in reply:
         if reply.get("missing"):
             raise HTTPException(

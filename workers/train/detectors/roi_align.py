@@ -51,8 +51,6 @@ def pyramid_roi_align(
     channels = features[0].shape[1]
     out_h, out_w = output_size
     rows = torch.cat([f.permute(0, 2, 3, 1).reshape(-1, channels) for f in features])
-    offsets = torch.tensor([0] + [f.shape[0] * f.shape[2] * f.shape[3] for f in features[:-1]], device=rois.device)
-    offsets = offsets.cumsum(0)
     scale = torch.tensor(scales, dtype=rois.dtype, device=rois.device)[levels]
 
     x1, y1, x2, y2 = (rois[:, 1:] * scale[:, None]).unbind(1)
@@ -62,14 +60,16 @@ def pyramid_roi_align(
     s = sampling_ratio
     indices = torch.zeros((k, out_h * out_w, 4 * s * s), dtype=torch.long, device=rois.device)
     weights = torch.zeros((k, out_h * out_w, 4 * s * s), dtype=rows.dtype, device=rois.device)
+    offset = 0  # of the level's first pixel among the rows
     for level, feature in enumerate(features):  # the RoIs of one level share its map's size
+        h, w = feature.shape[2], feature.shape[3]
+        offset, level_offset = offset + feature.shape[0] * h * w, offset
         chosen = torch.where(levels == level)[0]
         if chosen.numel() == 0:
             continue
-        h, w = feature.shape[2], feature.shape[3]
         ylo, yhi, wylo, wyhi, yin = _axis_samples(y1[chosen], height[chosen], h, out_h, s)
         xlo, xhi, wxlo, wxhi, xin = _axis_samples(x1[chosen], width[chosen], w, out_w, s)
-        base = offsets[level] + rois[chosen, 0].long() * (h * w)
+        base = level_offset + rois[chosen, 0].long() * (h * w)
 
         def corner(yy: Tensor, xx: Tensor) -> Tensor:  # (n, out_h*s, out_w*s)
             return base[:, None, None] + yy[:, :, None] * w + xx[:, None, :]
