@@ -388,6 +388,12 @@ class DetectorConfig(_Section):
     # the sizes' inference again): the wild's camera has any roll, and one of the four views
     # brings any sheet within 45° of upright. Empty: the image as it is.
     test_turns: tuple[Literal[0, 1, 2, 3], ...] = Field(default=(), max_length=4)
+    # Each detection checked against its class's texture (SIFT matches, an affine map fitted by
+    # RANSAC, workers/train/texture_check.py): a box the texture's mapped outline agrees with is
+    # raised above the paper's 0.8 cut, a piece of a sheet halved, a box matching another class's
+    # texture renamed. The checkpoint then carries the textures. Off: the network's scores alone
+    # (the paper has no such step).
+    texture_check: bool = False
     augmentation: AugmentationConfig = AugmentationConfig()
 
     @model_validator(mode="after")

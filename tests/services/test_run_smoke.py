@@ -121,9 +121,10 @@ def test_a_mixed_stage_records_every_object_and_trains_on_images_without_one(dat
 def test_the_loop_scores_at_the_trained_view_when_told_and_the_checkpoint_keeps_its_views(
     database, tmp_path, monkeypatch
 ):
-    """evaluation.views: trained — every increment's P comes from one view (the detector's own
-    size, upright), recorded with the evaluation, while the checkpoint still detects at the
-    views its config names (what `foldwise detect`, REST and bench/wild.py get)."""
+    """evaluation.views: trained — every increment's P comes from the network at one view (the
+    detector's own size, upright, no texture check), recorded with the evaluation, while the
+    checkpoint still detects at the views its config names, its texture check on (what
+    `foldwise detect`, REST and bench/wild.py get)."""
     import yaml
 
     import workers.train.checkpoint as checkpoint
@@ -133,7 +134,7 @@ def test_the_loop_scores_at_the_trained_view_when_told_and_the_checkpoint_keeps_
     config["name"] = "smoke-views"
     config["curriculum"]["difficulties"] = ["easy"]
     config["active_learning"]["max_increments"] = 2
-    config["detector"].update({"test_sizes": [64, 96], "test_turns": [0, 1]})
+    config["detector"].update({"test_sizes": [64, 96], "test_turns": [0, 1], "texture_check": True})
     config["evaluation"]["views"] = "trained"
     path = tmp_path / "views.yaml"
     path.write_text(yaml.safe_dump(config))
@@ -142,7 +143,7 @@ def test_the_loop_scores_at_the_trained_view_when_told_and_the_checkpoint_keeps_
     real_detect = checkpoint.detect_object
 
     def recording_detect(detector, images, *args, **kwargs):
-        asked.append((kwargs.get("test_sizes"), kwargs.get("test_turns")))
+        asked.append((kwargs.get("test_sizes"), kwargs.get("test_turns"), kwargs.get("texture_check", True)))
         return real_detect(detector, images, *args, **kwargs)
 
     monkeypatch.setattr(checkpoint, "detect_object", recording_detect)
@@ -153,12 +154,16 @@ def test_the_loop_scores_at_the_trained_view_when_told_and_the_checkpoint_keeps_
     with session_scope() as session:
         evaluations = session.scalars(select(Evaluation)).all()
         model = session.scalars(select(Model).order_by(Model.id.desc())).first()
-        assert evaluations and asked == [((), ())] * len(evaluations)
-        assert all(e.details["views"] == {"test_sizes": [], "test_turns": []} for e in evaluations)
+        assert evaluations and asked == [((), (), False)] * len(evaluations)
+        assert all(
+            e.details["views"] == {"test_sizes": [], "test_turns": [], "texture_check": False} for e in evaluations
+        )
         loaded = checkpoint.load_detector(store.resolve(model.checkpoint_path))
         final = session.get(Model, session.scalars(select(Experiment)).one().final_model_id)
         final_path = store.resolve(final.checkpoint_path)
     assert (loaded.model.test_sizes, loaded.model.test_turns) == ((64, 96), (0, 1))
+    # ... and its texture check, with the experiment's textures (the loop scored the network alone).
+    assert loaded.texture_check() is not None and sorted(loaded.textures) == sorted(loaded.classes)
     # The run names the detector it hands over, and says its table's mAP is one view's, not the detector's.
     assert f"final model: {final_path} (model {final.id})" in result.output
     assert "the final model detects at 4 views (sizes [64, 96], quarter turns [0, 1])" in result.output

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -61,6 +61,20 @@ class Detector:
     model: nn.Module
     meta: dict[str, Any]
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
+    # Grayscale texture per class, where the checkpoint carries them (detector.texture_check).
+    textures: dict[str, np.ndarray] | None = None
+    _texture_check: Any = field(default=None, init=False, repr=False)
+
+    def texture_check(self):
+        """The :class:`~workers.train.texture_check.TextureCheck` of this detector's textures
+        (built once), or None when its config does not ask for one or it carries no textures."""
+        if not self.config.texture_check or not self.textures:
+            return None
+        if self._texture_check is None:
+            from workers.train.texture_check import TextureCheck
+
+            self._texture_check = TextureCheck(self.textures, self.classes)
+        return self._texture_check
 
     @property
     def classes(self) -> list[str]:
@@ -81,8 +95,11 @@ def _named_buffers(model: nn.Module) -> dict[str, list]:
     }
 
 
-def save_checkpoint(model: nn.Module, meta: dict[str, Any], path: str | Path) -> Path:
-    """Write ``model`` and ``meta`` to ``path`` atomically; returns the path."""
+def save_checkpoint(
+    model: nn.Module, meta: dict[str, Any], path: str | Path, textures: Mapping[str, np.ndarray] | None = None
+) -> Path:
+    """Write ``model`` and ``meta`` to ``path`` atomically; returns the path. ``textures`` (class
+    name to an RGB or grayscale uint8 image) go in grayscale, for the texture check."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = dict(meta)
@@ -93,7 +110,21 @@ def save_checkpoint(model: nn.Module, meta: dict[str, Any], path: str | Path) ->
         "meta": meta,
         "state_dict": {name: tensor.detach().cpu() for name, tensor in model.state_dict().items()},
     }
+    if textures:
+        from workers.train.texture_check import _gray
+
+        payload["textures"] = {
+            str(name): torch.from_numpy(_gray(np.asarray(image, dtype=np.uint8)).copy()) for name, image in textures.items()
+        }
     return _write_atomically(payload, path)
+
+
+def payload_textures(payload: dict[str, Any]) -> dict[str, np.ndarray] | None:
+    """The grayscale textures a detector's payload carries (texture check), or None."""
+    textures = payload.get("textures")
+    if not textures:
+        return None
+    return {str(name): tensor.numpy() for name, tensor in textures.items()}
 
 
 def _write_atomically(payload: dict[str, Any], path: Path) -> Path:
@@ -247,7 +278,7 @@ def load_detector(path: str | Path, device: str | torch.device | None = None) ->
         model = model_from_meta(member["meta"])
         load_state(model, member["state_dict"], path)
         model.to(target).eval()
-        detectors.append(Detector(model=model, meta=member["meta"], device=target))
+        detectors.append(Detector(model=model, meta=member["meta"], device=target, textures=payload_textures(member)))
     if payload["format"] == CHECKPOINT_FORMAT:
         return detectors[0]
     try:
@@ -305,7 +336,11 @@ def combine_detectors(detectors: Sequence[Detector]) -> Detector:
     heads = getattr(first.model, "roi_heads", None)  # yolo has none: torchvision's NMS IoU, the config's cap
     iou, limit = (heads.nms_thresh, heads.detections_per_img) if heads is not None else (0.5, first.config.detections_per_image)
     meta = {**first.meta, "members": [detector.meta for detector in detectors]}
-    return Detector(model=EnsembleModel([d.model for d in detectors], iou, limit), meta=meta, device=first.device)
+    # One class list, so one set of textures checks the merged detections (the first member's).
+    textures = next((d.textures for d in detectors if d.textures), None)
+    return Detector(
+        model=EnsembleModel([d.model for d in detectors], iou, limit), meta=meta, device=first.device, textures=textures
+    )
 
 
 def _check_one_class_list(class_lists: Sequence[Sequence[str]], names: Sequence[str]) -> None:
@@ -352,6 +387,7 @@ def detect_object(
     on_batch: Callable[[int], None] | None = None,
     test_sizes: Sequence[int] | None = None,
     test_turns: Sequence[int] | None = None,
+    texture_check: bool = True,
 ) -> list[dict[str, np.ndarray]]:
     """Detections per image: ``boxes`` (n, 4) float32 xyxy in that image's pixels, ``scores``
     (n,) float32, ``labels`` (n,) int64 0-based class indices, best score first.
@@ -361,6 +397,8 @@ def detect_object(
     ``on_batch(images_done)`` is called after every batch (progress display). ``test_sizes``
     overrides the detector config's input sizes to detect at (R-CNN families; ``()``: its
     input size alone), ``test_turns`` its quarter turns (``()``: the images as they are).
+    The detector's texture check (``detector.texture_check``, where the checkpoint carries the
+    textures) runs on every image's detections; ``texture_check=False`` gives the network's alone.
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be at least 1, got {batch_size}")
@@ -371,6 +409,7 @@ def detect_object(
         raise ValueError(f"test_turns: only the R-CNN families detect on turned views, not {', '.join(others)}")
     model = detector.model
     model.eval()
+    checker = detector.texture_check() if texture_check else None
     results: list[dict[str, np.ndarray]] = []
     threads = int(detector.meta.get("config", {}).get("num_threads", 0))
     with torch.no_grad(), torch_threads(threads), _test_views(model, test_sizes, test_turns):
@@ -384,14 +423,13 @@ def detect_object(
             tensors = [
                 torch.from_numpy(array).to(detector.device).permute(2, 0, 1).float().div_(255) for array, _ in arrays
             ]
-            for output in model(tensors):
-                results.append(
-                    {
-                        "boxes": output["boxes"].detach().cpu().numpy().astype(np.float32).reshape(-1, 4),
-                        "scores": output["scores"].detach().cpu().numpy().astype(np.float32),
-                        "labels": output["labels"].detach().cpu().numpy().astype(np.int64) - 1,
-                    }
-                )
+            for (array, _), output in zip(arrays, model(tensors)):
+                found = {
+                    "boxes": output["boxes"].detach().cpu().numpy().astype(np.float32).reshape(-1, 4),
+                    "scores": output["scores"].detach().cpu().numpy().astype(np.float32),
+                    "labels": output["labels"].detach().cpu().numpy().astype(np.int64) - 1,
+                }
+                results.append(checker.apply(array, found) if checker is not None else found)
             if on_batch is not None:
                 on_batch(len(results))
     return results

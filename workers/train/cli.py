@@ -107,14 +107,15 @@ def train(
     threads: Annotated[int, typer.Option("--threads", min=0, help="Torch CPU threads (0: torch decides).")] = 0,
 ) -> None:
     """Train a detector on a rendered dataset and write a self-describing checkpoint."""
-    from foldwise.config import ConfigError, DetectorConfig, load_config
+    from foldwise.config import AssetsConfig, ConfigError, DetectorConfig, load_config
 
-    base = DetectorConfig()
+    base, assets = DetectorConfig(), AssetsConfig()
     if config is not None:
         try:
-            base = load_config(config).detector
+            loaded = load_config(config)
         except ConfigError as error:
             _fail(str(error))
+        base, assets = loaded.detector, loaded.assets
     updates: dict[str, Any] = {"family": detector.value}
     for key, value in (("input_size", input_size), ("backbone", backbone), ("batch_size", batch_size)):
         if value is not None:
@@ -135,6 +136,9 @@ def train(
     samples, classes = _load_samples(data)
     if not any(len(sample.boxes) for sample in samples):
         _fail(f"dataset {data} has no annotated box: nothing to train on")
+    textures = None
+    if detector_config.texture_check and init is None:
+        textures = _catalog_textures(assets, classes)
     _set_threads(threads)
 
     from workers.train.training import train_detector
@@ -149,7 +153,7 @@ def train(
         with progress as bar:
             stats = train_detector(
                 samples, init=init, iterations=iterations, config=detector_config, classes=classes, out=out, seed=seed,
-                on_step=lambda done: bar.update(done),
+                on_step=lambda done: bar.update(done), textures=textures,
             )  # fmt: skip
     except Exception as error:
         _fail(f"training failed: {type(error).__name__}: {error}")
@@ -260,6 +264,18 @@ def evaluate(
 
 # Distinct BGR colours per class (OpenCV draws in BGR).
 _PALETTE = [(48, 48, 255), (48, 200, 48), (255, 128, 0), (0, 200, 255), (200, 0, 200), (255, 255, 0), (128, 0, 255)]
+
+
+def _catalog_textures(assets, classes: list[str]) -> dict:
+    """The classes' textures from the config's asset catalog, for ``detector.texture_check``; a
+    class the catalog lacks is a clear failure."""
+    from workers.render.assets import AssetError, load_assets
+
+    try:
+        catalog = load_assets(assets)
+        return {name: catalog.texture(name) for name in classes}
+    except AssetError as error:
+        _fail(f"detector.texture_check needs each class's texture from the config's assets: {error}")
 
 
 def draw_detections(image_rgb, detections: dict, classes: list[str], score_threshold: float):

@@ -127,11 +127,13 @@ def sweep(
 ) -> list[SweepPoint]:
     """Fine-tune the checkpoint and train a fresh model on the first n pool images for each n."""
     from foldwise.config import DetectorConfig
-    from workers.train.checkpoint import load_detector, read_checkpoint
+    from workers.train.checkpoint import load_detector, payload_textures, read_checkpoint
     from workers.train.evaluation import evaluate_detector
     from workers.train.training import train_detector
 
-    meta = read_checkpoint(checkpoint)["meta"]
+    payload = read_checkpoint(checkpoint)
+    meta = payload["meta"]
+    textures = payload_textures(payload)  # the fresh model checks with the same textures
     classes = list(meta["classes"])
     config = DetectorConfig.model_validate(meta["config"])
     too_many = [n for n in sizes if n > len(pool)]
@@ -152,7 +154,10 @@ def sweep(
         else:
             tuned_path, fresh_path = out_dir / f"finetuned-{n}.pt", out_dir / f"fresh-{n}.pt"
             train_detector(pool[:n], init=checkpoint, iterations=iterations, config=config, classes=classes, out=tuned_path, seed=seed)
-            train_detector(pool[:n], init=None, iterations=iterations, config=config, classes=classes, out=fresh_path, seed=seed)
+            train_detector(
+                pool[:n], init=None, iterations=iterations, config=config, classes=classes, out=fresh_path, seed=seed,
+                textures=textures,
+            )
             finetuned, fresh = score(tuned_path), score(fresh_path)
         point = SweepPoint(n, finetuned[0], fresh[0], finetuned[1], fresh[1])
         points.append(point)

@@ -123,13 +123,23 @@ def run_increment(model_id: int, task_id: str = "direct") -> str:
 
 
 def loop_views(config: ExperimentConfig) -> dict[str, tuple]:
-    """``detect_object``'s view overrides for the loop's evaluation (``evaluation.views``): none
-    (the detector's own views), or its one trained view for an R-CNN whose config names others."""
+    """``detect_object``'s overrides for the loop's evaluation (``evaluation.views``): none (the
+    detector's own views and texture check), or the network alone at its one trained view."""
     from workers.train.checkpoint import RCNN_FAMILIES
 
-    if config.evaluation.views == "detector" or config.detector.family not in RCNN_FAMILIES:
+    if config.evaluation.views == "detector":
         return {}
-    return {"test_sizes": (), "test_turns": ()}
+    if config.detector.family not in RCNN_FAMILIES:
+        return {"texture_check": False}
+    return {"test_sizes": (), "test_turns": (), "texture_check": False}
+
+
+def _class_textures(config: ExperimentConfig, classes: list[str]) -> dict[str, np.ndarray]:
+    """Each class's texture from the experiment's asset catalog (the texture check's reference)."""
+    from workers.render.assets import load_assets
+
+    catalog = load_assets(config.assets)
+    return {name: catalog.texture(name) for name in classes}
 
 
 def _run_claimed_increment(model_id: int) -> str:
@@ -189,6 +199,7 @@ def _run_claimed_increment(model_id: int) -> str:
             classes=classes,
             out=store.resolve(relative),
             seed=seed,
+            textures=_class_textures(config, classes) if config.detector.texture_check else None,
         )
         train_seconds = time.perf_counter() - started
 
@@ -244,6 +255,7 @@ def _run_claimed_increment(model_id: int) -> str:
             "views": {
                 "test_sizes": list(views.get("test_sizes", config.detector.test_sizes)),
                 "test_turns": list(views.get("test_turns", config.detector.test_turns)),
+                "texture_check": bool(views.get("texture_check", config.detector.texture_check)),
             },
             "test_detections": detection_samples(
                 test_ids, predictions, [{"condition": s.condition, "difficulty": s.difficulty} for s in test_samples]

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
@@ -27,6 +27,7 @@ from foldwise.config import DetectorConfig
 from workers.train.checkpoint import (
     check_compatible,
     load_state,
+    payload_textures,
     read_checkpoint,
     resolve_device,
     save_checkpoint,
@@ -169,16 +170,27 @@ def train_detector(
     out: str | Path,
     seed: int = 0,
     on_step: Callable[[int], None] | None = None,
+    textures: Mapping[str, np.ndarray] | None = None,
 ) -> TrainStats:
     """Train ``iterations`` steps from ω_in (``init``; None: fresh weights per
     ``config.pretrained``) on ``samples`` and write the checkpoint ω to ``out``.
 
     ``init`` may equal ``out`` (ω_in is read before ω is written). ``on_step(steps_done)`` is
-    called after every step (progress display).
+    called after every step (progress display). With ``config.texture_check`` the checkpoint
+    carries the classes' ``textures`` (None: ω_in's, where it has them).
     """
     _validate(samples, iterations, classes, config)
+    if config.texture_check:
+        if textures is None and init is not None:
+            textures = payload_textures(read_checkpoint(init))
+        missing = [name for name in classes if not textures or name not in textures]
+        if missing:
+            raise ValueError(
+                f"detector.texture_check needs each class's texture; none for {missing}: give them "
+                "(the experiment's asset catalog), start from a checkpoint that carries them, or turn the check off"
+            )
     with torch_threads(config.num_threads):
-        return _train(samples, init, iterations, config, list(classes), Path(out), seed, on_step)
+        return _train(samples, init, iterations, config, list(classes), Path(out), seed, on_step, textures)
 
 
 def _train(
@@ -190,6 +202,7 @@ def _train(
     out: Path,
     seed: int,
     on_step: Callable[[int], None] | None = None,
+    textures: Mapping[str, np.ndarray] | None = None,
 ) -> TrainStats:
     started = time.perf_counter()
     device = resolve_device(config.device)
@@ -292,7 +305,8 @@ def _train(
         "torch": str(torch.__version__),
     }
     model.eval()
-    save_checkpoint(model, meta, out)
+    kept = {name: np.asarray(textures[name]) for name in classes} if config.texture_check and textures else None
+    save_checkpoint(model, meta, out, textures=kept)
     return TrainStats(
         iterations=iterations,
         seconds=time.perf_counter() - started,

@@ -428,3 +428,37 @@ def test_foldwise_threads_caps_what_the_config_asks_for(monkeypatch):
     finally:
         get_settings.cache_clear()
         torch.set_num_threads(1)
+
+
+def test_a_texture_checked_detector_carries_its_textures_and_checks_what_the_network_found(tmp_path):
+    """detector.texture_check: the checkpoint holds each class's texture in grayscale (an ensemble
+    of such checkpoints too); detect_object gives the network's detections passed through the
+    check, texture_check=False the network's alone; a fresh start without textures is refused."""
+    import skimage.data
+
+    from workers.train.checkpoint import save_ensemble
+    from workers.train.texture_check import TextureCheck
+
+    paths, arrays = write_images(tmp_path / "images")
+    samples = [Sample(path, [[12, 10, 50, 40]], [index % 2]) for index, path in enumerate(paths)]
+    textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}
+    checked_config = config(family="faster_rcnn", texture_check=True)
+    with pytest.raises(ValueError, match=r"texture_check needs each class's texture; none for \['coffee'\]"):
+        train_detector(samples, None, 1, checked_config, CLASSES, tmp_path / "refused.pt", textures={"astronaut": textures["astronaut"]})
+    path = tmp_path / "checked.pt"
+    train_detector(samples, None, 2, checked_config, CLASSES, path, seed=0, textures=textures)
+    warm = tmp_path / "warm.pt"  # a warm start keeps ω_in's textures
+    train_detector(samples, path, 1, checked_config, CLASSES, warm, seed=0)
+    ensemble = save_ensemble([path, warm], tmp_path / "pair.pt")
+    for checkpoint in (path, warm, ensemble):
+        detector = load_detector(checkpoint)
+        assert sorted(detector.textures) == CLASSES
+        np.testing.assert_array_equal(detector.textures["coffee"], cv2.cvtColor(textures["coffee"], cv2.COLOR_RGB2GRAY))
+    detector = load_detector(path)
+    network = detect_object(detector, arrays, texture_check=False)
+    reference = TextureCheck(detector.textures, CLASSES)
+    for image, alone, checked in zip(arrays, network, detect_object(detector, arrays)):
+        for key, value in reference.apply(image, alone).items():
+            np.testing.assert_array_equal(checked[key], value)
+    unchecked = load_detector(save_checkpoint(detector.model, {**detector.meta, "config": config().model_dump(mode="json")}, tmp_path / "off.pt"))
+    assert unchecked.textures is None and unchecked.texture_check() is None

@@ -1,0 +1,163 @@
+"""The texture check: each detection checked against its class's own texture, as a second opinion
+on the network's score (``detector.texture_check``).
+
+foldwise's detector looks for one known printed sheet per class, so the texture it was trained
+on is evidence of its own: SIFT keypoints of the image inside a detection's box, matched to the
+textures (Lowe's ratio test), and an affine map from the class's texture to those keypoints fitted
+by RANSAC. Where at least ``MIN_INLIERS`` matches agree on one map, the map tells where the whole
+sheet lies: the texture's outline, mapped into the image and clipped to the frame.
+
+- An outline that agrees with the box (IoU ≥ ``OUTLINE_IOU``) confirms the detection: its score
+  is raised above the paper's 0.8 cut (``0.8 + 0.2 * score``, so confirmed boxes keep their order).
+- An outline that does not is a piece of the sheet, or a box around more than it: its score is
+  halved.
+- A box whose keypoints match another class's texture far better is renamed to that class.
+- Every other box (too small or blurred for keypoints, a texture with few of them, or clutter
+  matching nothing) keeps the network's score and class: no evidence is not evidence against.
+
+A bent sheet is not an affine image of its texture, so the outline is approximate; the RANSAC
+threshold (8% of the box's diagonal) and the IoU of 0.5 leave room for that. The constants
+were chosen on foldwise's own out-of-domain set and are stable around it (bench/README.md,
+"The texture check").
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+
+# Lowe's ratio test: a keypoint's best texture match must beat its second best by this factor.
+RATIO = 0.8
+# Boxes scored below this are left alone (the network's own floor for what could be an object).
+MIN_SCORE = 0.3
+# Matches of one class inside a box that a RANSAC affine map must agree on before its outline counts.
+MIN_INLIERS = 6
+# The mapped outline's IoU with the box from which it confirms the box.
+OUTLINE_IOU = 0.5
+# A box is renamed when another class has at least this many matches, and this many times its own.
+RENAME_MATCHES = 4
+RENAME_FACTOR = 3
+CONFIRMED_FLOOR = 0.8  # the paper's score cut: a confirmed box lands above it
+PIECE_FACTOR = 0.5
+
+
+@dataclass
+class _TextureFeatures:
+    descriptors: np.ndarray  # (n, 128) float32, all classes' keypoints
+    labels: np.ndarray  # (n,) int64 class index of each
+    points: np.ndarray  # (n, 2) float32 keypoint position in its texture
+    sizes: list[tuple[int, int]]  # (width, height) of each class's texture
+
+
+def _gray(image: np.ndarray) -> np.ndarray:
+    import cv2
+
+    image = np.ascontiguousarray(image)
+    if image.ndim == 2:
+        return image
+    return cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2GRAY)
+
+
+def _box_iou(a: np.ndarray, b: np.ndarray) -> float:
+    width = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
+    height = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
+    inter = width * height
+    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
+    return float(inter / union) if union > 0 else 0.0
+
+
+class TextureCheck:
+    """SIFT features of each class's texture, and :meth:`apply` to check one image's detections."""
+
+    def __init__(self, textures: Mapping[str, np.ndarray], classes: list[str]) -> None:
+        import cv2
+
+        missing = [name for name in classes if name not in textures]
+        if missing:
+            raise ValueError(f"texture check: no texture for class(es) {missing}")
+        self.classes = list(classes)
+        self._sift = cv2.SIFT_create()
+        descriptors, labels, points, sizes = [], [], [], []
+        for index, name in enumerate(self.classes):
+            gray = _gray(np.asarray(textures[name], dtype=np.uint8))
+            keypoints, found = self._sift.detectAndCompute(gray, None)
+            if found is not None:
+                descriptors.append(found)
+                labels.append(np.full(len(keypoints), index, dtype=np.int64))
+                points.append(np.array([k.pt for k in keypoints], dtype=np.float32).reshape(-1, 2))
+            sizes.append((gray.shape[1], gray.shape[0]))
+        self._features = _TextureFeatures(
+            descriptors=np.concatenate(descriptors) if descriptors else np.zeros((0, 128), np.float32),
+            labels=np.concatenate(labels) if labels else np.zeros(0, np.int64),
+            points=np.concatenate(points) if points else np.zeros((0, 2), np.float32),
+            sizes=sizes,
+        )
+        self._matcher = cv2.BFMatcher(cv2.NORM_L2)
+
+    def _matches(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(image points, class of the texture match, texture points) of the image's keypoints
+        that pass the ratio test."""
+        keypoints, descriptors = self._sift.detectAndCompute(gray, None)
+        empty = (np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
+        features = self._features
+        if descriptors is None or len(features.descriptors) < 2:
+            return empty
+        good = [
+            (index, pair[0].trainIdx)
+            for index, pair in enumerate(self._matcher.knnMatch(descriptors, features.descriptors, k=2))
+            if len(pair) == 2 and pair[0].distance < RATIO * pair[1].distance
+        ]
+        if not good:
+            return empty
+        image_index, texture_index = (np.array(column) for column in zip(*good))
+        image_points = np.array([keypoints[i].pt for i in image_index], dtype=np.float32)
+        return image_points, features.labels[texture_index], features.points[texture_index]
+
+    def apply(self, image: np.ndarray, detections: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+        """``detections`` (boxes, scores, labels as ``detect_object`` gives them, in ``image``'s
+        pixels) checked: new arrays, best score first."""
+        import cv2
+
+        boxes = np.asarray(detections["boxes"], dtype=np.float32).reshape(-1, 4)
+        scores = np.array(detections["scores"], dtype=np.float32, copy=True)
+        labels = np.array(detections["labels"], dtype=np.int64, copy=True)
+        checked = np.flatnonzero(scores >= MIN_SCORE)
+        if len(checked):
+            gray = _gray(image)
+            image_points, match_labels, texture_points = self._matches(gray)
+            height, width = gray.shape
+            for index in checked:
+                x0, y0, x1, y1 = boxes[index]
+                inside = (
+                    (image_points[:, 0] >= x0) & (image_points[:, 0] <= x1)
+                    & (image_points[:, 1] >= y0) & (image_points[:, 1] <= y1)
+                )
+                counts = np.bincount(match_labels[inside], minlength=len(self.classes))
+                label = int(labels[index])
+                best = int(np.argmax(counts))
+                if best != label and counts[best] >= RENAME_MATCHES and counts[best] >= RENAME_FACTOR * max(counts[label], 1):
+                    label = labels[index] = best
+                own = inside & (match_labels == label)
+                if own.sum() < MIN_INLIERS:
+                    continue
+                diagonal = float(np.hypot(x1 - x0, y1 - y0))
+                affine, mask = cv2.estimateAffine2D(
+                    texture_points[own], image_points[own], method=cv2.RANSAC,
+                    ransacReprojThreshold=max(3.0, 0.08 * diagonal),
+                )
+                if affine is None or mask is None or int(mask.sum()) < MIN_INLIERS:
+                    continue
+                texture_width, texture_height = self._features.sizes[label]
+                corners = np.array(
+                    [[0, 0], [texture_width, 0], [texture_width, texture_height], [0, texture_height]], np.float32
+                ) @ affine[:, :2].T + affine[:, 2]
+                outline = np.array([
+                    max(corners[:, 0].min(), 0.0), max(corners[:, 1].min(), 0.0),
+                    min(corners[:, 0].max(), float(width)), min(corners[:, 1].max(), float(height)),
+                ])
+                agrees = outline[2] > outline[0] and outline[3] > outline[1] and _box_iou(outline, boxes[index]) >= OUTLINE_IOU
+                scores[index] = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * scores[index] if agrees else scores[index] * PIECE_FACTOR
+        order = np.argsort(-scores, kind="stable")
+        return {"boxes": boxes[order], "scores": scores[order], "labels": labels[order]}
