@@ -390,9 +390,9 @@ class DetectorConfig(_Section):
     test_turns: tuple[Literal[0, 1, 2, 3], ...] = Field(default=(), max_length=4)
     # Each detection checked against its class's texture (SIFT matches, an affine map fitted by
     # RANSAC, workers/train/texture_check.py): a box the texture's mapped outline agrees with is
-    # raised above the paper's 0.8 cut, a piece of a sheet halved, a box matching another class's
-    # texture renamed. The checkpoint then carries the textures. Off: the network's scores alone
-    # (the paper has no such step).
+    # raised above the paper's 0.8 cut, a piece of a sheet (or a box around more) replaced by the
+    # outline, a box matching another class's texture renamed. The checkpoint then carries the
+    # textures. Off: the network's scores alone (the paper has no such step).
     texture_check: bool = False
     augmentation: AugmentationConfig = AugmentationConfig()
 

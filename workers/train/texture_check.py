@@ -9,11 +9,15 @@ sheet lies: the texture's outline, mapped into the image and clipped to the fram
 
 - An outline that agrees with the box (IoU ≥ ``OUTLINE_IOU``) confirms the detection: its score
   is raised above the paper's 0.8 cut (``0.8 + 0.2 * score``, so confirmed boxes keep their order).
-- An outline that does not is a piece of the sheet, or a box around more than it: its score is
-  halved.
+- An outline that does not belongs to a box that is a piece of the sheet, or a box around more
+  than it: the outline becomes the box, raised as a confirmed one, and boxes of one class that
+  now overlap (IoU ≥ ``NMS_IOU``) are merged to the best, as the detector's views are.
 - A box whose keypoints match another class's texture far better is renamed to that class.
 - Every other box (too small or blurred for keypoints, a texture with few of them, or clutter
   matching nothing) keeps the network's score and class: no evidence is not evidence against.
+
+Keypoints are found on the image enlarged ``UPSCALE`` times, with SIFT's contrast threshold at
+half its default (textures too): small and low-contrast sheets give too few otherwise.
 
 A bent sheet is not an affine image of its texture, so the outline is approximate; the RANSAC
 threshold (8% of the box's diagonal) and the IoU of 0.5 leave room for that. The constants
@@ -40,7 +44,10 @@ OUTLINE_IOU = 0.5
 RENAME_MATCHES = 4
 RENAME_FACTOR = 3
 CONFIRMED_FLOOR = 0.8  # the paper's score cut: a confirmed box lands above it
-PIECE_FACTOR = 0.5
+# Boxes of one class overlapping this much after the check are one (the detector's merge IoU).
+NMS_IOU = 0.5
+UPSCALE = 2
+CONTRAST_THRESHOLD = 0.02  # OpenCV's default 0.04
 
 
 @dataclass
@@ -78,7 +85,7 @@ class TextureCheck:
         if missing:
             raise ValueError(f"texture check: no texture for class(es) {missing}")
         self.classes = list(classes)
-        self._sift = cv2.SIFT_create()
+        self._sift = cv2.SIFT_create(contrastThreshold=CONTRAST_THRESHOLD)
         descriptors, labels, points, sizes = [], [], [], []
         for index, name in enumerate(self.classes):
             gray = _gray(np.asarray(textures[name], dtype=np.uint8))
@@ -99,7 +106,10 @@ class TextureCheck:
     def _matches(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(image points, class of the texture match, texture points) of the image's keypoints
         that pass the ratio test."""
-        keypoints, descriptors = self._sift.detectAndCompute(gray, None)
+        import cv2
+
+        enlarged = cv2.resize(gray, None, fx=UPSCALE, fy=UPSCALE, interpolation=cv2.INTER_LINEAR)
+        keypoints, descriptors = self._sift.detectAndCompute(enlarged, None)
         empty = (np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
         features = self._features
         if descriptors is None or len(features.descriptors) < 2:
@@ -112,7 +122,7 @@ class TextureCheck:
         if not good:
             return empty
         image_index, texture_index = (np.array(column) for column in zip(*good))
-        image_points = np.array([keypoints[i].pt for i in image_index], dtype=np.float32)
+        image_points = np.array([keypoints[i].pt for i in image_index], dtype=np.float32) / UPSCALE
         return image_points, features.labels[texture_index], features.points[texture_index]
 
     def apply(self, image: np.ndarray, detections: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
@@ -120,7 +130,7 @@ class TextureCheck:
         pixels) checked: new arrays, best score first."""
         import cv2
 
-        boxes = np.asarray(detections["boxes"], dtype=np.float32).reshape(-1, 4)
+        boxes = np.array(detections["boxes"], dtype=np.float32, copy=True).reshape(-1, 4)
         scores = np.array(detections["scores"], dtype=np.float32, copy=True)
         labels = np.array(detections["labels"], dtype=np.int64, copy=True)
         checked = np.flatnonzero(scores >= MIN_SCORE)
@@ -157,7 +167,21 @@ class TextureCheck:
                     max(corners[:, 0].min(), 0.0), max(corners[:, 1].min(), 0.0),
                     min(corners[:, 0].max(), float(width)), min(corners[:, 1].max(), float(height)),
                 ])
-                agrees = outline[2] > outline[0] and outline[3] > outline[1] and _box_iou(outline, boxes[index]) >= OUTLINE_IOU
-                scores[index] = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * scores[index] if agrees else scores[index] * PIECE_FACTOR
+                if outline[2] <= outline[0] or outline[3] <= outline[1]:
+                    continue  # the map puts the sheet outside the frame: no evidence
+                if _box_iou(outline, boxes[index]) < OUTLINE_IOU:
+                    boxes[index] = outline
+                scores[index] = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * scores[index]
+            boxes, scores, labels = _merge(boxes, scores, labels)
         order = np.argsort(-scores, kind="stable")
         return {"boxes": boxes[order], "scores": scores[order], "labels": labels[order]}
+
+
+def _merge(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per-class NMS at ``NMS_IOU``: a corrected box and the box it now repeats are one."""
+    import torch
+    from torchvision.ops import batched_nms
+
+    keep = batched_nms(torch.from_numpy(boxes), torch.from_numpy(scores), torch.from_numpy(labels), NMS_IOU).numpy()
+    keep.sort()
+    return boxes[keep], scores[keep], labels[keep]

@@ -1,5 +1,6 @@
-"""The texture check confirms a box its texture's outline agrees with, halves a piece of a sheet,
-renames a box that matches another texture, and leaves alone what it has no evidence on."""
+"""The texture check confirms a box its texture's outline agrees with, turns a piece of a sheet
+into the whole, renames a box that matches another texture, and leaves alone what it has no
+evidence on."""
 
 from __future__ import annotations
 
@@ -60,13 +61,23 @@ def test_a_box_the_outline_agrees_with_is_raised_over_the_cut_and_keeps_its_orde
     assert higher > checked["scores"][0]  # a surer box stays surer
 
 
-def test_a_piece_of_the_sheet_is_halved_and_falls_below_a_whole_one(checker, scene):
+def test_a_piece_of_the_sheet_becomes_the_outline_and_merges_with_the_whole(checker, scene):
     image, box = scene
     x0, y0, x1, y1 = box
     piece = [x0, y0, (x0 + x1) / 2, (y0 + y1) / 2]
-    checked = checker.apply(image, detections((piece, 0.9, 0), (box, 0.6, 0)))
-    assert checked["scores"].tolist() == pytest.approx([0.8 + 0.2 * 0.6, 0.45])  # best first
-    np.testing.assert_array_equal(checked["boxes"][0], box)
+    alone = checker.apply(image, detections((piece, 0.9, 0)))
+    assert alone["scores"][0] == pytest.approx(0.8 + 0.2 * 0.9)
+    assert _iou(alone["boxes"][0], box) > 0.8  # the whole sheet, not the piece
+    found = detections((piece, 0.9, 0), (box, 0.6, 0))
+    merged = checker.apply(image, found)
+    assert len(merged["scores"]) == 1 and merged["scores"][0] == pytest.approx(0.8 + 0.2 * 0.9)
+    np.testing.assert_array_equal(found["boxes"][0], piece)  # the caller's arrays are left as they were
+
+
+def _iou(a, b) -> float:
+    from workers.train.texture_check import _box_iou
+
+    return _box_iou(np.asarray(a, np.float64), np.asarray(b, np.float64))
 
 
 def test_a_box_named_wrong_is_renamed_to_the_texture_it_matches(checker, scene):
