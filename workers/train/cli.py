@@ -441,6 +441,11 @@ def export(
         _fail(str(error))
     classes = ", ".join(detector.classes)
     typer.echo(f"wrote {written} ({written.stat().st_size / 1e6:.1f} MB): {detector.meta['family']}, classes {classes}")
+    if detector.texture_check() is not None:
+        typer.echo(
+            "note: the graph holds the network only; this detector's texture check (detector.texture_check) "
+            "runs in foldwise detect, evaluate and the REST routes, not in the ONNX model"
+        )
 
 
 # --------------------------------------------------------------------------- finetune

@@ -85,11 +85,11 @@ class TextureCheck:
         if missing:
             raise ValueError(f"texture check: no texture for class(es) {missing}")
         self.classes = list(classes)
-        self._sift = cv2.SIFT_create(contrastThreshold=CONTRAST_THRESHOLD)
+        sift = cv2.SIFT_create(contrastThreshold=CONTRAST_THRESHOLD)
         descriptors, labels, points, sizes = [], [], [], []
         for index, name in enumerate(self.classes):
             gray = _gray(np.asarray(textures[name], dtype=np.uint8))
-            keypoints, found = self._sift.detectAndCompute(gray, None)
+            keypoints, found = sift.detectAndCompute(gray, None)
             if found is not None:
                 descriptors.append(found)
                 labels.append(np.full(len(keypoints), index, dtype=np.int64))
@@ -101,7 +101,6 @@ class TextureCheck:
             points=np.concatenate(points) if points else np.zeros((0, 2), np.float32),
             sizes=sizes,
         )
-        self._matcher = cv2.BFMatcher(cv2.NORM_L2)
 
     def _matches(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(image points, class of the texture match, texture points) of the image's keypoints
@@ -109,14 +108,15 @@ class TextureCheck:
         import cv2
 
         enlarged = cv2.resize(gray, None, fx=UPSCALE, fy=UPSCALE, interpolation=cv2.INTER_LINEAR)
-        keypoints, descriptors = self._sift.detectAndCompute(enlarged, None)
+        # A SIFT and a matcher per call (microseconds): a served detector may check from several threads.
+        keypoints, descriptors = cv2.SIFT_create(contrastThreshold=CONTRAST_THRESHOLD).detectAndCompute(enlarged, None)
         empty = (np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
         features = self._features
         if descriptors is None or len(features.descriptors) < 2:
             return empty
         good = [
             (index, pair[0].trainIdx)
-            for index, pair in enumerate(self._matcher.knnMatch(descriptors, features.descriptors, k=2))
+            for index, pair in enumerate(cv2.BFMatcher(cv2.NORM_L2).knnMatch(descriptors, features.descriptors, k=2))
             if len(pair) == 2 and pair[0].distance < RATIO * pair[1].distance
         ]
         if not good:

@@ -214,3 +214,38 @@ def test_yolo_exported_at_another_size_runs_there_and_not_above_its_input_size(e
 
     larger = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--image-size", "96", "--out", str(target)])
     assert larger.exit_code == 1 and "up to its input size 64 (got 96x96)" in larger.output
+
+
+def test_a_texture_checked_detector_trained_from_the_cli_carries_its_textures_and_export_says_what_it_leaves_out(
+    rendered, tmp_path
+):
+    """`foldwise train --config` with detector.texture_check takes the classes' textures from the
+    config's asset catalog; the ONNX graph holds the network only, and the export says so."""
+    import yaml
+
+    from foldwise.settings import REPO_ROOT
+    from workers.train.checkpoint import load_detector
+
+    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
+    config["detector"]["texture_check"] = True
+    checkpoint = tmp_path / "checked.pt"
+
+    def train(objects: int):
+        config["assets"]["n_objects"] = objects
+        (tmp_path / "config.yaml").write_text(yaml.safe_dump(config))
+        return runner.invoke(
+            make_app(),
+            ["train", "--detector", "faster_rcnn", "--data", str(rendered), "--iterations", "1", "--input-size", "64",
+             "--batch-size", "2", "--threads", "1", "--config", str(tmp_path / "config.yaml"), "--out", str(checkpoint)],
+        )  # fmt: skip
+
+    refused = train(2)  # the renders hold a third class the config's catalog does not
+    assert refused.exit_code == 1 and "texture_check needs each class's texture" in refused.output
+    assert "unknown object 'chelsea'" in refused.output and not checkpoint.exists()
+    trained = train(5)
+    assert trained.exit_code == 0, trained.output
+    detector = load_detector(checkpoint)
+    assert detector.texture_check() is not None and sorted(detector.textures) == sorted(detector.classes)
+    result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--out", str(tmp_path / "m.onnx")])
+    assert result.exit_code == 0, result.output
+    assert "the graph holds the network only" in result.output and "texture check" in result.output
