@@ -159,6 +159,8 @@ class TextureCheck:
                 )
                 if affine is None or mask is None or int(mask.sum()) < MIN_INLIERS:
                     continue
+                if np.linalg.det(affine[:, :2]) <= 0:
+                    continue  # a mirrored (or collapsed) print: not the sheet's front, a false fit
                 texture_width, texture_height = self._features.sizes[label]
                 corners = np.array(
                     [[0, 0], [texture_width, 0], [texture_width, texture_height], [0, texture_height]], np.float32

@@ -106,3 +106,19 @@ def test_grayscale_images_and_textures_work_and_a_missing_texture_is_named(textu
     assert checked["scores"][0] >= CONFIRMED_FLOOR
     with pytest.raises(ValueError, match=r"no texture for class\(es\) \['rocket'\]"):
         TextureCheck(textures, CLASSES + ["rocket"])
+
+
+def test_a_mirrored_fit_is_no_evidence(checker, scene, monkeypatch):
+    """Matches whose map mirrors the texture (a printed sheet shows its front only) leave the box
+    as the network gave it, where the same matches unmirrored confirm it."""
+    image, box = scene
+    x0, y0, x1, y1 = box
+    rng = np.random.default_rng(0)
+    texture_points = rng.uniform(0, 512, (40, 2)).astype(np.float32)
+    scale = (x1 - x0) / 512
+    upright = np.stack([x0 + texture_points[:, 0] * scale, y0 + texture_points[:, 1] * scale], axis=1)
+    mirrored = np.stack([x1 - texture_points[:, 0] * scale, upright[:, 1]], axis=1)
+    found = detections((box, 0.5, 0))
+    for points, raised in ((upright, True), (mirrored, False)):
+        monkeypatch.setattr(checker, "_matches", lambda gray, p=points: (p, np.zeros(len(p), np.int64), texture_points))
+        assert bool(checker.apply(image, found)["scores"][0] > 0.8) == raised
