@@ -12,6 +12,7 @@ sheet lies: the texture's outline, mapped into the image and clipped to the fram
 - An outline that does not belongs to a box that is a piece of the sheet, or a box around more
   than it: the outline becomes the box, raised as a confirmed one, and boxes of one class that
   now overlap (IoU ≥ ``NMS_IOU``) are merged to the best, as the detector's views are.
+- A map that mirrors the texture is a false fit (a printed sheet shows its front): no evidence.
 - A box whose keypoints match another class's texture far better is renamed to that class.
 - Every other box (too small or blurred for keypoints, a texture with few of them, or clutter
   matching nothing) keeps the network's score and class: no evidence is not evidence against.
