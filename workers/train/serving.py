@@ -63,6 +63,7 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
         ],
         "seconds": time.perf_counter() - started,
         "members": len(detector.meta.get("members", ())) or 1,  # an ensemble file's detectors
+        "texture_check": detector.texture_check() is not None,
     }
 
 

@@ -66,6 +66,9 @@ class Detections(BaseModel):
     detections: list[Detection] = Field(description="best score first, at or above `threshold`")
     threshold: float
     seconds: float = Field(description="time the worker took (decoding included)")
+    texture_check: bool = Field(
+        default=False, description="whether the detector's texture check ran on the network's detections (detector.texture_check)"
+    )
 
 
 class DetectResult(Detections):

@@ -270,6 +270,42 @@ def test_a_studys_ensemble_detects_as_its_members_merged(served, trained, tmp_pa
     assert "members" not in alone.json() and alone.json()["detections"] != body["detections"]
 
 
+def test_a_texture_checked_detector_is_served_with_its_check_and_says_so(served, trained, tmp_path):
+    """A detector whose config asks for the texture check answers through it (as `foldwise
+    detect` does), and the reply says whether the check ran."""
+    import cv2
+
+    from workers.render.assets import load_assets
+    from workers.train.checkpoint import detect_object, load_detector, read_checkpoint, save_checkpoint, save_ensemble
+
+    payload = read_checkpoint(trained["checkpoint"])
+    detector = load_detector(trained["checkpoint"])
+    assert detector.texture_check() is None
+    checked = tmp_path / "checked.pt"
+    catalog = load_assets()
+    save_checkpoint(
+        detector.model, {**payload["meta"], "config": {**payload["meta"]["config"], "texture_check": True}}, checked,
+        textures={name: catalog.texture(name) for name in trained["classes"]},
+    )
+    study = "checked"
+    save_ensemble([checked, checked], store.resolve(store.ensemble_path(study)))
+    sample = trained["samples"][1]
+    headers = {**AUTH, "Content-Type": "image/png"}
+    body = served["client"].post(
+        f"/studies/{study}/detect?threshold=0", content=Path(sample.image_path).read_bytes(), headers=headers
+    ).json()
+    assert body["texture_check"] is True
+    (expected,) = detect_object(
+        load_detector(store.resolve(store.ensemble_path(study))),
+        [cv2.cvtColor(cv2.imread(str(sample.image_path)), cv2.COLOR_BGR2RGB)],
+    )
+    assert [d["score"] for d in body["detections"]] == pytest.approx(expected["scores"].tolist())
+    plain = served["client"].post(
+        f"/models/{served['ready']}/detect?threshold=0", content=Path(sample.image_path).read_bytes(), headers=headers
+    ).json()
+    assert plain["texture_check"] is False
+
+
 def test_a_study_without_an_ensemble_or_with_no_folder_name_is_refused(served, trained):
     image = Path(trained["samples"][0].image_path).read_bytes()
     headers = {**AUTH, "Content-Type": "image/png"}
