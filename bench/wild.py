@@ -572,7 +572,7 @@ def load_textures(classes, photos: str = "training") -> dict[str, np.ndarray]:
     from workers.render.assets import _file_image, _to_uint8_rgb, load_assets
 
     catalog = load_assets()
-    textures = {name: catalog.texture(name) for name in classes}
+    textures = catalog.textures(classes)
     ground, clutter = PHOTO_POOLS[photos]
     for name in sorted(set(ground) | set(clutter)):
         if name in panoramas.NAMES:

@@ -160,7 +160,7 @@ def canonical_baseline(
     samples, classes = load_coco_dataset(out / "train")
     echo(f"training {config.detector.family} on {len(samples)} canonical images for {iterations} iterations")
     model_path = out / "canonical.pt"
-    textures = {name: assets.texture(name) for name in classes} if config.detector.texture_check else None
+    textures = assets.textures(classes) if config.detector.texture_check else None
     train_detector(samples, None, iterations, config.detector, classes, model_path, seed=config.seed, textures=textures)
     render_dataset(out / "test", conditions, list(table.difficulties), test_per_pair, config.seed + 1, **render)
     test, _ = load_coco_dataset(out / "test")

@@ -235,6 +235,10 @@ class AssetCatalog:
         """(h, w, 3) uint8 RGB albedo of an object (read-only, cached)."""
         return self._get("objects", object_name).load()
 
+    def textures(self, object_names) -> dict[str, np.ndarray]:
+        """Each named object's texture (:meth:`texture`), by name: a detector's texture check reference."""
+        return {name: self.texture(name) for name in object_names}
+
     def occluder(self, name: str) -> tuple[np.ndarray, np.ndarray | None]:
         """(rgb (h, w, 3) uint8, alpha (h, w) uint8 or None when the image has no alpha), both
         read-only and cached: the same arrays every call, so per-array caches downstream hit."""

@@ -111,10 +111,10 @@ def save_checkpoint(
         "state_dict": {name: tensor.detach().cpu() for name, tensor in model.state_dict().items()},
     }
     if textures:
-        from workers.train.texture_check import _gray
+        from workers.train.texture_check import grayscale
 
         payload["textures"] = {
-            str(name): torch.from_numpy(_gray(np.asarray(image, dtype=np.uint8)).copy()) for name, image in textures.items()
+            str(name): torch.from_numpy(grayscale(np.asarray(image, dtype=np.uint8)).copy()) for name, image in textures.items()
         }
     return _write_atomically(payload, path)
 

@@ -272,8 +272,7 @@ def _catalog_textures(assets, classes: list[str]) -> dict:
     from workers.render.assets import AssetError, load_assets
 
     try:
-        catalog = load_assets(assets)
-        return {name: catalog.texture(name) for name in classes}
+        return load_assets(assets).textures(classes)
     except AssetError as error:
         _fail(f"detector.texture_check needs each class's texture from the config's assets: {error}")
 

@@ -134,15 +134,8 @@ def loop_views(config: ExperimentConfig) -> dict[str, tuple]:
     return {"test_sizes": (), "test_turns": (), "texture_check": False}
 
 
-def _class_textures(config: ExperimentConfig, classes: list[str]) -> dict[str, np.ndarray]:
-    """Each class's texture from the experiment's asset catalog (the texture check's reference)."""
-    from workers.render.assets import load_assets
-
-    catalog = load_assets(config.assets)
-    return {name: catalog.texture(name) for name in classes}
-
-
 def _run_claimed_increment(model_id: int) -> str:
+    from workers.render.assets import load_assets
     from workers.train.checkpoint import detect_object, load_detector
     from workers.train.evaluation import detection_samples, evaluate_predictions
     from workers.train.training import train_detector
@@ -199,7 +192,7 @@ def _run_claimed_increment(model_id: int) -> str:
             classes=classes,
             out=store.resolve(relative),
             seed=seed,
-            textures=_class_textures(config, classes) if config.detector.texture_check else None,
+            textures=load_assets(config.assets).textures(classes) if config.detector.texture_check else None,
         )
         train_seconds = time.perf_counter() - started
 

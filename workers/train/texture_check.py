@@ -59,7 +59,8 @@ class _TextureFeatures:
     sizes: list[tuple[int, int]]  # (width, height) of each class's texture
 
 
-def _gray(image: np.ndarray) -> np.ndarray:
+def grayscale(image: np.ndarray) -> np.ndarray:
+    """A uint8 image as one channel (RGB or RGBA converted, grayscale as it is)."""
     import cv2
 
     image = np.ascontiguousarray(image)
@@ -89,7 +90,7 @@ class TextureCheck:
         sift = cv2.SIFT_create(contrastThreshold=CONTRAST_THRESHOLD)
         descriptors, labels, points, sizes = [], [], [], []
         for index, name in enumerate(self.classes):
-            gray = _gray(np.asarray(textures[name], dtype=np.uint8))
+            gray = grayscale(np.asarray(textures[name], dtype=np.uint8))
             keypoints, found = sift.detectAndCompute(gray, None)
             if found is not None:
                 descriptors.append(found)
@@ -136,7 +137,7 @@ class TextureCheck:
         labels = np.array(detections["labels"], dtype=np.int64, copy=True)
         checked = np.flatnonzero(scores >= MIN_SCORE)
         if len(checked):
-            gray = _gray(image)
+            gray = grayscale(image)
             image_points, match_labels, texture_points = self._matches(gray)
             height, width = gray.shape
             for index in checked:

@@ -137,8 +137,8 @@ def _initial_model(
     config: DetectorConfig,
     classes: Sequence[str],
     seed: int,
-) -> tuple[nn.Module, int, str | None]:
-    """(model, iterations already trained, parent path) for a fresh or warm start."""
+) -> tuple[nn.Module, int, str | None, dict[str, np.ndarray] | None]:
+    """(model, iterations already trained, parent path, ω_in's textures) for a fresh or warm start."""
     from workers.train.detectors import build_detector
 
     boxes = [sample.boxes for sample in samples]
@@ -151,14 +151,14 @@ def _initial_model(
     torch.manual_seed(seed)
     if init is None:
         model = build_detector(config, len(classes), train_boxes, train_image_sizes=train_sizes)
-        return model, 0, None
+        return model, 0, None, None
     payload = read_checkpoint(init)
     meta = payload["meta"]
     check_compatible(meta, config, classes, init)
     # ω_in's state replaces the initial weights (no ImageNet file needed).
     model = build_detector(config, len(classes), train_boxes, train_image_sizes=train_sizes, load_pretrained=False)
     load_state(model, payload["state_dict"], init)
-    return model, int(meta.get("iterations", 0)), str(init)
+    return model, int(meta.get("iterations", 0)), str(init), payload_textures(payload)
 
 
 def train_detector(
@@ -180,15 +180,6 @@ def train_detector(
     carries the classes' ``textures`` (None: ω_in's, where it has them).
     """
     _validate(samples, iterations, classes, config)
-    if config.texture_check:
-        if textures is None and init is not None:
-            textures = payload_textures(read_checkpoint(init))
-        missing = [name for name in classes if not textures or name not in textures]
-        if missing:
-            raise ValueError(
-                f"detector.texture_check needs each class's texture; none for {missing}: give them "
-                "(the experiment's asset catalog), start from a checkpoint that carries them, or turn the check off"
-            )
     with torch_threads(config.num_threads):
         return _train(samples, init, iterations, config, list(classes), Path(out), seed, on_step, textures)
 
@@ -210,7 +201,15 @@ def _train(
     for sample, image in zip(samples, images):
         for box in sample.boxes:
             validate_box(box, image.shape[1], image.shape[0], str(sample.image_path))
-    model, prior_iterations, parent = _initial_model(samples, images, init, config, classes, seed)
+    model, prior_iterations, parent, init_textures = _initial_model(samples, images, init, config, classes, seed)
+    if config.texture_check:
+        textures = init_textures if textures is None else textures
+        missing = [name for name in classes if not textures or name not in textures]
+        if missing:
+            raise ValueError(
+                f"detector.texture_check needs each class's texture; none for {missing}: give them "
+                "(the experiment's asset catalog), start from a checkpoint that carries them, or turn the check off"
+            )
     model.to(device).train()
 
     cache = getattr(model, "proposal_cache", None)

@@ -285,7 +285,7 @@ def test_a_texture_checked_detector_is_served_with_its_check_and_says_so(served,
     catalog = load_assets()
     save_checkpoint(
         detector.model, {**payload["meta"], "config": {**payload["meta"]["config"], "texture_check": True}}, checked,
-        textures={name: catalog.texture(name) for name in trained["classes"]},
+        textures=catalog.textures(trained["classes"]),
     )
     study = "checked"
     save_ensemble([checked, checked], store.resolve(store.ensemble_path(study)))
