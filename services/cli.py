@@ -203,7 +203,7 @@ def member_configs(config, members: int) -> list:
     return variants
 
 
-def _run_members(config, members: int, report_dir: Path | None) -> list[str]:
+def _run_members(config, members: int, report_dir: Path | None) -> bool:
     """Run ``members`` curricula of ``config`` (seeds seed, seed+1, ...) side by side, one process
     each with an equal share of the threads, under one study id; then hand over their final models
     as one ensemble file. Their models detect better as one than the average member alone; on 2
