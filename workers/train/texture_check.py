@@ -7,15 +7,17 @@ textures (Lowe's ratio test), and an affine map from the class's texture to thos
 by RANSAC. Where at least ``MIN_INLIERS`` matches agree on one map, the map tells where the whole
 sheet lies: the texture's outline, mapped into the image and clipped to the frame.
 
-- An outline that agrees with the box (IoU ≥ ``OUTLINE_IOU``) confirms the detection: its score
-  is raised above the paper's 0.8 cut (``0.8 + 0.2 * score``, so confirmed boxes keep their order).
-- An outline that does not belongs to a box that is a piece of the sheet, or a box around more
-  than it: the outline becomes the box, raised as a confirmed one, and boxes of one class that
-  now overlap (IoU ≥ ``NMS_IOU``) are merged to the best, as the detector's views are.
+- Such a map confirms the detection: the outline becomes its box (whether the network's box was
+  the whole sheet, a piece of it or a box around more), and its score rises above every box
+  without such evidence (``0.9 + 0.1 * score``, so confirmed boxes keep their order). Boxes of one
+  class that now overlap (IoU ≥ ``NMS_IOU``: two boxes on one sheet, confirmed by one outline)
+  are merged to the best, as the detector's views are.
 - A map that mirrors the texture is a false fit (a printed sheet shows its front): no evidence.
 - A box whose keypoints match another class's texture far better is renamed to that class.
 - Every other box (too small or blurred for keypoints, a texture with few of them, or clutter
-  matching nothing) keeps the network's score and class: no evidence is not evidence against.
+  matching nothing) keeps its class and its place against the paper's 0.8 cut: no evidence is
+  not evidence against. Those at or above the cut rank below the confirmed ones
+  (``0.8 + 0.5 * (score - 0.8)``, in [0.8, 0.9)), as the texture is the stronger evidence.
 
 Keypoints are found on the image enlarged ``UPSCALE`` times, with SIFT's contrast threshold at
 half its default (textures too): small and low-contrast sheets give too few otherwise.
@@ -39,12 +41,13 @@ RATIO = 0.8
 MIN_SCORE = 0.3
 # Matches of one class inside a box that a RANSAC affine map must agree on before its outline counts.
 MIN_INLIERS = 6
-# The mapped outline's IoU with the box from which it confirms the box.
-OUTLINE_IOU = 0.5
 # A box is renamed when another class has at least this many matches, and this many times its own.
 RENAME_MATCHES = 4
 RENAME_FACTOR = 3
-CONFIRMED_FLOOR = 0.8  # the paper's score cut: a confirmed box lands above it
+PAPER_CUT = 0.8  # the paper's score cut: boxes without evidence keep their side of it
+CONFIRMED_FLOOR = 0.9  # confirmed boxes score from here: above every box without evidence
+# Boxes without evidence at or above the cut are squeezed into [PAPER_CUT, CONFIRMED_FLOOR).
+UNCONFIRMED_SPAN = (CONFIRMED_FLOOR - PAPER_CUT) / (1 - PAPER_CUT)
 # Boxes of one class overlapping this much after the check are one (the detector's merge IoU).
 NMS_IOU = 0.5
 UPSCALE = 2
@@ -67,14 +70,6 @@ def grayscale(image: np.ndarray) -> np.ndarray:
     if image.ndim == 2:
         return image
     return cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2GRAY)
-
-
-def _box_iou(a: np.ndarray, b: np.ndarray) -> float:
-    width = max(0.0, min(a[2], b[2]) - max(a[0], b[0]))
-    height = max(0.0, min(a[3], b[3]) - max(a[1], b[1]))
-    inter = width * height
-    union = (a[2] - a[0]) * (a[3] - a[1]) + (b[2] - b[0]) * (b[3] - b[1]) - inter
-    return float(inter / union) if union > 0 else 0.0
 
 
 class TextureCheck:
@@ -136,6 +131,7 @@ class TextureCheck:
         scores = np.array(detections["scores"], dtype=np.float32, copy=True)
         labels = np.array(detections["labels"], dtype=np.int64, copy=True)
         checked = np.flatnonzero(scores >= MIN_SCORE)
+        confirmed = np.zeros(len(scores), dtype=bool)
         if len(checked):
             gray = grayscale(image)
             image_points, match_labels, texture_points = self._matches(gray)
@@ -173,9 +169,13 @@ class TextureCheck:
                 ])
                 if outline[2] <= outline[0] or outline[3] <= outline[1]:
                     continue  # the map puts the sheet outside the frame: no evidence
-                if _box_iou(outline, boxes[index]) < OUTLINE_IOU:
-                    boxes[index] = outline
-                scores[index] = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * scores[index]
+                boxes[index] = outline
+                confirmed[index] = True
+            scores = np.where(
+                confirmed,
+                CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * scores,
+                np.where(scores >= PAPER_CUT, PAPER_CUT + (scores - PAPER_CUT) * UNCONFIRMED_SPAN, scores),
+            ).astype(np.float32)
             boxes, scores, labels = _merge(boxes, scores, labels)
         order = np.argsort(-scores, kind="stable")
         return {"boxes": boxes[order], "scores": scores[order], "labels": labels[order]}

@@ -1,6 +1,6 @@
-"""The texture check confirms a box its texture's outline agrees with, turns a piece of a sheet
-into the whole, renames a box that matches another texture, and leaves alone what it has no
-evidence on."""
+"""The texture check confirms a box its texture's outline agrees with (the outline becoming the
+box), turns a piece of a sheet into the whole, renames a box that matches another texture, and
+leaves what it has no evidence on on its side of the paper's cut, ranked below what it confirmed."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from workers.train.texture_check import CONFIRMED_FLOOR, TextureCheck
+from workers.train.texture_check import CONFIRMED_FLOOR, PAPER_CUT, TextureCheck
 
 CLASSES = ["astronaut", "coffee"]
 
@@ -51,13 +51,14 @@ def detections(*rows):
     }
 
 
-def test_a_box_the_outline_agrees_with_is_raised_over_the_cut_and_keeps_its_order(checker, scene):
+def test_a_confirmed_box_becomes_the_outline_raised_over_the_cut_in_its_order(checker, scene):
     image, box = scene
-    checked = checker.apply(image, detections((box, 0.5, 0)))
+    slightly_off = box + np.array([6, -5, 4, 3], np.float32)  # agrees with the sheet, loosely
+    checked = checker.apply(image, detections((slightly_off, 0.5, 0)))
     assert checked["scores"][0] == pytest.approx(CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * 0.5)
     assert checked["labels"][0] == 0
-    np.testing.assert_array_equal(checked["boxes"][0], box)
-    higher = checker.apply(image, detections((box, 0.9, 0)))["scores"][0]
+    assert _iou(checked["boxes"][0], box) > _iou(slightly_off, box)  # the texture's outline: closer to the sheet
+    higher = checker.apply(image, detections((slightly_off, 0.9, 0)))["scores"][0]
     assert higher > checked["scores"][0]  # a surer box stays surer
 
 
@@ -66,18 +67,19 @@ def test_a_piece_of_the_sheet_becomes_the_outline_and_merges_with_the_whole(chec
     x0, y0, x1, y1 = box
     piece = [x0, y0, (x0 + x1) / 2, (y0 + y1) / 2]
     alone = checker.apply(image, detections((piece, 0.9, 0)))
-    assert alone["scores"][0] == pytest.approx(0.8 + 0.2 * 0.9)
+    assert alone["scores"][0] == pytest.approx(CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * 0.9)
     assert _iou(alone["boxes"][0], box) > 0.8  # the whole sheet, not the piece
     found = detections((piece, 0.9, 0), (box, 0.6, 0))
     merged = checker.apply(image, found)
-    assert len(merged["scores"]) == 1 and merged["scores"][0] == pytest.approx(0.8 + 0.2 * 0.9)
+    assert len(merged["scores"]) == 1 and merged["scores"][0] == pytest.approx(CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * 0.9)
     np.testing.assert_array_equal(found["boxes"][0], piece)  # the caller's arrays are left as they were
 
 
 def _iou(a, b) -> float:
-    from workers.train.texture_check import _box_iou
+    import torch
+    from torchvision.ops import box_iou
 
-    return _box_iou(np.asarray(a, np.float64), np.asarray(b, np.float64))
+    return float(box_iou(torch.as_tensor(np.asarray(a, np.float32))[None], torch.as_tensor(np.asarray(b, np.float32))[None]))
 
 
 def test_a_box_named_wrong_is_renamed_to_the_texture_it_matches(checker, scene):
@@ -86,12 +88,18 @@ def test_a_box_named_wrong_is_renamed_to_the_texture_it_matches(checker, scene):
     assert checked["labels"][0] == 0 and checked["scores"][0] > 0.85
 
 
-def test_without_evidence_nothing_changes(checker, scene):
+def test_without_evidence_boxes_stay_on_their_side_of_the_cut_below_the_confirmed(checker, scene):
     image, box = scene
     found = detections(([250, 20, 300, 50], 0.95, 0), ([232, 62, 308, 198], 0.9, 1), (box, 0.2, 1))
     checked = checker.apply(image, found)  # a flat card, blurred noise, and a box under the floor
-    for key in ("boxes", "scores", "labels"):
+    for key in ("boxes", "labels"):
         np.testing.assert_array_equal(checked[key], found[key])
+    # Still over the cut and in their order, but below any confirmed box; under the cut untouched.
+    assert PAPER_CUT <= checked["scores"][1] < checked["scores"][0] < CONFIRMED_FLOOR
+    assert checked["scores"][2] == pytest.approx(0.2)
+    with_sheet = checker.apply(image, detections(([250, 20, 300, 50], 0.99, 0), (box, 0.31, 0)))
+    np.testing.assert_array_equal(with_sheet["boxes"][1], [250, 20, 300, 50])  # the sure card now ranks second
+    assert with_sheet["scores"][0] >= CONFIRMED_FLOOR > with_sheet["scores"][1] >= PAPER_CUT
     blank = np.full((240, 320, 3), 90, np.uint8)  # no keypoint at all
     for key, value in checker.apply(blank, detections((box, 0.7, 0))).items():
         np.testing.assert_array_equal(value, detections((box, 0.7, 0))[key])
