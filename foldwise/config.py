@@ -388,11 +388,18 @@ class DetectorConfig(_Section):
     # the sizes' inference again): the wild's camera has any roll, and one of the four views
     # brings any sheet within 45° of upright. Empty: the image as it is.
     test_turns: tuple[Literal[0, 1, 2, 3], ...] = Field(default=(), max_length=4)
+    # How those views' boxes merge (R-CNN families). None: per-class NMS, a box keeps the best
+    # score any view gave it. A fraction α: the views vote, a box scoring 1 − Π_views (1 − α·s),
+    # s each view's best score for it, so a sheet most views find outranks clutter one view is
+    # sure of (an ensemble's members then combine by the same rule at α = 1, so two detectors
+    # score as one whose views all voted). One view alone keeps its scores.
+    view_vote: float | None = Field(default=None, gt=0.0, le=1.0)
     # Each detection checked against its class's texture (SIFT matches, an affine map fitted by
-    # RANSAC, workers/train/texture_check.py): a box the texture's mapped outline agrees with is
-    # raised above the paper's 0.8 cut, a piece of a sheet (or a box around more) replaced by the
-    # outline, a box matching another class's texture renamed. The checkpoint then carries the
-    # textures. Off: the network's scores alone (the paper has no such step).
+    # RANSAC, workers/train/texture_check.py): a box the texture confirms takes the texture's
+    # mapped outline as its box (a piece of a sheet becomes the whole) and ranks above the paper's
+    # 0.8 cut and every box without such evidence; a box matching another class's texture is
+    # renamed. The checkpoint then carries the textures. Off: the network's scores alone (the
+    # paper has no such step).
     texture_check: bool = False
     augmentation: AugmentationConfig = AugmentationConfig()
 
@@ -410,6 +417,8 @@ class DetectorConfig(_Section):
             raise ValueError("test_sizes: only read by the R-CNN families (yolo letterboxes into input_size)")
         if self.family == "yolo" and self.test_turns:
             raise ValueError("test_turns: only read by the R-CNN families")
+        if self.family == "yolo" and self.view_vote is not None:
+            raise ValueError("view_vote: only read by the R-CNN families (yolo detects at one view)")
         return self
 
     @field_validator("test_sizes", "test_turns")

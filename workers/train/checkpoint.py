@@ -290,12 +290,14 @@ def load_detector(path: str | Path, device: str | torch.device | None = None) ->
 class EnsembleModel(nn.Module):
     """Several detectors' models as one (eval only): each detects at its own views, and their
     detections merge per image as a detector's views do (per-class NMS at ``iou``, the best
-    ``limit`` kept). Setting ``test_sizes`` or ``test_turns`` sets every member's."""
+    ``limit`` kept). Members whose views vote (``view_vote``) combine their voted scores by the
+    same rule at a vote of 1, so the ensemble scores as if one detector's views had all voted
+    together. Setting ``test_sizes`` or ``test_turns`` sets every member's."""
 
-    def __init__(self, members: Sequence[nn.Module], iou: float, limit: int) -> None:
+    def __init__(self, members: Sequence[nn.Module], iou: float, limit: int, vote: float | None = None) -> None:
         super().__init__()
         self.members = nn.ModuleList(members)
-        self.iou, self.limit = float(iou), int(limit)
+        self.iou, self.limit, self.vote = float(iou), int(limit), vote
 
     def forward(self, images):
         from workers.train.detectors import merge_detections
@@ -303,7 +305,7 @@ class EnsembleModel(nn.Module):
         if self.training:
             raise RuntimeError("an ensemble only detects: train each member")
         runs = [member(images) for member in self.members]
-        return [merge_detections(outputs, self.iou, self.limit) for outputs in zip(*runs)]
+        return [merge_detections(outputs, self.iou, self.limit, self.vote) for outputs in zip(*runs)]
 
     def _views(name: str):  # noqa: N805 (a property factory, not a method)
         def get(self):
@@ -323,7 +325,8 @@ class EnsembleModel(nn.Module):
 def combine_detectors(detectors: Sequence[Detector]) -> Detector:
     """Several detectors of one class list, on one device, as one :class:`Detector` (one
     detector: itself). Its ``meta`` is the first member's, with every member's in ``members``;
-    its detections are the members' merged at the first member's NMS IoU and detection cap."""
+    its detections are the members' merged at the first member's NMS IoU and detection cap (by
+    vote where the first member's views vote: :class:`EnsembleModel`)."""
     if not detectors:
         raise ValueError("an ensemble needs at least one detector")
     if len(detectors) == 1:
@@ -339,7 +342,8 @@ def combine_detectors(detectors: Sequence[Detector]) -> Detector:
     # One class list, so one set of textures checks the merged detections (the first member's).
     textures = next((d.textures for d in detectors if d.textures), None)
     return Detector(
-        model=EnsembleModel([d.model for d in detectors], iou, limit), meta=meta, device=first.device, textures=textures
+        model=EnsembleModel([d.model for d in detectors], iou, limit, vote=1.0 if first.config.view_vote else None),
+        meta=meta, device=first.device, textures=textures
     )
 
 

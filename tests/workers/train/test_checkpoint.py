@@ -263,6 +263,32 @@ def test_detection_at_several_sizes_merges_each_sizes_detections(trained, tmp_pa
     assert multi.model.transform.max_size == 64 and multi.model.test_sizes == sizes
 
 
+def test_a_detector_whose_views_vote_scores_by_their_vote_and_pairs_combine_so(trained, tmp_path):
+    """detector.view_vote: detect_object gives the single-size runs merged by merge_detections'
+    vote, for every caller; an ensemble of such detectors combines the members' votes at 1."""
+    from workers.train.checkpoint import save_ensemble
+    from workers.train.detectors import merge_detections
+
+    _, path, paths, _ = trained
+    plain = load_detector(path)
+    sizes = (64, 96, 128)
+    meta = {**plain.meta, "config": {**plain.meta["config"], "test_sizes": list(sizes), "view_vote": 0.7}}
+    voting = load_detector(save_checkpoint(plain.model, meta, tmp_path / "voting.pt"))
+    assert voting.model.view_vote == 0.7 and plain.model.view_vote is None
+    single = [detect_object(plain, paths, test_sizes=(size,)) for size in sizes]
+    voted = detect_object(voting, paths)
+    limit = voting.config.detections_per_image
+    for index, result in enumerate(voted):
+        expected = merge_detections([runs[index] for runs in single], 0.5, limit, vote=0.7)
+        for key in ("boxes", "scores", "labels"):
+            np.testing.assert_allclose(result[key], expected[key], rtol=0, atol=1e-6)
+    assert not all(np.allclose(a["scores"], b["scores"]) for a, b in zip(voted, detect_object(plain, paths, test_sizes=sizes)))
+    pair = load_detector(save_ensemble([tmp_path / "voting.pt", tmp_path / "voting.pt"], tmp_path / "pair.pt"))
+    assert pair.model.vote == 1.0
+    for alone, together in zip(voted, detect_object(pair, paths)):
+        np.testing.assert_allclose(together["scores"], 1 - (1 - alone["scores"]) ** 2, rtol=0, atol=1e-6)
+
+
 @pytest.mark.parametrize("turn", [1, 2, 3])
 def test_a_box_found_on_a_turned_image_maps_back_exactly(turn):
     """turn_image turns as torch.rot90 does, and unturn_boxes undoes it on a non-square image: the
@@ -327,6 +353,9 @@ def test_detection_on_quarter_turns_merges_each_turns_detections_mapped_back(tra
         ({"family": "yolo", "backbone": "mobilenet_v3_large", "test_turns": [0, 1]}, "test_turns: only read by the R-CNN families"),
         ({"test_turns": [1, 1]}, "turns repeat"),
         ({"test_turns": [0, 4]}, "Input should be 0, 1, 2 or 3"),
+        ({"view_vote": 0.0}, "view_vote\n  Input should be greater than 0"),
+        ({"view_vote": 1.5}, "view_vote\n  Input should be less than or equal to 1"),
+        ({"family": "yolo", "backbone": "mobilenet_v3_large", "view_vote": 0.7}, "view_vote: only read by the R-CNN families"),
     ],
 )
 def test_bad_test_views_are_refused_with_the_reason(changes, problem):

@@ -249,3 +249,49 @@ def test_a_texture_checked_detector_trained_from_the_cli_carries_its_textures_an
     result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--out", str(tmp_path / "m.onnx")])
     assert result.exit_code == 0, result.output
     assert "the graph holds the network only" in result.output and "texture check" in result.output
+
+
+def test_the_views_vote_exports_as_tensor_operations_right_at_any_number_of_boxes(tmp_path):
+    """merge_detections with a vote (detector.view_vote) traced into ONNX gives torch's boxes,
+    scores and order for runs holding other numbers of boxes than the traced ones, and none."""
+    import onnxruntime
+    import torch
+
+    from workers.train.detectors import merge_detections
+
+    class Merge(torch.nn.Module):
+        def forward(self, *tensors):
+            runs = [dict(zip(("boxes", "scores", "labels"), tensors[i : i + 3])) for i in range(0, len(tensors), 3)]
+            merged = merge_detections(runs, 0.5, 8, vote=0.7)
+            return merged["boxes"], merged["scores"], merged["labels"]
+
+    def runs(counts, seed):
+        rng = np.random.default_rng(seed)
+        centres = np.array([[20, 20], [60, 30], [30, 70], [80, 80]], np.float32)
+        tensors = []
+        for count in counts:
+            which = rng.integers(0, len(centres), count)
+            corner = centres[which] + rng.normal(0, 2, (count, 2)).astype(np.float32)
+            boxes = np.concatenate([corner, corner + 16 + rng.normal(0, 1, (count, 2)).astype(np.float32)], 1)
+            scores = rng.uniform(0.05, 0.95, count).astype(np.float32)  # distinct: no ties to order either way
+            tensors += [boxes, scores, (which % 2).astype(np.int64)]
+        return tensors
+
+    traced = runs((6, 4, 5), seed=0)
+    names = [f"{key}{i}" for i in range(3) for key in ("boxes", "scores", "labels")]
+    path = tmp_path / "merge.onnx"
+    Merge()(*(torch.from_numpy(t) for t in traced))  # torchvision loads its operators eagerly, not inside a trace
+    torch.onnx.export(
+        Merge(), tuple(torch.from_numpy(t) for t in traced), str(path), dynamo=False, opset_version=17,
+        input_names=names, output_names=["boxes", "scores", "labels"], dynamic_axes={name: {0: "n"} for name in names},
+    )  # fmt: skip
+    session = onnxruntime.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    for counts, seed in (((6, 4, 5), 0), ((9, 1, 12), 1), ((3, 0, 7), 2)):
+        tensors = runs(counts, seed)
+        expected = merge_detections(
+            [dict(zip(("boxes", "scores", "labels"), tensors[i : i + 3])) for i in range(0, 9, 3)], 0.5, 8, vote=0.7
+        )
+        boxes, scores, labels = session.run(None, dict(zip(names, tensors)))
+        np.testing.assert_allclose(scores, expected["scores"], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(boxes, expected["boxes"], rtol=0, atol=1e-5)
+        np.testing.assert_array_equal(labels, expected["labels"])

@@ -254,7 +254,8 @@ def detect_at_views(
     """An R-CNN's detections (``detect(images)``: its one-size eval forward on a batch) on each
     view of the images: resized to each of ``sizes`` (``config.test_sizes``; empty: the model's
     own size) and turned by each of ``turns`` quarter turns (``config.test_turns``; empty: as
-    they are), merged per image by per-class NMS at the model's own NMS IoU and detection cap.
+    they are), merged per image by per-class NMS at the model's own NMS IoU and detection cap,
+    scored by the views' vote where the model has one (``model.view_vote``: ``merge_detections``).
 
     Each size keeps the model's square rule (the longer side at ``size``); every run's boxes are
     mapped back to the images' own pixels (resize and turn undone), so they merge as they are.
@@ -278,24 +279,56 @@ def detect_at_views(
                 runs.append(outputs)
     finally:
         transform.min_size, transform.max_size = saved
-    return [merge_detections(outputs, heads.nms_thresh, heads.detections_per_img) for outputs in zip(*runs)]
+    vote = getattr(model, "view_vote", None)
+    return [merge_detections(outputs, heads.nms_thresh, heads.detections_per_img, vote) for outputs in zip(*runs)]
 
 
-def merge_detections(outputs: Sequence[dict], iou_threshold: float, limit: int) -> dict:
+def merge_detections(outputs: Sequence[dict], iou_threshold: float, limit: int, vote: float | None = None) -> dict:
     """One image's detections from several runs (views, or several detectors) as one: per-class
     NMS at ``iou_threshold`` over all their boxes, the best ``limit`` kept, best first. Each
     run is a dict of ``boxes`` (n, 4) xyxy, ``scores`` (n,), ``labels`` (n,), tensors or arrays
-    (the result is of the first run's kind)."""
+    (the result is of the first run's kind).
+
+    ``vote`` None: a kept box keeps its own score (the best of the boxes it suppresses). A
+    fraction ``vote`` in (0, 1]: the runs vote (``detector.view_vote``): a kept box scores
+    ``1 - prod over runs (1 - vote * s_r)``, ``s_r`` the best score of that run's boxes it
+    suppressed (0 where none), so a box most runs find outranks one a single run is sure of.
+    One run alone keeps its scores. The same boxes are kept either way; only scores and order
+    differ. Written in tensor operations only, as ONNX export traces it.
+    """
     import torch
-    from torchvision.ops import batched_nms
+    from torchvision.ops import batched_nms, box_iou
 
     arrays = not isinstance(outputs[0]["boxes"], torch.Tensor)
     boxes = torch.cat([torch.as_tensor(output["boxes"]).reshape(-1, 4) for output in outputs])
     scores = torch.cat([torch.as_tensor(output["scores"]) for output in outputs])
     labels = torch.cat([torch.as_tensor(output["labels"]) for output in outputs])
-    keep = batched_nms(boxes, scores, labels, iou_threshold)[:limit]
-    merged = {"boxes": boxes[keep], "scores": scores[keep], "labels": labels[keep]}
+    keep = batched_nms(boxes, scores, labels, iou_threshold)
+    if vote is None or len(outputs) < 2:
+        keep = keep[:limit]
+        merged = {"boxes": boxes[keep], "scores": scores[keep], "labels": labels[keep]}
+    else:
+        runs = torch.cat([torch.full_like(torch.as_tensor(output["scores"]), index) for index, output in enumerate(outputs)])
+        # Each box belongs to the first kept box (best first) of its class it overlaps: the one
+        # that suppressed it in the greedy NMS above (a kept box belongs to itself).
+        overlaps = (box_iou(boxes[keep], boxes) > iou_threshold) & (labels[keep][:, None] == labels[None, :])
+        owner = overlaps & (overlaps.to(torch.int32).cumsum(0) == 1)
+        missed = torch.ones_like(keep, dtype=scores.dtype)
+        for index in range(len(outputs)):
+            best = torch.where(owner & (runs == index)[None, :], scores[None, :], torch.zeros_like(scores[None, :]))
+            missed = missed * (1 - vote * _row_max(best))
+        voted = 1 - missed
+        order = voted.sort(descending=True).indices[:limit]
+        keep = keep[order]
+        merged = {"boxes": boxes[keep], "scores": voted[order], "labels": labels[keep]}
     return {key: value.numpy() for key, value in merged.items()} if arrays else merged
+
+
+def _row_max(values):
+    """Each row's maximum of a (k, n) tensor, 0 for rows of an empty one (n = 0)."""
+    import torch
+
+    return torch.nn.functional.pad(values, (0, 1)).amax(1)
 
 
 def turn_image(image, turn: int):

@@ -41,6 +41,7 @@ class FastRCNN(nn.Module):
         max_proposals: int,
         test_sizes: Sequence[int] = (),
         test_turns: Sequence[int] = (),
+        view_vote: float | None = None,
     ) -> None:
         super().__init__()
         self.backbone = backbone
@@ -51,6 +52,7 @@ class FastRCNN(nn.Module):
         # (``detect_at_views``).
         self.test_sizes = tuple(test_sizes)
         self.test_turns = tuple(test_turns)
+        self.view_vote = view_vote
 
     @property
     def proposal_cache(self) -> ProposalCache:
@@ -126,5 +128,6 @@ def build_fast_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: b
         min_size=config.input_size, max_size=config.input_size, image_mean=image_mean, image_std=image_std
     )
     return FastRCNN(
-        backbone, transform, roi_heads, max_proposals=config.edge_boxes, test_sizes=config.test_sizes, test_turns=config.test_turns
+        backbone, transform, roi_heads, max_proposals=config.edge_boxes, test_sizes=config.test_sizes, test_turns=config.test_turns,
+        view_vote=config.view_vote,
     )

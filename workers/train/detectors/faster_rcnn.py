@@ -29,10 +29,13 @@ class FasterRCNN(detection.FasterRCNN):
     at each of those input sizes and quarter turns and merges (``detect_at_views``): every
     caller of the model, ONNX export included, gets the detector its config describes."""
 
-    def __init__(self, *args, test_sizes: Sequence[int] = (), test_turns: Sequence[int] = (), **kwargs) -> None:
+    def __init__(
+        self, *args, test_sizes: Sequence[int] = (), test_turns: Sequence[int] = (), view_vote: float | None = None, **kwargs
+    ) -> None:
         super().__init__(*args, **kwargs)
         self.test_sizes = tuple(test_sizes)
         self.test_turns = tuple(test_turns)
+        self.view_vote = view_vote
 
     def forward(self, images, targets=None):
         if self.training or not (self.test_sizes or self.test_turns):
@@ -94,4 +97,5 @@ def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained:
         box_detections_per_img=config.detections_per_image,
         test_sizes=config.test_sizes,
         test_turns=config.test_turns,
+        view_vote=config.view_vote,
     )
