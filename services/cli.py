@@ -105,7 +105,9 @@ def _print_views(config, path: str) -> None:
         console.print(
             f"best mAP above: each model at the one view it trained at (evaluation.views: trained); the final "
             f"model detects at {views} views (sizes {list(detector.test_sizes) or [detector.input_size]}, "
-            f"quarter turns {list(detector.test_turns) or [0]}): python bench/wild.py --model {path} scores it there",
+            f"quarter turns {list(detector.test_turns) or [0]}"
+            f"{f'; they vote at {detector.view_vote}' if detector.view_vote else ''}): "
+            f"python bench/wild.py --model {path} scores it there",
             highlight=False,
         )
 

@@ -243,11 +243,15 @@ def _run_claimed_increment(model_id: int) -> str:
         evaluation.map = finite_or_none(result.map)
         evaluation.map_unthresholded = finite_or_none(result.map_unthresholded)
         # With a few test images' detections, for the dashboard (θ ids: GET /experiments/{id}/images/{θ}).
+        sizes = list(views.get("test_sizes", config.detector.test_sizes))
+        turns = list(views.get("test_turns", config.detector.test_turns))
         evaluation.details = {
             **result.to_dict(),
             "views": {
-                "test_sizes": list(views.get("test_sizes", config.detector.test_sizes)),
-                "test_turns": list(views.get("test_turns", config.detector.test_turns)),
+                "test_sizes": sizes,
+                "test_turns": turns,
+                # One view has nothing to vote with (merge_detections keeps its scores).
+                "view_vote": config.detector.view_vote if max(len(sizes), 1) * max(len(turns), 1) > 1 else None,
                 "texture_check": bool(views.get("texture_check", config.detector.texture_check)),
             },
             "test_detections": detection_samples(
