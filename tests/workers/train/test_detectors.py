@@ -230,8 +230,9 @@ def test_merging_runs_keeps_the_best_box_per_class_and_place_best_first_and_capp
 
 def test_views_that_vote_rank_a_box_most_views_find_over_one_a_single_view_is_sure_of():
     """merge_detections(vote=α): a kept box scores 1 - Π (1 - α s_run) over the runs, s_run that
-    run's best box it suppressed (a run's second box on the same place adds nothing); the kept
-    boxes are NMS's; one run keeps its scores; votes of members at α then 1 are all runs at α."""
+    run's best box it suppressed (a run's second box on the same place adds nothing, a run under
+    VOTE_FLOOR abstains, a box no run scores at the floor keeps its score); the kept boxes are
+    NMS's; one run keeps its scores; votes of members at α then 1 are all runs at α."""
     def run(*rows):
         return {
             "boxes": np.array([r[0] for r in rows], np.float32).reshape(-1, 4),
@@ -239,23 +240,25 @@ def test_views_that_vote_rank_a_box_most_views_find_over_one_a_single_view_is_su
             "labels": np.array([r[2] for r in rows], np.int64),
         }
 
-    sheet, clutter = [10, 10, 50, 50], [60, 60, 90, 90]
+    sheet, clutter, faint = [10, 10, 50, 50], [60, 60, 90, 90], [0, 60, 30, 90]
     runs = [
         run((sheet, 0.6, 0), ([11, 10, 50, 51], 0.5, 0), (clutter, 0.95, 0)),  # the clutter: this view alone
         run(([10, 11, 51, 50], 0.6, 0), (sheet, 0.6, 1)),  # class 1 at the sheet: its own box
-        run(([9, 10, 50, 50], 0.6, 0)),
-        run((sheet, 0.4, 0)),
+        run(([9, 10, 50, 50], 0.6, 0), (faint, 0.2, 0)),
+        run((sheet, 0.4, 0), (faint, 0.25, 0)),
+        run((sheet, 0.25, 0)),  # under the floor: abstains
     ]
     voted = merge_detections(runs, 0.5, 20, vote=0.7)
     by_nms = merge_detections(runs, 0.5, 20)
     assert sorted(map(tuple, voted["boxes"].tolist())) == sorted(map(tuple, by_nms["boxes"].tolist()))
     sheet_score = 1 - (1 - 0.7 * 0.6) ** 3 * (1 - 0.7 * 0.4)
-    assert voted["scores"].tolist() == pytest.approx([sheet_score, 0.7 * 0.95, 0.7 * 0.6])
-    assert voted["labels"].tolist() == [0, 0, 1]
+    assert voted["scores"].tolist() == pytest.approx([sheet_score, 0.7 * 0.95, 0.7 * 0.6, 0.25])
+    assert voted["labels"].tolist() == [0, 0, 1, 0]
     assert by_nms["scores"][0] == pytest.approx(0.95)  # NMS: the clutter first
     alone = merge_detections(runs[:1], 0.5, 20, vote=0.7)
     assert alone["scores"].tolist() == pytest.approx([0.95, 0.6])
     members = [merge_detections(runs[:2], 0.5, 20, vote=0.7), merge_detections(runs[2:], 0.5, 20, vote=0.7)]
+    assert members[1]["scores"][-1] == pytest.approx(0.25)  # the faint box: no vote in that member either
     together = merge_detections(members, 0.5, 20, vote=1.0)
     assert together["scores"].tolist() == pytest.approx(voted["scores"].tolist(), abs=1e-6)
     assert merge_detections([run(), run()], 0.5, 20, vote=0.7)["boxes"].shape == (0, 4)

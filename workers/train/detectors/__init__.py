@@ -283,6 +283,11 @@ def detect_at_views(
     return [merge_detections(outputs, heads.nms_thresh, heads.detections_per_img, vote) for outputs in zip(*runs)]
 
 
+# A run votes for a box only with a score of at least this (the texture check's floor too): weak
+# boxes that many views give clutter would otherwise add up over the paper's cut.
+VOTE_FLOOR = 0.3
+
+
 def merge_detections(outputs: Sequence[dict], iou_threshold: float, limit: int, vote: float | None = None) -> dict:
     """One image's detections from several runs (views, or several detectors) as one: per-class
     NMS at ``iou_threshold`` over all their boxes, the best ``limit`` kept, best first. Each
@@ -292,8 +297,9 @@ def merge_detections(outputs: Sequence[dict], iou_threshold: float, limit: int, 
     ``vote`` None: a kept box keeps its own score (the best of the boxes it suppresses). A
     fraction ``vote`` in (0, 1]: the runs vote (``detector.view_vote``): a kept box scores
     ``1 - prod over runs (1 - vote * s_r)``, ``s_r`` the best score of that run's boxes it
-    suppressed (0 where none), so a box most runs find outranks one a single run is sure of.
-    One run alone keeps its scores. The same boxes are kept either way; only scores and order
+    suppressed, where it is at least ``VOTE_FLOOR`` (the run abstains otherwise), so a box most
+    runs find outranks one a single run is sure of. A box no run scores at the floor, and one
+    run alone, keep their scores. The same boxes are kept either way; only scores and order
     differ. Written in tensor operations only, as ONNX export traces it.
     """
     import torch
@@ -316,8 +322,10 @@ def merge_detections(outputs: Sequence[dict], iou_threshold: float, limit: int, 
         missed = torch.ones_like(keep, dtype=scores.dtype)
         for index in range(len(outputs)):
             best = torch.where(owner & (runs == index)[None, :], scores[None, :], torch.zeros_like(scores[None, :]))
-            missed = missed * (1 - vote * _row_max(best))
-        voted = 1 - missed
+            best = _row_max(best)
+            missed = missed * (1 - vote * torch.where(best >= VOTE_FLOOR, best, torch.zeros_like(best)))
+        # A box no run scored at the floor keeps its own (low) score.
+        voted = torch.where(missed < 1, 1 - missed, scores[keep])
         order = voted.sort(descending=True).indices[:limit]
         keep = keep[order]
         merged = {"boxes": boxes[keep], "scores": voted[order], "labels": labels[keep]}
