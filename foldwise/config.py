@@ -7,6 +7,7 @@ being ignored. ``load_config`` raises :class:`ConfigError` naming the offending 
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from pathlib import Path
 from types import UnionType
 from typing import Annotated, Any, Literal, Union, get_args, get_origin
@@ -435,6 +436,11 @@ class DetectorConfig(_Section):
         if not 0 < low < high <= 4:
             raise ValueError(f"must be two fractions of input_size with 0 < low < high <= 4, got {list(value)}")
         return value
+
+
+def view_count(test_sizes: Sequence[int], test_turns: Sequence[int]) -> int:
+    """How many views a detector runs at these sizes and turns (empty: its one size, upright)."""
+    return max(len(test_sizes), 1) * max(len(test_turns), 1)
 
 
 def _parse_view_list(text: str, field: str, what: str) -> tuple[int, ...]:

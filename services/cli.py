@@ -99,8 +99,10 @@ def _print_final_model(config, model_id: int) -> None:
 
 def _print_views(config, path: str) -> None:
     """When the loop scored at one view, that the table's mAP is not the final model's own."""
+    from foldwise.config import view_count
+
     detector = config.detector
-    views = max(len(detector.test_sizes), 1) * max(len(detector.test_turns), 1)
+    views = view_count(detector.test_sizes, detector.test_turns)
     if config.evaluation.views == "trained" and views > 1:
         console.print(
             f"best mAP above: each model at the one view it trained at (evaluation.views: trained); the final "

@@ -31,7 +31,7 @@ from db.models import (
 )
 from db.session import session_scope
 from foldwise import store
-from foldwise.config import ExperimentConfig
+from foldwise.config import ExperimentConfig, view_count
 from foldwise.seeds import derive_seed
 from foldwise.settings import get_settings
 from foldwise.theta import CANONICAL
@@ -251,7 +251,7 @@ def _run_claimed_increment(model_id: int) -> str:
                 "test_sizes": sizes,
                 "test_turns": turns,
                 # One view has nothing to vote with (merge_detections keeps its scores).
-                "view_vote": config.detector.view_vote if max(len(sizes), 1) * max(len(turns), 1) > 1 else None,
+                "view_vote": config.detector.view_vote if view_count(sizes, turns) > 1 else None,
                 "texture_check": bool(views.get("texture_check", config.detector.texture_check)),
             },
             "test_detections": detection_samples(

@@ -23,7 +23,7 @@ Keypoints are found on the image enlarged ``UPSCALE`` times, with SIFT's contras
 half its default (textures too): small and low-contrast sheets give too few otherwise.
 
 A bent sheet is not an affine image of its texture, so the outline is approximate; the RANSAC
-threshold (8% of the box's diagonal) and the IoU of 0.5 leave room for that. The constants
+threshold (8% of the box's diagonal) leaves room for that. The constants
 were chosen on foldwise's own out-of-domain set and are stable around it (bench/README.md,
 "The texture check").
 """

@@ -283,8 +283,8 @@ def detect_at_views(
     return [merge_detections(outputs, heads.nms_thresh, heads.detections_per_img, vote) for outputs in zip(*runs)]
 
 
-# A run votes for a box only with a score of at least this (the texture check's floor too): weak
-# boxes that many views give clutter would otherwise add up over the paper's cut.
+# A run votes for a box only with a score of at least this (the same 0.3 the texture check starts
+# from): weak boxes that many views give clutter would otherwise add up over the paper's cut.
 VOTE_FLOOR = 0.3
 
 
@@ -319,11 +319,11 @@ def merge_detections(outputs: Sequence[dict], iou_threshold: float, limit: int, 
         # that suppressed it in the greedy NMS above (a kept box belongs to itself).
         overlaps = (box_iou(boxes[keep], boxes) > iou_threshold) & (labels[keep][:, None] == labels[None, :])
         owner = overlaps & (overlaps.to(torch.int32).cumsum(0) == 1)
+        voting = torch.where(scores >= VOTE_FLOOR, scores, torch.zeros_like(scores))[None, :]  # abstaining: 0
         missed = torch.ones_like(keep, dtype=scores.dtype)
         for index in range(len(outputs)):
-            best = torch.where(owner & (runs == index)[None, :], scores[None, :], torch.zeros_like(scores[None, :]))
-            best = _row_max(best)
-            missed = missed * (1 - vote * torch.where(best >= VOTE_FLOOR, best, torch.zeros_like(best)))
+            best = _row_max(torch.where(owner & (runs == index)[None, :], voting, torch.zeros_like(voting)))
+            missed = missed * (1 - vote * best)
         # A box no run scored at the floor keeps its own (low) score.
         voted = torch.where(missed < 1, 1 - missed, scores[keep])
         order = voted.sort(descending=True).indices[:limit]
