@@ -402,6 +402,11 @@ class DetectorConfig(_Section):
     # renamed. The checkpoint then carries the textures. Off: the network's scores alone (the
     # paper has no such step).
     texture_check: bool = False
+    # With the texture check, the texture also searches the whole image for sheets the network
+    # gave no box for (SIFT matches of each class fitted by RANSAC, one sheet after another): each
+    # sheet found is a detection confirmed as the check confirms one. Off: only the network's
+    # boxes are checked.
+    texture_search: bool = False
     augmentation: AugmentationConfig = AugmentationConfig()
 
     @model_validator(mode="after")
@@ -418,6 +423,8 @@ class DetectorConfig(_Section):
             raise ValueError("test_sizes: only read by the R-CNN families (yolo letterboxes into input_size)")
         if self.family == "yolo" and self.test_turns:
             raise ValueError("test_turns: only read by the R-CNN families")
+        if self.texture_search and not self.texture_check:
+            raise ValueError("texture_search: searches with the texture check's textures; set texture_check: true too")
         if self.family == "yolo" and self.view_vote is not None:
             raise ValueError("view_vote: only read by the R-CNN families (yolo detects at one view)")
         return self

@@ -73,7 +73,7 @@ class Detector:
         if self._texture_check is None:
             from workers.train.texture_check import TextureCheck
 
-            self._texture_check = TextureCheck(self.textures, self.classes)
+            self._texture_check = TextureCheck(self.textures, self.classes, search=self.config.texture_search)
         return self._texture_check
 
     @property

@@ -440,9 +440,10 @@ def export(
         _fail(str(error))
     classes = ", ".join(detector.classes)
     typer.echo(f"wrote {written} ({written.stat().st_size / 1e6:.1f} MB): {detector.meta['family']}, classes {classes}")
-    if detector.texture_check() is not None:
+    if (check := detector.texture_check()) is not None:
+        what = "texture check and search (detector.texture_check, texture_search)" if check.search else "texture check (detector.texture_check)"
         typer.echo(
-            "note: the graph holds the network only; this detector's texture check (detector.texture_check) "
+            f"note: the graph holds the network only; this detector's {what} "
             "runs in foldwise detect, evaluate and the REST routes, not in the ONNX model"
         )
 

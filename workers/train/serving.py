@@ -48,6 +48,7 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
     detector = _detector(str(path), path.stat().st_mtime_ns)
     (found,) = detect_object(detector, [cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB)])
     classes = detector.classes
+    check = detector.texture_check()
     keep = found["scores"] >= score_threshold
     return {
         "image": {"width": int(width), "height": int(height)},
@@ -63,7 +64,8 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
         ],
         "seconds": time.perf_counter() - started,
         "members": len(detector.meta.get("members", ())) or 1,  # an ensemble file's detectors
-        "texture_check": detector.texture_check() is not None,
+        "texture_check": check is not None,
+        "texture_search": check is not None and check.search,
     }
 
 

@@ -19,6 +19,14 @@ sheet lies: the texture's outline, mapped into the image and clipped to the fram
   not evidence against. Those at or above the cut rank below the confirmed ones
   (``0.8 + 0.5 * (score - 0.8)``, in [0.8, 0.9)), as the texture is the stronger evidence.
 
+With ``search`` (``detector.texture_search``) the texture also finds sheets the network gave no
+box for: over the whole image, each class's matches are fitted by RANSAC as above, one sheet
+after another (its inliers taken out), and a map that ``SEARCH_MIN_INLIERS`` matches agree on,
+not mirrored nor squashed flatter than ``SEARCH_MIN_AXIS_RATIO``, adds its outline as a
+confirmed detection (scored ``0.9 + 0.1 * s``, ``s`` the network's best score for a box of that
+class on it, 0 where it had none) before the merge. A sheet the network found and the check
+confirmed merges with it; the search only adds what the network missed.
+
 Keypoints are found on the image enlarged ``UPSCALE`` times, with SIFT's contrast threshold at
 half its default (textures too): small and low-contrast sheets give too few otherwise.
 
@@ -51,6 +59,17 @@ UNCONFIRMED_SPAN = (CONFIRMED_FLOOR - PAPER_CUT) / (1 - PAPER_CUT)
 # Boxes of one class overlapping this much after the check are one (the detector's merge IoU).
 NMS_IOU = 0.5
 UPSCALE = 2
+# The search over the whole image (search=True): more agreeing matches than a box's check needs,
+# as nothing but the texture vouches for the sheet (at 6 or 8 it added false sheets on
+# foldwise's out-of-domain sets; at 10 none: bench/README.md, "The texture search").
+SEARCH_MIN_INLIERS = 10
+SEARCH_SHEETS_PER_CLASS = 4  # sheets of one class looked for per image, one after another
+# RANSAC's first threshold, as a fraction of the image's diagonal (the sheet's size is unknown
+# yet); the fit is then redone at the box check's 8% of the found outline's diagonal.
+SEARCH_RANSAC_FRACTION = 0.02
+# The map's smaller singular value over its larger: a sheet seen flatter than this is a false fit.
+SEARCH_MIN_AXIS_RATIO = 0.2
+SEARCH_MIN_SIDE = 8  # px: an outline narrower than this in the frame is no sheet to report
 CONTRAST_THRESHOLD = 0.02  # OpenCV's default 0.04
 
 
@@ -75,13 +94,14 @@ def grayscale(image: np.ndarray) -> np.ndarray:
 class TextureCheck:
     """SIFT features of each class's texture, and :meth:`apply` to check one image's detections."""
 
-    def __init__(self, textures: Mapping[str, np.ndarray], classes: list[str]) -> None:
+    def __init__(self, textures: Mapping[str, np.ndarray], classes: list[str], search: bool = False) -> None:
         import cv2
 
         missing = [name for name in classes if name not in textures]
         if missing:
             raise ValueError(f"texture check: no texture for class(es) {missing}")
         self.classes = list(classes)
+        self.search = search
         sift = cv2.SIFT_create(contrastThreshold=CONTRAST_THRESHOLD)
         descriptors, labels, points, sizes = [], [], [], []
         for index, name in enumerate(self.classes):
@@ -132,10 +152,11 @@ class TextureCheck:
         labels = np.array(detections["labels"], dtype=np.int64, copy=True)
         checked = np.flatnonzero(scores >= MIN_SCORE)
         confirmed = np.zeros(len(scores), dtype=bool)
-        if len(checked):
+        if len(checked) or self.search:
             gray = grayscale(image)
             image_points, match_labels, texture_points = self._matches(gray)
             height, width = gray.shape
+            network = (boxes.copy(), scores.copy(), labels.copy())  # what the search scores its sheets by
             for index in checked:
                 x0, y0, x1, y1 = boxes[index]
                 inside = (
@@ -159,15 +180,8 @@ class TextureCheck:
                     continue
                 if np.linalg.det(affine[:, :2]) <= 0:
                     continue  # a mirrored (or collapsed) print: not the sheet's front, a false fit
-                texture_width, texture_height = self._features.sizes[label]
-                corners = np.array(
-                    [[0, 0], [texture_width, 0], [texture_width, texture_height], [0, texture_height]], np.float32
-                ) @ affine[:, :2].T + affine[:, 2]
-                outline = np.array([
-                    max(corners[:, 0].min(), 0.0), max(corners[:, 1].min(), 0.0),
-                    min(corners[:, 0].max(), float(width)), min(corners[:, 1].max(), float(height)),
-                ])
-                if outline[2] <= outline[0] or outline[3] <= outline[1]:
+                outline = self._outline(affine, label, width, height)
+                if outline is None:
                     continue  # the map puts the sheet outside the frame: no evidence
                 boxes[index] = outline
                 confirmed[index] = True
@@ -176,9 +190,82 @@ class TextureCheck:
                 CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * scores,
                 np.where(scores >= PAPER_CUT, PAPER_CUT + (scores - PAPER_CUT) * UNCONFIRMED_SPAN, scores),
             ).astype(np.float32)
+            if self.search:
+                found, found_labels = self._search(image_points, match_labels, texture_points, width, height)
+                if len(found):
+                    found_scores = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * _network_score(found, found_labels, *network)
+                    boxes = np.concatenate([boxes, found])
+                    scores = np.concatenate([scores, found_scores.astype(np.float32)])
+                    labels = np.concatenate([labels, found_labels])
             boxes, scores, labels = _merge(boxes, scores, labels)
         order = np.argsort(-scores, kind="stable")
         return {"boxes": boxes[order], "scores": scores[order], "labels": labels[order]}
+
+    def _outline(self, affine: np.ndarray, label: int, width: int, height: int) -> np.ndarray | None:
+        """The class's texture outline mapped by ``affine`` into the image, clipped to the frame
+        (xyxy), or None where nothing of it is inside."""
+        texture_width, texture_height = self._features.sizes[label]
+        corners = np.array(
+            [[0, 0], [texture_width, 0], [texture_width, texture_height], [0, texture_height]], np.float32
+        ) @ affine[:, :2].T + affine[:, 2]
+        outline = np.array([
+            max(corners[:, 0].min(), 0.0), max(corners[:, 1].min(), 0.0),
+            min(corners[:, 0].max(), float(width)), min(corners[:, 1].max(), float(height)),
+        ], np.float32)
+        return outline if outline[2] > outline[0] and outline[3] > outline[1] else None
+
+    def _search(self, image_points, match_labels, texture_points, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+        """Sheets the texture alone finds over the whole image: (outlines (n, 4), class indices (n,))."""
+        import cv2
+
+        found, found_labels = [], []
+        first_threshold = max(3.0, SEARCH_RANSAC_FRACTION * float(np.hypot(width, height)))
+        for label in range(len(self.classes)):
+            own = match_labels == label
+            points, sources = image_points[own], texture_points[own]
+            for _ in range(SEARCH_SHEETS_PER_CLASS):
+                if len(points) < SEARCH_MIN_INLIERS:
+                    break
+                affine, mask = cv2.estimateAffine2D(sources, points, method=cv2.RANSAC, ransacReprojThreshold=first_threshold)
+                if affine is None or mask is None or int(mask.sum()) < SEARCH_MIN_INLIERS:
+                    break
+                # Redo the fit at the box check's threshold, relative to the sheet just found.
+                rough = self._outline(affine, label, width, height)
+                diagonal = float(np.hypot(rough[2] - rough[0], rough[3] - rough[1])) if rough is not None else 0.0
+                residuals = np.linalg.norm(sources @ affine[:, :2].T + affine[:, 2] - points, axis=1)
+                inliers = residuals <= max(3.0, 0.08 * diagonal)
+                if inliers.sum() < SEARCH_MIN_INLIERS:
+                    inliers = mask.ravel().astype(bool)  # these matches are spent either way
+                else:
+                    refit, _ = cv2.estimateAffine2D(sources[inliers], points[inliers], method=cv2.LMEDS)
+                    affine = refit if refit is not None else affine
+                    axes = np.linalg.svd(affine[:, :2], compute_uv=False)
+                    outline = self._outline(affine, label, width, height)
+                    if (
+                        np.linalg.det(affine[:, :2]) > 0  # not mirrored
+                        and axes[1] >= SEARCH_MIN_AXIS_RATIO * axes[0]
+                        and outline is not None
+                        and min(outline[2] - outline[0], outline[3] - outline[1]) >= SEARCH_MIN_SIDE
+                    ):
+                        found.append(outline)
+                        found_labels.append(label)
+                points, sources = points[~inliers], sources[~inliers]
+        if not found:
+            return np.zeros((0, 4), np.float32), np.zeros(0, np.int64)
+        return np.stack(found).astype(np.float32), np.array(found_labels, np.int64)
+
+
+def _network_score(found: np.ndarray, found_labels: np.ndarray, boxes, scores, labels) -> np.ndarray:
+    """Each found outline's network score: the best of the network's boxes of its class it
+    overlaps at IoU ≥ ``NMS_IOU`` (before the check), 0 where there is none."""
+    import torch
+    from torchvision.ops import box_iou
+
+    if not len(boxes):
+        return np.zeros(len(found), np.float32)
+    overlap = box_iou(torch.from_numpy(found), torch.from_numpy(boxes)).numpy() >= NMS_IOU
+    same = found_labels[:, None] == labels[None, :]
+    return np.where(overlap & same, scores[None, :], 0.0).max(1).astype(np.float32)
 
 
 def _merge(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, ...]:

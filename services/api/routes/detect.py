@@ -69,6 +69,10 @@ class Detections(BaseModel):
     texture_check: bool = Field(
         default=False, description="whether the detector's texture check ran on the network's detections (detector.texture_check)"
     )
+    texture_search: bool = Field(
+        default=False,
+        description="whether the texture also searched the whole image for sheets the network missed (detector.texture_search)",
+    )
 
 
 class DetectResult(Detections):

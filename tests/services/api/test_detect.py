@@ -281,8 +281,8 @@ def test_a_studys_ensemble_detects_as_its_members_merged(served, trained, tmp_pa
 
 
 def test_a_texture_checked_detector_is_served_with_its_check_and_says_so(served, trained, tmp_path):
-    """A detector whose config asks for the texture check answers through it (as `foldwise
-    detect` does), and the reply says whether the check ran."""
+    """A detector whose config asks for the texture check (and search) answers through it (as
+    `foldwise detect` does), and the reply says whether the check and the search ran."""
     import cv2
 
     from workers.render.assets import load_assets
@@ -293,10 +293,8 @@ def test_a_texture_checked_detector_is_served_with_its_check_and_says_so(served,
     assert detector.texture_check() is None
     checked = tmp_path / "checked.pt"
     catalog = load_assets()
-    save_checkpoint(
-        detector.model, {**payload["meta"], "config": {**payload["meta"]["config"], "texture_check": True}}, checked,
-        textures=catalog.textures(trained["classes"]),
-    )
+    searching = {**payload["meta"]["config"], "texture_check": True, "texture_search": True}
+    save_checkpoint(detector.model, {**payload["meta"], "config": searching}, checked, textures=catalog.textures(trained["classes"]))
     study = "checked"
     save_ensemble([checked, checked], store.resolve(store.ensemble_path(study)))
     sample = trained["samples"][1]
@@ -304,7 +302,7 @@ def test_a_texture_checked_detector_is_served_with_its_check_and_says_so(served,
     body = served["client"].post(
         f"/studies/{study}/detect?threshold=0", content=Path(sample.image_path).read_bytes(), headers=headers
     ).json()
-    assert body["texture_check"] is True
+    assert body["texture_check"] is True and body["texture_search"] is True
     (expected,) = detect_object(
         load_detector(store.resolve(store.ensemble_path(study))),
         [cv2.cvtColor(cv2.imread(str(sample.image_path)), cv2.COLOR_BGR2RGB)],
@@ -313,7 +311,7 @@ def test_a_texture_checked_detector_is_served_with_its_check_and_says_so(served,
     plain = served["client"].post(
         f"/models/{served['ready']}/detect?threshold=0", content=Path(sample.image_path).read_bytes(), headers=headers
     ).json()
-    assert plain["texture_check"] is False
+    assert plain["texture_check"] is False and plain["texture_search"] is False
 
 
 def test_a_study_without_an_ensemble_or_with_no_folder_name_is_refused(served, trained):

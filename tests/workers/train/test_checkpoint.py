@@ -360,6 +360,7 @@ def test_detection_on_quarter_turns_merges_each_turns_detections_mapped_back(tra
         ({"view_vote": 0.0}, "view_vote\n  Input should be greater than 0"),
         ({"view_vote": 1.5}, "view_vote\n  Input should be less than or equal to 1"),
         ({"family": "yolo", "backbone": "mobilenet_v3_large", "view_vote": 0.7}, "view_vote: only read by the R-CNN families"),
+        ({"texture_search": True}, "texture_search: searches with the texture check's textures; set texture_check: true too"),
     ],
 )
 def test_bad_test_views_are_refused_with_the_reason(changes, problem):
@@ -495,3 +496,14 @@ def test_a_texture_checked_detector_carries_its_textures_and_checks_what_the_net
             np.testing.assert_array_equal(checked[key], value)
     unchecked = load_detector(save_checkpoint(detector.model, {**detector.meta, "config": config().model_dump(mode="json")}, tmp_path / "off.pt"))
     assert unchecked.textures is None and unchecked.texture_check() is None
+    assert detector.texture_check().search is False
+    # detector.texture_search: the check also searches the whole image with the same textures.
+    searching_config = config(family="faster_rcnn", texture_check=True, texture_search=True).model_dump(mode="json")
+    searching = load_detector(
+        save_checkpoint(detector.model, {**detector.meta, "config": searching_config}, tmp_path / "search.pt", textures=textures)
+    )
+    assert searching.texture_check().search is True
+    reference = TextureCheck(searching.textures, CLASSES, search=True)
+    for image, alone, checked in zip(arrays, network, detect_object(searching, arrays)):
+        for key, value in reference.apply(image, alone).items():
+            np.testing.assert_array_equal(checked[key], value)

@@ -1,6 +1,7 @@
 """The texture check confirms a box its texture's outline agrees with (the outline becoming the
 box), turns a piece of a sheet into the whole, renames a box that matches another texture, and
-leaves what it has no evidence on on its side of the paper's cut, ranked below what it confirmed."""
+leaves what it has no evidence on on its side of the paper's cut, ranked below what it confirmed.
+With the search, the texture also finds the sheets the network gave no box for."""
 
 from __future__ import annotations
 
@@ -9,7 +10,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from workers.train.texture_check import CONFIRMED_FLOOR, PAPER_CUT, TextureCheck
+from workers.train.texture_check import CONFIRMED_FLOOR, PAPER_CUT, SEARCH_MIN_INLIERS, TextureCheck
 
 CLASSES = ["astronaut", "coffee"]
 
@@ -130,3 +131,85 @@ def test_a_mirrored_fit_is_no_evidence(checker, scene, monkeypatch):
     for points, raised in ((upright, True), (mirrored, False)):
         monkeypatch.setattr(checker, "_matches", lambda gray, p=points: (p, np.zeros(len(p), np.int64), texture_points))
         assert bool(checker.apply(image, found)["scores"][0] > 0.8) == raised
+
+
+@pytest.fixture(scope="module")
+def searcher(textures):
+    return TextureCheck(textures, CLASSES, search=True)
+
+
+def _paste(image: np.ndarray, texture: np.ndarray, width: float, angle: float, at: tuple[float, float]) -> np.ndarray:
+    """``texture`` turned by ``angle``° and scaled to ``width`` px, pasted into ``image`` at ``at``
+    (in place); its true box."""
+    affine = cv2.getRotationMatrix2D((0, 0), angle, width / texture.shape[1])
+    affine[:, 2] += at
+    size = (image.shape[1], image.shape[0])
+    mask = cv2.warpAffine(np.full(texture.shape[:2], 255, np.uint8), affine, size) > 0
+    image[mask] = cv2.warpAffine(texture, affine, size)[mask]
+    ys, xs = np.nonzero(mask)
+    return np.array([xs.min(), ys.min(), xs.max(), ys.max()], np.float32)
+
+
+def test_the_search_finds_a_sheet_the_network_gave_no_box_for(checker, searcher, scene):
+    image, box = scene
+    assert len(checker.apply(image, detections())["scores"]) == 0  # the check alone looks only at boxes
+    found = searcher.apply(image, detections(([250, 20, 300, 50], 0.2, 1)))  # a weak box elsewhere stays
+    assert found["labels"].tolist() == [0, 1]
+    assert found["scores"][0] == pytest.approx(CONFIRMED_FLOOR)  # confirmed, with no network score to add
+    assert _iou(found["boxes"][0], box) > 0.8
+    assert found["scores"][1] == pytest.approx(0.2)
+
+
+def test_the_search_adds_nothing_to_a_sheet_the_network_found(checker, searcher, scene):
+    """A found sheet the network boxed is the check's confirmed box, once; a box of the network's
+    on it too weak to be checked (under the check's floor) lends the sheet its score."""
+    image, box = scene
+    for found in (detections((box, 0.6, 0)), detections((box, 0.6, 0), ([250, 20, 300, 50], 0.95, 1))):
+        searched, checked = searcher.apply(image, found), checker.apply(image, found)
+        for key in ("boxes", "scores", "labels"):
+            np.testing.assert_allclose(searched[key], checked[key], atol=1e-5)
+    weak = detections((box, 0.2, 0))
+    assert checker.apply(image, weak)["scores"].tolist() == pytest.approx([0.2])
+    lent = searcher.apply(image, weak)
+    assert lent["labels"].tolist() == [0]
+    assert lent["scores"][0] == pytest.approx(CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * 0.2)
+    assert _iou(lent["boxes"][0], box) > 0.8
+
+
+def test_the_search_finds_each_sheet_of_several_and_no_sheet_where_there_is_none(searcher, textures):
+    rng = np.random.default_rng(5)
+    image = cv2.GaussianBlur(rng.integers(0, 255, (300, 560, 3)).astype(np.uint8), (0, 0), 3)
+    truth = [
+        (_paste(image, textures["astronaut"], 150, 8, (20, 40)), 0),
+        (_paste(image, textures["astronaut"], 130, -15, (200, 120)), 0),
+        (_paste(image, textures["coffee"], 170, 0, (370, 60)), 1),
+    ]
+    found = searcher.apply(image, detections())
+    assert sorted(found["labels"].tolist()) == [0, 0, 1]
+    for box, label in truth:
+        ious = [_iou(b, box) for b, l in zip(found["boxes"], found["labels"]) if l == label]
+        assert max(ious) > 0.7
+    assert np.all(found["scores"] == pytest.approx(CONFIRMED_FLOOR))
+    noise = cv2.GaussianBlur(np.random.default_rng(6).integers(0, 255, (300, 560, 3)).astype(np.uint8), (0, 0), 3)
+    for empty in (noise, np.full((240, 320, 3), 90, np.uint8)):
+        nothing = searcher.apply(empty, detections())
+        assert nothing["boxes"].shape == (0, 4) and len(nothing["scores"]) == 0
+
+
+def test_the_search_refuses_a_mirrored_or_squashed_fit(searcher, scene, monkeypatch):
+    """Matches that map the texture mirrored, or squashed flatter than a seen sheet can be, find
+    nothing; the same matches unmirrored and unsquashed find the sheet."""
+    image, _ = scene
+    rng = np.random.default_rng(1)
+    texture_points = rng.uniform(0, 512, (40, 2)).astype(np.float32)
+    upright = 40 + texture_points * 0.3
+    mirrored = np.stack([240 - texture_points[:, 0] * 0.3, upright[:, 1]], axis=1)
+    squashed = np.stack([upright[:, 0], 40 + texture_points[:, 1] * 0.03], axis=1)
+    few = SEARCH_MIN_INLIERS - 1  # fewer matches than the search needs, however well they agree
+    for points, sources, sheets in (
+        (upright, texture_points, 1), (mirrored, texture_points, 0), (squashed, texture_points, 0),
+        (upright[:few], texture_points[:few], 0), (upright[: few + 1], texture_points[: few + 1], 1),
+    ):
+        matches = (points, np.zeros(len(points), np.int64), sources)
+        monkeypatch.setattr(searcher, "_matches", lambda gray, m=matches: m)
+        assert len(searcher.apply(image, detections())["scores"]) == sheets
