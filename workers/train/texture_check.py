@@ -27,8 +27,9 @@ confirmed detection (scored ``0.9 + 0.1 * s``, ``s`` the network's best score fo
 class on it, 0 where it had none) before the merge. A sheet the network found and the check
 confirmed merges with it; the search only adds what the network missed.
 
-Keypoints are found on the image enlarged ``UPSCALE`` times, with SIFT's contrast threshold at
-half its default (textures too): small and low-contrast sheets give too few otherwise.
+Keypoints are found on the image enlarged ``UPSCALE`` times (its longer side at most
+``SIFT_MAX_SIDE``), with SIFT's contrast threshold at half its default (textures too): small and
+low-contrast sheets give too few otherwise.
 
 A bent sheet is not an affine image of its texture, so the outline is approximate; the RANSAC
 threshold (8% of the box's diagonal) leaves room for that. The constants
@@ -59,6 +60,9 @@ UNCONFIRMED_SPAN = (CONFIRMED_FLOOR - PAPER_CUT) / (1 - PAPER_CUT)
 # Boxes of one class overlapping this much after the check are one (the detector's merge IoU).
 NMS_IOU = 0.5
 UPSCALE = 2
+# ... but never past this longer side: a phone's 12-MP photograph (4032x3024) enlarged twice cost
+# SIFT 25 s; shrunk to this, 1.0 s for as many matches (838 against 840 on one test scene).
+SIFT_MAX_SIDE = 2048
 # The search over the whole image (search=True): more agreeing matches than a box's check needs,
 # as nothing but the texture vouches for the sheet (at 6 or 8 it added false sheets on
 # foldwise's out-of-domain sets; at 10 none: bench/README.md, "The texture search").
@@ -89,6 +93,12 @@ def grayscale(image: np.ndarray) -> np.ndarray:
     if image.ndim == 2:
         return image
     return cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2GRAY)
+
+
+def sift_scale(height: int, width: int) -> float:
+    """The factor an image is resized by before SIFT: ``UPSCALE``, or less where that would take
+    its longer side past ``SIFT_MAX_SIDE`` (below 1 for photographs larger than that)."""
+    return min(float(UPSCALE), SIFT_MAX_SIDE / max(height, width))
 
 
 class TextureCheck:
@@ -124,7 +134,9 @@ class TextureCheck:
         that pass the ratio test."""
         import cv2
 
-        enlarged = cv2.resize(gray, None, fx=UPSCALE, fy=UPSCALE, interpolation=cv2.INTER_LINEAR)
+        scale = sift_scale(*gray.shape)
+        interpolation = cv2.INTER_LINEAR if scale >= 1 else cv2.INTER_AREA
+        enlarged = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=interpolation) if scale != 1 else gray
         # A SIFT and a matcher per call (microseconds): a served detector may check from several threads.
         keypoints, descriptors = cv2.SIFT_create(contrastThreshold=CONTRAST_THRESHOLD).detectAndCompute(enlarged, None)
         empty = (np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
@@ -139,7 +151,7 @@ class TextureCheck:
         if not good:
             return empty
         image_index, texture_index = (np.array(column) for column in zip(*good))
-        image_points = np.array([keypoints[i].pt for i in image_index], dtype=np.float32) / UPSCALE
+        image_points = np.array([keypoints[i].pt for i in image_index], dtype=np.float32) / scale
         return image_points, features.labels[texture_index], features.points[texture_index]
 
     def apply(self, image: np.ndarray, detections: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

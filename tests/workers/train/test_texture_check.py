@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from workers.train.texture_check import CONFIRMED_FLOOR, PAPER_CUT, SEARCH_MIN_INLIERS, TextureCheck
+from workers.train.texture_check import CONFIRMED_FLOOR, PAPER_CUT, SEARCH_MIN_INLIERS, SIFT_MAX_SIDE, TextureCheck, sift_scale
 
 CLASSES = ["astronaut", "coffee"]
 
@@ -213,3 +213,16 @@ def test_the_search_refuses_a_mirrored_or_squashed_fit(searcher, scene, monkeypa
         matches = (points, np.zeros(len(points), np.int64), sources)
         monkeypatch.setattr(searcher, "_matches", lambda gray, m=matches: m)
         assert len(searcher.apply(image, detections())["scores"]) == sheets
+
+
+def test_a_large_photograph_is_shrunk_for_sift_and_checked_in_its_own_pixels(checker, scene):
+    """SIFT runs on small images enlarged, on a photograph past SIFT_MAX_SIDE shrunk to it; the
+    outline it confirms is in the photograph's own pixels either way."""
+    assert sift_scale(240, 320) == 2 and sift_scale(768, 1024) == 2
+    assert sift_scale(3024, 4032) == pytest.approx(SIFT_MAX_SIDE / 4032)
+    image, box = scene
+    factor = 10  # 3200 x 2400: past the cap even before enlarging
+    large = cv2.resize(image, None, fx=factor, fy=factor, interpolation=cv2.INTER_LINEAR)
+    checked = checker.apply(large, detections((box * factor, 0.5, 0)))
+    assert checked["scores"][0] >= CONFIRMED_FLOOR
+    assert _iou(checked["boxes"][0], box * factor) > 0.8
