@@ -402,7 +402,8 @@ def detect_object(
     overrides the detector config's input sizes to detect at (R-CNN families; ``()``: its
     input size alone), ``test_turns`` its quarter turns (``()``: the images as they are).
     The detector's texture check (``detector.texture_check``, where the checkpoint carries the
-    textures) runs on every image's detections; ``texture_check=False`` gives the network's alone.
+    textures) runs on every image's detections, which then also hold ``confirmed`` (n,) bool, the
+    boxes the texture confirmed; ``texture_check=False`` gives the network's alone.
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be at least 1, got {batch_size}")

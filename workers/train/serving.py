@@ -59,8 +59,12 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
                 "class": classes[int(label)],
                 "label": int(label),
                 "score": float(score),
+                "confirmed": None if confirmed is None else bool(confirmed),
             }
-            for box, score, label in zip(found["boxes"][keep], found["scores"][keep], found["labels"][keep])
+            for box, score, label, confirmed in zip(
+                found["boxes"][keep], found["scores"][keep], found["labels"][keep],
+                found["confirmed"][keep] if "confirmed" in found else [None] * int(keep.sum()),
+            )
         ],
         "seconds": time.perf_counter() - started,
         "members": len(detector.meta.get("members", ())) or 1,  # an ensemble file's detectors

@@ -24,7 +24,8 @@ box for: over the whole image, each class's matches are fitted by RANSAC as abov
 after another (its inliers taken out), and a map that ``SEARCH_MIN_INLIERS`` matches agree on,
 not mirrored nor squashed flatter than ``SEARCH_MIN_AXIS_RATIO``, adds its outline as a
 confirmed detection (scored ``0.9 + 0.1 * s``, ``s`` the network's best score for a box of that
-class on it, 0 where it had none) before the merge. A sheet the network found and the check
+class on it, ``MIN_SCORE`` where it had none as high: every confirmed box has been scored at
+least that by the network or the search) before the merge. A sheet the network found and the check
 confirmed merges with it; the search only adds what the network missed.
 
 Keypoints are found on the image enlarged ``UPSCALE`` times (its longer side at most
@@ -156,7 +157,8 @@ class TextureCheck:
 
     def apply(self, image: np.ndarray, detections: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
         """``detections`` (boxes, scores, labels as ``detect_object`` gives them, in ``image``'s
-        pixels) checked: new arrays, best score first."""
+        pixels) checked: new arrays, best score first, with ``confirmed`` (n,) bool: whether the
+        texture confirmed each box (or the search found it)."""
         import cv2
 
         boxes = np.array(detections["boxes"], dtype=np.float32, copy=True).reshape(-1, 4)
@@ -205,13 +207,17 @@ class TextureCheck:
             if self.search:
                 found, found_labels = self._search(image_points, match_labels, texture_points, width, height)
                 if len(found):
-                    found_scores = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * _network_score(found, found_labels, *network)
+                    # Scored as a box the check confirmed, at the network's score for it, or at the
+                    # check's floor where the network had none as high (so >= 0.93 in float32 too).
+                    network_score = np.maximum(_network_score(found, found_labels, *network), MIN_SCORE)
+                    found_scores = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * network_score
                     boxes = np.concatenate([boxes, found])
                     scores = np.concatenate([scores, found_scores.astype(np.float32)])
                     labels = np.concatenate([labels, found_labels])
-            boxes, scores, labels = _merge(boxes, scores, labels)
+                    confirmed = np.concatenate([confirmed, np.ones(len(found), dtype=bool)])
+            boxes, scores, labels, confirmed = _merge(boxes, scores, labels, confirmed)
         order = np.argsort(-scores, kind="stable")
-        return {"boxes": boxes[order], "scores": scores[order], "labels": labels[order]}
+        return {"boxes": boxes[order], "scores": scores[order], "labels": labels[order], "confirmed": confirmed[order]}
 
     def _outline(self, affine: np.ndarray, label: int, width: int, height: int) -> np.ndarray | None:
         """The class's texture outline mapped by ``affine`` into the image, clipped to the frame
@@ -280,11 +286,12 @@ def _network_score(found: np.ndarray, found_labels: np.ndarray, boxes, scores, l
     return np.where(overlap & same, scores[None, :], 0.0).max(1).astype(np.float32)
 
 
-def _merge(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Per-class NMS at ``NMS_IOU``: a corrected box and the box it now repeats are one."""
+def _merge(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, confirmed: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per-class NMS at ``NMS_IOU``: a corrected box and the box it now repeats are one (a
+    confirmed box outscores every unconfirmed one, so what is kept keeps its evidence)."""
     import torch
     from torchvision.ops import batched_nms
 
     keep = batched_nms(torch.from_numpy(boxes), torch.from_numpy(scores), torch.from_numpy(labels), NMS_IOU).numpy()
     keep.sort()
-    return boxes[keep], scores[keep], labels[keep]
+    return boxes[keep], scores[keep], labels[keep], confirmed[keep]

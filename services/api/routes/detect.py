@@ -37,6 +37,11 @@ class Detection(BaseModel):
     class_name: str = Field(alias="class", description="the object class")
     label: int = Field(description="index of the class in `classes`")
     score: float
+    confirmed: bool | None = Field(
+        default=None,
+        description="whether the detector's texture check confirmed this box (its class's texture mapped onto it); "
+        "null where the detector has no texture check",
+    )
 
 
 IMAGE_BODY = {

@@ -265,6 +265,7 @@ def test_a_studys_ensemble_detects_as_its_members_merged(served, trained, tmp_pa
         [cv2.cvtColor(cv2.imread(str(sample.image_path)), cv2.COLOR_BGR2RGB)],
     )
     assert [d["score"] for d in body["detections"]] == pytest.approx(expected["scores"].tolist())
+    assert [d["confirmed"] for d in body["detections"]] == expected["confirmed"].tolist()
     assert [d["label"] for d in body["detections"]] == expected["labels"].tolist()
     alone = served["client"].post(f"/models/{served['ready']}/detect?threshold=0", content=image,
                                   headers={**AUTH, "Content-Type": "image/png"})  # fmt: skip
@@ -312,6 +313,7 @@ def test_a_texture_checked_detector_is_served_with_its_check_and_says_so(served,
         f"/models/{served['ready']}/detect?threshold=0", content=Path(sample.image_path).read_bytes(), headers=headers
     ).json()
     assert plain["texture_check"] is False and plain["texture_search"] is False
+    assert all(d["confirmed"] is None for d in plain["detections"])
 
 
 def test_a_study_without_an_ensemble_or_with_no_folder_name_is_refused(served, trained):

@@ -219,15 +219,19 @@ def test_yolo_exported_at_another_size_runs_there_and_not_above_its_input_size(e
 def test_a_texture_checked_detector_trained_from_the_cli_carries_its_textures_and_export_says_what_it_leaves_out(
     rendered, tmp_path
 ):
-    """`foldwise train --config` with detector.texture_check takes the classes' textures from the
-    config's asset catalog; the ONNX graph holds the network only, and the export says so."""
+    """`foldwise train --config` with detector.texture_check (and texture_search) takes the
+    classes' textures from the config's asset catalog; `foldwise detect` says which detections the
+    texture confirmed; the ONNX graph holds the network only, and the export says so."""
+    import cv2
     import yaml
+
+    from workers.render.assets import load_assets
 
     from foldwise.settings import REPO_ROOT
     from workers.train.checkpoint import load_detector
 
     config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
-    config["detector"]["texture_check"] = True
+    config["detector"].update({"texture_check": True, "texture_search": True})
     checkpoint = tmp_path / "checked.pt"
 
     def train(objects: int):
@@ -246,9 +250,19 @@ def test_a_texture_checked_detector_trained_from_the_cli_carries_its_textures_an
     assert trained.exit_code == 0, trained.output
     detector = load_detector(checkpoint)
     assert detector.texture_check() is not None and sorted(detector.textures) == sorted(detector.classes)
+    # A photograph of the astronaut sheet: the search finds it whatever the one-step network says.
+    texture = load_assets().textures(["astronaut"])["astronaut"]
+    photo = np.full((300, 400, 3), 70, np.uint8)
+    photo[40:40 + 220, 80:80 + 220] = cv2.resize(np.ascontiguousarray(texture[:, :, :3]), (220, 220))
+    cv2.imwrite(str(tmp_path / "photo.png"), cv2.cvtColor(photo, cv2.COLOR_RGB2BGR))
+    found = runner.invoke(
+        make_app(), ["detect", "--model", str(checkpoint), str(tmp_path / "photo.png"), "--out-dir", str(tmp_path / "d"), "--threshold", "0.9"]
+    )
+    assert found.exit_code == 0, found.output
+    assert "astronaut 0.9" in found.output and "(texture confirmed)" in found.output
     result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--out", str(tmp_path / "m.onnx")])
     assert result.exit_code == 0, result.output
-    assert "the graph holds the network only" in result.output and "texture check" in result.output
+    assert "the graph holds the network only" in result.output and "texture check and search" in result.output
 
 
 def test_the_views_vote_exports_as_tensor_operations_right_at_any_number_of_boxes(tmp_path):

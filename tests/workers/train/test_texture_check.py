@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from workers.train.texture_check import CONFIRMED_FLOOR, PAPER_CUT, SEARCH_MIN_INLIERS, SIFT_MAX_SIDE, TextureCheck, sift_scale
+from workers.train.texture_check import CONFIRMED_FLOOR, MIN_SCORE, PAPER_CUT, SEARCH_MIN_INLIERS, SIFT_MAX_SIDE, TextureCheck, sift_scale
 
 CLASSES = ["astronaut", "coffee"]
 
@@ -57,6 +57,7 @@ def test_a_confirmed_box_becomes_the_outline_raised_over_the_cut_in_its_order(ch
     slightly_off = box + np.array([6, -5, 4, 3], np.float32)  # agrees with the sheet, loosely
     checked = checker.apply(image, detections((slightly_off, 0.5, 0)))
     assert checked["scores"][0] == pytest.approx(CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * 0.5)
+    assert checked["confirmed"].tolist() == [True]
     assert checked["labels"][0] == 0
     assert _iou(checked["boxes"][0], box) > _iou(slightly_off, box)  # the texture's outline: closer to the sheet
     higher = checker.apply(image, detections((slightly_off, 0.9, 0)))["scores"][0]
@@ -95,17 +96,21 @@ def test_without_evidence_boxes_stay_on_their_side_of_the_cut_below_the_confirme
     checked = checker.apply(image, found)  # a flat card, blurred noise, and a box under the floor
     for key in ("boxes", "labels"):
         np.testing.assert_array_equal(checked[key], found[key])
+    assert checked["confirmed"].tolist() == [False, False, False]
     # Still over the cut and in their order, but below any confirmed box; under the cut untouched.
     assert PAPER_CUT <= checked["scores"][1] < checked["scores"][0] < CONFIRMED_FLOOR
     assert checked["scores"][2] == pytest.approx(0.2)
     with_sheet = checker.apply(image, detections(([250, 20, 300, 50], 0.99, 0), (box, 0.31, 0)))
     np.testing.assert_array_equal(with_sheet["boxes"][1], [250, 20, 300, 50])  # the sure card now ranks second
+    assert with_sheet["confirmed"].tolist() == [True, False]
     assert with_sheet["scores"][0] >= CONFIRMED_FLOOR > with_sheet["scores"][1] >= PAPER_CUT
     blank = np.full((240, 320, 3), 90, np.uint8)  # no keypoint at all
-    for key, value in checker.apply(blank, detections((box, 0.7, 0))).items():
-        np.testing.assert_array_equal(value, detections((box, 0.7, 0))[key])
+    unchanged = checker.apply(blank, detections((box, 0.7, 0)))
+    for key, value in detections((box, 0.7, 0)).items():
+        np.testing.assert_array_equal(unchanged[key], value)
+    assert unchanged["confirmed"].tolist() == [False]
     empty = checker.apply(image, detections())
-    assert empty["boxes"].shape == (0, 4) and len(empty["scores"]) == len(empty["labels"]) == 0
+    assert empty["boxes"].shape == (0, 4) and len(empty["scores"]) == len(empty["labels"]) == len(empty["confirmed"]) == 0
 
 
 def test_grayscale_images_and_textures_work_and_a_missing_texture_is_named(textures, scene):
@@ -133,6 +138,10 @@ def test_a_mirrored_fit_is_no_evidence(checker, scene, monkeypatch):
         assert bool(checker.apply(image, found)["scores"][0] > 0.8) == raised
 
 
+# A sheet the search found where the network had no box of its class as high as the check's floor.
+SEARCHED = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * MIN_SCORE
+
+
 @pytest.fixture(scope="module")
 def searcher(textures):
     return TextureCheck(textures, CLASSES, search=True)
@@ -154,15 +163,16 @@ def test_the_search_finds_a_sheet_the_network_gave_no_box_for(checker, searcher,
     image, box = scene
     assert len(checker.apply(image, detections())["scores"]) == 0  # the check alone looks only at boxes
     found = searcher.apply(image, detections(([250, 20, 300, 50], 0.2, 1)))  # a weak box elsewhere stays
-    assert found["labels"].tolist() == [0, 1]
-    assert found["scores"][0] == pytest.approx(CONFIRMED_FLOOR)  # confirmed, with no network score to add
+    assert found["labels"].tolist() == [0, 1] and found["confirmed"].tolist() == [True, False]
+    assert found["scores"][0] == pytest.approx(SEARCHED)  # confirmed, at the floor of what the check confirms
+    assert float(found["scores"][0]) >= CONFIRMED_FLOOR  # in float32 too
     assert _iou(found["boxes"][0], box) > 0.8
     assert found["scores"][1] == pytest.approx(0.2)
 
 
 def test_the_search_adds_nothing_to_a_sheet_the_network_found(checker, searcher, scene):
     """A found sheet the network boxed is the check's confirmed box, once; a box of the network's
-    on it too weak to be checked (under the check's floor) lends the sheet its score."""
+    on it too weak to be checked (under the check's floor) merges into the sheet found."""
     image, box = scene
     for found in (detections((box, 0.6, 0)), detections((box, 0.6, 0), ([250, 20, 300, 50], 0.95, 1))):
         searched, checked = searcher.apply(image, found), checker.apply(image, found)
@@ -172,7 +182,7 @@ def test_the_search_adds_nothing_to_a_sheet_the_network_found(checker, searcher,
     assert checker.apply(image, weak)["scores"].tolist() == pytest.approx([0.2])
     lent = searcher.apply(image, weak)
     assert lent["labels"].tolist() == [0]
-    assert lent["scores"][0] == pytest.approx(CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * 0.2)
+    assert lent["scores"][0] == pytest.approx(SEARCHED) and lent["confirmed"].tolist() == [True]
     assert _iou(lent["boxes"][0], box) > 0.8
 
 
@@ -189,7 +199,7 @@ def test_the_search_finds_each_sheet_of_several_and_no_sheet_where_there_is_none
     for box, label in truth:
         ious = [_iou(b, box) for b, l in zip(found["boxes"], found["labels"]) if l == label]
         assert max(ious) > 0.7
-    assert np.all(found["scores"] == pytest.approx(CONFIRMED_FLOOR))
+    assert np.all(found["scores"] == pytest.approx(SEARCHED)) and found["confirmed"].all()
     noise = cv2.GaussianBlur(np.random.default_rng(6).integers(0, 255, (300, 560, 3)).astype(np.uint8), (0, 0), 3)
     for empty in (noise, np.full((240, 320, 3), 90, np.uint8)):
         nothing = searcher.apply(empty, detections())
