@@ -108,10 +108,18 @@ def _print_views(config, path: str) -> None:
             f"best mAP above: each model at the one view it trained at (evaluation.views: trained); the final "
             f"model detects at {views} views (sizes {list(detector.test_sizes) or [detector.input_size]}, "
             f"quarter turns {list(detector.test_turns) or [0]}"
-            f"{f'; they vote at {detector.view_vote}' if detector.view_vote else ''}): "
+            f"{f'; they vote at {detector.view_vote}' if detector.view_vote else ''}"
+            f"{_texture_words(detector)}): "
             f"python bench/wild.py --model {path} scores it there",
             highlight=False,
         )
+
+
+def _texture_words(detector) -> str:
+    """What the detector's texture check adds to its views, for ``_print_views``."""
+    if not detector.texture_check:
+        return ""
+    return "; its texture checks the boxes" + (" and searches the image for sheets they miss" if detector.texture_search else "")
 
 
 def _run_experiment(config, report_dir: Path | None, study: str | None = None) -> tuple[int, str]:

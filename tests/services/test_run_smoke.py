@@ -134,7 +134,9 @@ def test_the_loop_scores_at_the_trained_view_when_told_and_the_checkpoint_keeps_
     config["name"] = "smoke-views"
     config["curriculum"]["difficulties"] = ["easy"]
     config["active_learning"]["max_increments"] = 2
-    config["detector"].update({"test_sizes": [64, 96], "test_turns": [0, 1], "view_vote": 0.7, "texture_check": True})
+    config["detector"].update(
+        {"test_sizes": [64, 96], "test_turns": [0, 1], "view_vote": 0.7, "texture_check": True, "texture_search": True}
+    )
     config["evaluation"]["views"] = "trained"
     path = tmp_path / "views.yaml"
     path.write_text(yaml.safe_dump(config))
@@ -156,7 +158,8 @@ def test_the_loop_scores_at_the_trained_view_when_told_and_the_checkpoint_keeps_
         model = session.scalars(select(Model).order_by(Model.id.desc())).first()
         assert evaluations and asked == [((), (), False)] * len(evaluations)
         assert all(
-            e.details["views"] == {"test_sizes": [], "test_turns": [], "view_vote": None, "texture_check": False}
+            e.details["views"]
+            == {"test_sizes": [], "test_turns": [], "view_vote": None, "texture_check": False, "texture_search": False}
             for e in evaluations
         )
         loaded = checkpoint.load_detector(store.resolve(model.checkpoint_path))
@@ -164,10 +167,13 @@ def test_the_loop_scores_at_the_trained_view_when_told_and_the_checkpoint_keeps_
         final_path = store.resolve(final.checkpoint_path)
     assert (loaded.model.test_sizes, loaded.model.test_turns, loaded.model.view_vote) == ((64, 96), (0, 1), 0.7)
     # ... and its texture check, with the experiment's textures (the loop scored the network alone).
-    assert loaded.texture_check() is not None and sorted(loaded.textures) == sorted(loaded.classes)
+    assert loaded.texture_check().search and sorted(loaded.textures) == sorted(loaded.classes)
     # The run names the detector it hands over, and says its table's mAP is one view's, not the detector's.
     assert f"final model: {final_path} (model {final.id})" in result.output
-    assert "the final model detects at 4 views (sizes [64, 96], quarter turns [0, 1]; they vote at 0.7)" in result.output
+    assert (
+        "the final model detects at 4 views (sizes [64, 96], quarter turns [0, 1]; they vote at 0.7; its texture "
+        "checks the boxes and searches the image for sheets they miss)" in " ".join(result.output.split())
+    )
 
 
 def test_a_final_model_whose_checkpoint_is_gone_is_named_as_missing(database, capsys):

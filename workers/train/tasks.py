@@ -253,6 +253,8 @@ def _run_claimed_increment(model_id: int) -> str:
                 # One view has nothing to vote with (merge_detections keeps its scores).
                 "view_vote": config.detector.view_vote if view_count(sizes, turns) > 1 else None,
                 "texture_check": bool(views.get("texture_check", config.detector.texture_check)),
+                "texture_search": bool(views.get("texture_check", config.detector.texture_check))
+                and config.detector.texture_search,
             },
             "test_detections": detection_samples(
                 test_ids, predictions, [{"condition": s.condition, "difficulty": s.difficulty} for s in test_samples]
