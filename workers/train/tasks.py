@@ -245,6 +245,7 @@ def _run_claimed_increment(model_id: int) -> str:
         # With a few test images' detections, for the dashboard (θ ids: GET /experiments/{id}/images/{θ}).
         sizes = list(views.get("test_sizes", config.detector.test_sizes))
         turns = list(views.get("test_turns", config.detector.test_turns))
+        checked = bool(views.get("texture_check", config.detector.texture_check))
         evaluation.details = {
             **result.to_dict(),
             "views": {
@@ -252,9 +253,8 @@ def _run_claimed_increment(model_id: int) -> str:
                 "test_turns": turns,
                 # One view has nothing to vote with (merge_detections keeps its scores).
                 "view_vote": config.detector.view_vote if view_count(sizes, turns) > 1 else None,
-                "texture_check": bool(views.get("texture_check", config.detector.texture_check)),
-                "texture_search": bool(views.get("texture_check", config.detector.texture_check))
-                and config.detector.texture_search,
+                "texture_check": checked,
+                "texture_search": checked and config.detector.texture_search,
             },
             "test_detections": detection_samples(
                 test_ids, predictions, [{"condition": s.condition, "difficulty": s.difficulty} for s in test_samples]
