@@ -338,7 +338,6 @@ def detect(
 ) -> None:
     """Detect the object in images; write copies with boxes, class names and scores drawn."""
     import cv2
-    import numpy as np
 
     from foldwise.config import parse_test_sizes, parse_test_turns
     from workers.train.data import DatasetError, read_image_rgb
@@ -377,11 +376,11 @@ def detect(
         target = out_dir / name
         if not cv2.imwrite(str(target), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR)):
             _fail(f"cannot write {target}")
-        confirmed = found.get("confirmed", np.zeros(len(found["scores"]), dtype=bool))
+        confirmed = found.get("confirmed")  # with the texture check only
         kept = [
             f"{classes[int(label)] if 0 <= int(label) < len(classes) else int(label)} {float(score):.2f}"
-            + (" (texture confirmed)" if sure else "")
-            for score, label, sure in zip(found["scores"], found["labels"], confirmed)
+            + (" (texture confirmed)" if confirmed is not None and confirmed[i] else "")
+            for i, (score, label) in enumerate(zip(found["scores"], found["labels"]))
             if float(score) >= score_threshold
         ]
         typer.echo(f"{path} -> {target}: {len(kept)} detection(s){': ' + ', '.join(kept) if kept else ''}")

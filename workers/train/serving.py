@@ -49,22 +49,20 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
     (found,) = detect_object(detector, [cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB)])
     classes = detector.classes
     check = detector.texture_check()
-    keep = found["scores"] >= score_threshold
+    confirmed = found.get("confirmed")  # with the texture check only
+    keep = np.flatnonzero(found["scores"] >= score_threshold)
     return {
         "image": {"width": int(width), "height": int(height)},
         "classes": classes,
         "detections": [
             {
-                "box": [round(float(v), 2) for v in box],
-                "class": classes[int(label)],
-                "label": int(label),
-                "score": float(score),
-                "confirmed": None if confirmed is None else bool(confirmed),
+                "box": [round(float(v), 2) for v in found["boxes"][i]],
+                "class": classes[int(found["labels"][i])],
+                "label": int(found["labels"][i]),
+                "score": float(found["scores"][i]),
+                "confirmed": None if confirmed is None else bool(confirmed[i]),
             }
-            for box, score, label, confirmed in zip(
-                found["boxes"][keep], found["scores"][keep], found["labels"][keep],
-                found["confirmed"][keep] if "confirmed" in found else [None] * int(keep.sum()),
-            )
+            for i in keep
         ],
         "seconds": time.perf_counter() - started,
         "members": len(detector.meta.get("members", ())) or 1,  # an ensemble file's detectors

@@ -170,7 +170,9 @@ class TextureCheck:
             gray = grayscale(image)
             image_points, match_labels, texture_points = self._matches(gray)
             height, width = gray.shape
-            network = (boxes.copy(), scores.copy(), labels.copy())  # what the search scores its sheets by
+            if self.search:  # scored by the network's boxes as they came, before the check below moves them
+                found, found_labels = self._search(image_points, match_labels, texture_points, width, height)
+                found_network = _network_score(found, found_labels, boxes, scores, labels)
             for index in checked:
                 x0, y0, x1, y1 = boxes[index]
                 inside = (
@@ -204,17 +206,14 @@ class TextureCheck:
                 CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * scores,
                 np.where(scores >= PAPER_CUT, PAPER_CUT + (scores - PAPER_CUT) * UNCONFIRMED_SPAN, scores),
             ).astype(np.float32)
-            if self.search:
-                found, found_labels = self._search(image_points, match_labels, texture_points, width, height)
-                if len(found):
-                    # Scored as a box the check confirmed, at the network's score for it, or at the
-                    # check's floor where the network had none as high (so >= 0.93 in float32 too).
-                    network_score = np.maximum(_network_score(found, found_labels, *network), MIN_SCORE)
-                    found_scores = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * network_score
-                    boxes = np.concatenate([boxes, found])
-                    scores = np.concatenate([scores, found_scores.astype(np.float32)])
-                    labels = np.concatenate([labels, found_labels])
-                    confirmed = np.concatenate([confirmed, np.ones(len(found), dtype=bool)])
+            if self.search and len(found):
+                # Scored as a box the check confirmed, at the network's score for it, or at the
+                # check's floor where the network had none as high (so >= 0.93 in float32 too).
+                found_scores = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * np.maximum(found_network, MIN_SCORE)
+                boxes = np.concatenate([boxes, found])
+                scores = np.concatenate([scores, found_scores.astype(np.float32)])
+                labels = np.concatenate([labels, found_labels])
+                confirmed = np.concatenate([confirmed, np.ones(len(found), dtype=bool)])
             boxes, scores, labels, confirmed = _merge(boxes, scores, labels, confirmed)
         order = np.argsort(-scores, kind="stable")
         return {"boxes": boxes[order], "scores": scores[order], "labels": labels[order], "confirmed": confirmed[order]}
