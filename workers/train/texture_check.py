@@ -13,7 +13,10 @@ sheet lies: the texture's outline, mapped into the image and clipped to the fram
   class that now overlap (IoU ≥ ``NMS_IOU``: two boxes on one sheet, confirmed by one outline)
   are merged to the best, as the detector's views are.
 - A map that mirrors the texture is a false fit (a printed sheet shows its front): no evidence.
-- A box whose keypoints match another class's texture far better is renamed to that class.
+- A box whose keypoints match another class's texture far more often is renamed to that class
+  where those matches agree on a map of its texture (which confirms it as that class): a count
+  of matches alone renamed true sheets to the texture richest in keypoints, which clutter and
+  grain match most (bench/README.md, "Renaming on a map").
 - Every other box (too small or blurred for keypoints, a texture with few of them, or clutter
   matching nothing) keeps its class and its place against the paper's 0.8 cut: no evidence is
   not evidence against. Those at or above the cut rank below the confirmed ones
@@ -51,8 +54,8 @@ RATIO = 0.8
 MIN_SCORE = 0.3
 # Matches of one class inside a box that a RANSAC affine map must agree on before its outline counts.
 MIN_INLIERS = 6
-# A box is renamed when another class has at least this many matches, and this many times its own.
-RENAME_MATCHES = 4
+# A box is tried as another class where that class has this many times its own matches in it
+# (and renamed where they agree on a map: MIN_INLIERS of them).
 RENAME_FACTOR = 3
 PAPER_CUT = 0.8  # the paper's score cut: boxes without evidence keep their side of it
 CONFIRMED_FLOOR = 0.9  # confirmed boxes score from here: above every box without evidence
@@ -159,8 +162,6 @@ class TextureCheck:
         """``detections`` (boxes, scores, labels as ``detect_object`` gives them, in ``image``'s
         pixels) checked: new arrays, best score first, with ``confirmed`` (n,) bool: whether the
         texture confirmed each box (or the search found it)."""
-        import cv2
-
         boxes = np.array(detections["boxes"], dtype=np.float32, copy=True).reshape(-1, 4)
         scores = np.array(detections["scores"], dtype=np.float32, copy=True)
         labels = np.array(detections["labels"], dtype=np.int64, copy=True)
@@ -182,23 +183,17 @@ class TextureCheck:
                 counts = np.bincount(match_labels[inside], minlength=len(self.classes))
                 label = int(labels[index])
                 best = int(np.argmax(counts))
-                if best != label and counts[best] >= RENAME_MATCHES and counts[best] >= RENAME_FACTOR * max(counts[label], 1):
-                    label = labels[index] = best
-                own = inside & (match_labels == label)
-                if own.sum() < MIN_INLIERS:
+                # Another class's texture matched far more often is tried first, and renames the box
+                # only where its matches agree on a map (a count alone is no evidence: clutter
+                # matches the textures richest in keypoints most).
+                other = best != label and counts[best] >= MIN_INLIERS and counts[best] >= RENAME_FACTOR * max(counts[label], 1)
+                for candidate in [best, label] if other else [label]:
+                    outline = self._fit(image_points[inside], match_labels[inside], texture_points[inside], candidate, boxes[index], width, height)
+                    if outline is not None:
+                        break
+                else:
                     continue
-                diagonal = float(np.hypot(x1 - x0, y1 - y0))
-                affine, mask = cv2.estimateAffine2D(
-                    texture_points[own], image_points[own], method=cv2.RANSAC,
-                    ransacReprojThreshold=max(3.0, 0.08 * diagonal),
-                )
-                if affine is None or mask is None or int(mask.sum()) < MIN_INLIERS:
-                    continue
-                if np.linalg.det(affine[:, :2]) <= 0:
-                    continue  # a mirrored (or collapsed) print: not the sheet's front, a false fit
-                outline = self._outline(affine, label, width, height)
-                if outline is None:
-                    continue  # the map puts the sheet outside the frame: no evidence
+                labels[index] = candidate
                 boxes[index] = outline
                 confirmed[index] = True
             scores = np.where(
@@ -217,6 +212,25 @@ class TextureCheck:
             boxes, scores, labels, confirmed = _merge(boxes, scores, labels, confirmed)
         order = np.argsort(-scores, kind="stable")
         return {"boxes": boxes[order], "scores": scores[order], "labels": labels[order], "confirmed": confirmed[order]}
+
+    def _fit(self, image_points, match_labels, texture_points, label: int, box, width: int, height: int) -> np.ndarray | None:
+        """The outline of ``label``'s texture where at least ``MIN_INLIERS`` of its matches (among
+        those given: a box's) agree on one affine map, not mirrored; None where they do not."""
+        import cv2
+
+        own = match_labels == label
+        if own.sum() < MIN_INLIERS:
+            return None
+        x0, y0, x1, y1 = box
+        diagonal = float(np.hypot(x1 - x0, y1 - y0))
+        affine, mask = cv2.estimateAffine2D(
+            texture_points[own], image_points[own], method=cv2.RANSAC, ransacReprojThreshold=max(3.0, 0.08 * diagonal)
+        )
+        if affine is None or mask is None or int(mask.sum()) < MIN_INLIERS:
+            return None
+        if np.linalg.det(affine[:, :2]) <= 0:
+            return None  # a mirrored (or collapsed) print: not the sheet's front, a false fit
+        return self._outline(affine, label, width, height)
 
     def _outline(self, affine: np.ndarray, label: int, width: int, height: int) -> np.ndarray | None:
         """The class's texture outline mapped by ``affine`` into the image, clipped to the frame

@@ -1,5 +1,6 @@
 """The texture check confirms a box its texture's outline agrees with (the outline becoming the
-box), turns a piece of a sheet into the whole, renames a box that matches another texture, and
+box), turns a piece of a sheet into the whole, renames a box whose matches of another texture
+agree on that texture's map (not a box that merely matches it more often), and
 leaves what it has no evidence on on its side of the paper's cut, ranked below what it confirmed.
 With the search, the texture also finds the sheets the network gave no box for."""
 
@@ -88,6 +89,26 @@ def test_a_box_named_wrong_is_renamed_to_the_texture_it_matches(checker, scene):
     image, box = scene
     checked = checker.apply(image, detections((box, 0.85, 1)))  # called coffee
     assert checked["labels"][0] == 0 and checked["scores"][0] > 0.85
+
+
+def test_a_box_is_renamed_only_where_the_other_textures_matches_agree_on_a_map(checker, scene, monkeypatch):
+    """Many matches of another texture scattered over a box (clutter matches the textures richest
+    in keypoints most) leave its class as the network gave it; as many agreeing on one map of
+    that texture rename it, confirmed."""
+    image, box = scene
+    x0, y0, x1, y1 = box
+    rng = np.random.default_rng(1)
+    texture_points = rng.uniform(0, 400, (30, 2)).astype(np.float32)
+    scale = (x1 - x0) / 400
+    agreeing = np.stack([x0 + texture_points[:, 0] * scale, y0 + texture_points[:, 1] * scale], axis=1)
+    scattered = rng.permutation(agreeing)  # the same places, each matched to another texture point
+    found = detections((box, 0.85, 0))  # called astronaut; every match inside is coffee's
+    for points, renamed in ((scattered, False), (agreeing, True)):
+        monkeypatch.setattr(checker, "_matches", lambda gray, p=points: (p, np.ones(len(p), np.int64), texture_points))
+        checked = checker.apply(image, found)
+        assert checked["labels"].tolist() == [1 if renamed else 0]
+        assert checked["confirmed"].tolist() == [renamed]
+        assert (checked["scores"][0] >= CONFIRMED_FLOOR) == renamed
 
 
 def test_without_evidence_boxes_stay_on_their_side_of_the_cut_below_the_confirmed(checker, scene):
