@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from workers.train.texture_check import CONFIRMED_FLOOR, MIN_SCORE, PAPER_CUT, SEARCH_MIN_INLIERS, SIFT_MAX_SIDE, TextureCheck, sift_scale
+from workers.train.texture_check import CONFIRMED_FLOOR, MIN_AXIS_RATIO, MIN_SCORE, PAPER_CUT, SEARCH_MIN_INLIERS, SIFT_MAX_SIDE, TextureCheck, sift_scale
 
 CLASSES = ["astronaut", "coffee"]
 
@@ -143,9 +143,11 @@ def test_grayscale_images_and_textures_work_and_a_missing_texture_is_named(textu
         TextureCheck(textures, CLASSES + ["rocket"])
 
 
-def test_a_mirrored_fit_is_no_evidence(checker, scene, monkeypatch):
-    """Matches whose map mirrors the texture (a printed sheet shows its front only) leave the box
-    as the network gave it, where the same matches unmirrored confirm it."""
+@pytest.mark.parametrize("flatness", [0.5, 0.25])
+def test_a_mirrored_or_squashed_fit_is_no_evidence(checker, scene, monkeypatch, flatness):
+    """Matches whose map mirrors the texture (a printed sheet shows its front only), or squashes
+    it flatter than a sheet SIFT can match is ever seen (MIN_AXIS_RATIO), leave the box as the
+    network gave it, where the same matches unmirrored confirm it, as they do squashed less."""
     image, box = scene
     x0, y0, x1, y1 = box
     rng = np.random.default_rng(0)
@@ -153,8 +155,9 @@ def test_a_mirrored_fit_is_no_evidence(checker, scene, monkeypatch):
     scale = (x1 - x0) / 512
     upright = np.stack([x0 + texture_points[:, 0] * scale, y0 + texture_points[:, 1] * scale], axis=1)
     mirrored = np.stack([x1 - texture_points[:, 0] * scale, upright[:, 1]], axis=1)
+    squashed = np.stack([upright[:, 0], y0 + texture_points[:, 1] * scale * flatness], axis=1)
     found = detections((box, 0.5, 0))
-    for points, raised in ((upright, True), (mirrored, False)):
+    for points, raised in ((upright, True), (mirrored, False), (squashed, flatness >= MIN_AXIS_RATIO)):
         monkeypatch.setattr(checker, "_matches", lambda gray, p=points: (p, np.zeros(len(p), np.int64), texture_points))
         assert bool(checker.apply(image, found)["scores"][0] > 0.8) == raised
 
