@@ -195,18 +195,21 @@ def describe(theta) -> str:
     return " ".join(parts)
 
 
-def _dashed_rectangle(image, box, colour, dash: int = 4) -> None:
+def dashed_rectangle(image, box, colour, dash: int = 4, thickness: int = 1, pixel_edges: bool = True) -> None:
+    """A dashed rectangle drawn on ``image`` in place (``box`` xyxy; ``pixel_edges``: its far
+    edges are pixel edges, drawn on the last pixel they cover)."""
     import cv2
 
-    x0, y0, x1, y1 = (int(round(v)) for v in box)
-    x1, y1 = x1 - 1, y1 - 1  # pixel-edge box to the last covered pixel
+    x0, y0, x1, y1 = (int(round(float(v))) for v in box)
+    if pixel_edges:
+        x1, y1 = x1 - 1, y1 - 1
     for a, b in (((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)), ((x0, y1), (x0, y0))):
         length = max(abs(b[0] - a[0]), abs(b[1] - a[1]))
         for start in range(0, length + 1, 2 * dash):
             end = min(start + dash, length)
             p = (a[0] + (b[0] - a[0]) * start // max(length, 1), a[1] + (b[1] - a[1]) * start // max(length, 1))
             q = (a[0] + (b[0] - a[0]) * end // max(length, 1), a[1] + (b[1] - a[1]) * end // max(length, 1))
-            cv2.line(image, p, q, colour, 1)
+            cv2.line(image, p, q, colour, thickness)
 
 
 def draw_boxes(image, objects):
@@ -216,7 +219,7 @@ def draw_boxes(image, objects):
 
     canvas = image.copy()
     for obj in objects:
-        _dashed_rectangle(canvas, obj.amodal_box, (255, 220, 0))
+        dashed_rectangle(canvas, obj.amodal_box, (255, 220, 0))
     for obj in objects:
         x0, y0, x1, y1 = (int(round(v)) for v in obj.box)
         cv2.rectangle(canvas, (x0, y0), (x1 - 1, y1 - 1), (0, 255, 0), 1)

@@ -278,21 +278,30 @@ def _catalog_textures(assets, classes: list[str]) -> dict:
 
 
 def draw_detections(image_rgb, detections: dict, classes: list[str], score_threshold: float):
-    """A copy of the image (RGB) with every detection at or above the threshold boxed and labelled."""
+    """A copy of the image (RGB) with every detection at or above the threshold boxed and labelled.
+    Where the texture check ran (``confirmed`` in the detections), a box it confirmed is drawn
+    solid and one on the network's word alone dashed."""
     import cv2
     import numpy as np
+
+    from workers.render.cli import dashed_rectangle
 
     canvas = cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2BGR)
     height, width = canvas.shape[:2]
     thickness = max(1, round(min(height, width) / 200))
     font_scale = max(0.3, min(height, width) / 500)
     keep = np.asarray(detections["scores"]) >= score_threshold
-    for box, score, label in zip(
-        np.asarray(detections["boxes"])[keep], np.asarray(detections["scores"])[keep], np.asarray(detections["labels"])[keep]
+    confirmed = np.asarray(detections.get("confirmed", np.ones(len(keep), bool)), bool)
+    for box, score, label, solid in zip(
+        np.asarray(detections["boxes"])[keep], np.asarray(detections["scores"])[keep], np.asarray(detections["labels"])[keep],
+        confirmed[keep],
     ):
         colour = _PALETTE[int(label) % len(_PALETTE)]
         x0, y0, x1, y1 = (int(round(float(v))) for v in box)
-        cv2.rectangle(canvas, (x0, y0), (x1, y1), colour, thickness)
+        if solid:
+            cv2.rectangle(canvas, (x0, y0), (x1, y1), colour, thickness)
+        else:
+            dashed_rectangle(canvas, (x0, y0, x1, y1), colour, dash=3 * thickness + 2, thickness=thickness, pixel_edges=False)
         name = classes[int(label)] if 0 <= int(label) < len(classes) else str(int(label))
         text = f"{name} {float(score):.2f}"
         (text_w, text_h), baseline = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font_scale, 1)

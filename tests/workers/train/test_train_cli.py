@@ -172,6 +172,23 @@ def test_draw_detections_boxes_and_labels_only_above_threshold():
     assert everything[2, 5].any()
 
 
+def test_draw_detections_draws_texture_confirmed_boxes_solid_and_the_others_dashed():
+    image = np.zeros((200, 200, 3), np.uint8)
+    box = [20, 60, 180, 180]
+    drawn = {}
+    for confirmed in (True, False):
+        found = {
+            "boxes": np.array([box], np.float32), "scores": np.array([0.95], np.float32),
+            "labels": np.array([0], np.int64), "confirmed": np.array([confirmed]),
+        }
+        drawn[confirmed] = draw_detections(image, found, CLASSES, score_threshold=0.8)
+    bottom_solid, bottom_dashed = drawn[True][180, 20:181].any(1), drawn[False][180, 20:181].any(1)
+    assert bottom_solid.all()  # every pixel of the bottom edge
+    assert 0.3 < bottom_dashed.mean() < 0.8  # dashes and gaps along the same edge
+    without_check = {key: value for key, value in found.items() if key != "confirmed"}
+    np.testing.assert_array_equal(draw_detections(image, without_check, CLASSES, 0.8), drawn[True])  # no check: solid
+
+
 # --------------------------------------------------------------------------- train → evaluate → detect
 
 
