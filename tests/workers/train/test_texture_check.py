@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import skimage.data
 
+from workers.train import texture_check
 from workers.train.texture_check import CONFIRMED_FLOOR, MIN_AXIS_RATIO, MIN_SCORE, PAPER_CUT, SEARCH_MIN_INLIERS, SIFT_MAX_SIDE, TextureCheck, sift_scale
 
 CLASSES = ["astronaut", "coffee"]
@@ -89,6 +90,37 @@ def test_a_box_named_wrong_is_renamed_to_the_texture_it_matches(checker, scene):
     image, box = scene
     checked = checker.apply(image, detections((box, 0.85, 1)))  # called coffee
     assert checked["labels"][0] == 0 and checked["scores"][0] > 0.85
+
+
+def _tilted_scene(texture: np.ndarray, tilt: float) -> tuple[np.ndarray, np.ndarray]:
+    """``texture`` 200 px wide, foreshortened ``tilt`` times across (a sheet seen at arccos(1/tilt)
+    off straight on), centred on a blurred noise ground; its true box."""
+    rng = np.random.default_rng(3)
+    ground = cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3)).astype(np.uint8), (0, 0), 3)
+    affine = np.diag([200 / texture.shape[1] / tilt, 200 / texture.shape[1]])
+    centre = np.array([texture.shape[1], texture.shape[0]]) @ affine.T / 2
+    affine = np.hstack([affine, (np.array([160, 120]) - centre)[:, None]])
+    warped = cv2.warpAffine(texture, affine, (320, 240))
+    mask = cv2.warpAffine(np.full(texture.shape[:2], 255, np.uint8), affine, (320, 240)) > 0
+    ys, xs = np.nonzero(mask)
+    return np.where(mask[:, :, None], warped, ground), np.array([xs.min(), ys.min(), xs.max(), ys.max()], np.float32)
+
+
+def test_tilted_views_of_the_texture_match_a_sheet_seen_obliquely(checker, textures, monkeypatch):
+    """A sheet seen 60° off straight on matches the texture's tilted views several times as often
+    as the texture itself, and one seen at 70° is confirmed only with them."""
+    monkeypatch.setattr(texture_check, "TEXTURE_TILTS", ())
+    straight_on_only = TextureCheck(textures, CLASSES)
+    for tilt, counts in ((2.0, []), (3.0, [])):
+        image, box = _tilted_scene(textures["astronaut"], tilt)
+        for check in (checker, straight_on_only):
+            counts.append(int((check._matches(texture_check.grayscale(image))[1] == 0).sum()))
+        if tilt == 2.0:
+            assert counts[0] >= 3 * counts[1] > 0
+        else:
+            found = detections((box, 0.5, 0))
+            assert checker.apply(image, found)["confirmed"].tolist() == [True]
+            assert straight_on_only.apply(image, found)["confirmed"].tolist() == [False]
 
 
 def test_a_box_is_renamed_only_where_the_other_textures_matches_agree_on_a_map(checker, scene, monkeypatch):
