@@ -123,17 +123,22 @@ def test_tilted_views_of_the_texture_match_a_sheet_seen_obliquely(checker, textu
             assert straight_on_only.apply(image, found)["confirmed"].tolist() == [False]
 
 
+def _matches_on(box, count: int, texture_side: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` random points of a square texture ``texture_side`` px wide, and where a map that
+    puts that texture on ``box``'s top left at the box's width takes them: matches that agree."""
+    x0, y0, x1, _ = box
+    texture_points = np.random.default_rng(seed).uniform(0, texture_side, (count, 2)).astype(np.float32)
+    scale = (x1 - x0) / texture_side
+    return texture_points, np.stack([x0 + texture_points[:, 0] * scale, y0 + texture_points[:, 1] * scale], axis=1)
+
+
 def test_a_box_is_renamed_only_where_the_other_textures_matches_agree_on_a_map(checker, scene, monkeypatch):
     """Many matches of another texture scattered over a box (clutter matches the textures richest
     in keypoints most) leave its class as the network gave it; as many agreeing on one map of
     that texture rename it, confirmed."""
     image, box = scene
-    x0, y0, x1, y1 = box
-    rng = np.random.default_rng(1)
-    texture_points = rng.uniform(0, 400, (30, 2)).astype(np.float32)
-    scale = (x1 - x0) / 400
-    agreeing = np.stack([x0 + texture_points[:, 0] * scale, y0 + texture_points[:, 1] * scale], axis=1)
-    scattered = rng.permutation(agreeing)  # the same places, each matched to another texture point
+    texture_points, agreeing = _matches_on(box, count=30, texture_side=400, seed=1)
+    scattered = np.random.default_rng(1).permutation(agreeing)  # the same places, each matched to another texture point
     found = detections((box, 0.85, 0))  # called astronaut; every match inside is coffee's
     for points, renamed in ((scattered, False), (agreeing, True)):
         monkeypatch.setattr(checker, "_matches", lambda gray, p=points: (p, np.ones(len(p), np.int64), texture_points))
@@ -182,10 +187,8 @@ def test_a_mirrored_or_squashed_fit_is_no_evidence(checker, scene, monkeypatch, 
     network gave it, where the same matches unmirrored confirm it, as they do squashed less."""
     image, box = scene
     x0, y0, x1, y1 = box
-    rng = np.random.default_rng(0)
-    texture_points = rng.uniform(0, 512, (40, 2)).astype(np.float32)
+    texture_points, upright = _matches_on(box, count=40, texture_side=512, seed=0)
     scale = (x1 - x0) / 512
-    upright = np.stack([x0 + texture_points[:, 0] * scale, y0 + texture_points[:, 1] * scale], axis=1)
     mirrored = np.stack([x1 - texture_points[:, 0] * scale, upright[:, 1]], axis=1)
     squashed = np.stack([upright[:, 0], y0 + texture_points[:, 1] * scale * flatness], axis=1)
     found = detections((box, 0.5, 0))
