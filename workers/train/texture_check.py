@@ -87,8 +87,8 @@ CONTRAST_THRESHOLD = 0.02  # OpenCV's default 0.04
 # Each texture's keypoints are also taken from views of it tilted (Morel & Yu's ASIFT): SIFT
 # matches a sheet seen at most ~45-60° off straight on, and the wild's sheets lie on the ground,
 # curl and face cameras low over it. Tilts √2 and 2 (45° and 60°) in four directions, 8 views
-# beside the texture itself: on make run's pair, out of domain 0.721 / 0.748 / 0.699 -> 0.734 /
-# 0.798 / 0.729, in domain 0.912 -> 0.910, for about 7x the texture keypoints to match against
+# beside the texture itself: on make run's pair, out of domain 0.721 / 0.748 / 0.699 -> 0.729 /
+# 0.805 / 0.729, in domain 0.912 -> 0.916, for 7x the texture keypoints to match against
 # (bench/README.md, "Tilted views of the textures").
 TEXTURE_TILTS = (2**0.5, 2.0)
 TEXTURE_TILT_DIRECTIONS = (0.0, 45.0, 90.0, 135.0)
