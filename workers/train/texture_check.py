@@ -283,7 +283,8 @@ class TextureCheck:
 
     def _fit(self, image_points, match_labels, texture_points, label: int, box, width: int, height: int) -> np.ndarray | None:
         """The outline of ``label``'s texture where at least ``MIN_INLIERS`` of its matches (among
-        those given: a box's) agree on one affine map, not mirrored; None where they do not."""
+        those given: a box's) agree on one affine map that is no false fit (``_false_fit``); None
+        where they do not."""
         import cv2
 
         own = match_labels == label
@@ -296,9 +297,7 @@ class TextureCheck:
         )
         if affine is None or mask is None or int(mask.sum()) < MIN_INLIERS:
             return None
-        if np.linalg.det(affine[:, :2]) <= 0:
-            return None  # a mirrored (or collapsed) print: not the sheet's front, a false fit
-        if _squashed(affine):
+        if _false_fit(affine):
             return None
         return self._outline(affine, label, width, height)
 
@@ -342,8 +341,7 @@ class TextureCheck:
                     affine = refit if refit is not None else affine
                     outline = self._outline(affine, label, width, height)
                     if (
-                        np.linalg.det(affine[:, :2]) > 0  # not mirrored
-                        and not _squashed(affine)
+                        not _false_fit(affine)
                         and outline is not None
                         and min(outline[2] - outline[0], outline[3] - outline[1]) >= SEARCH_MIN_SIDE
                     ):
@@ -355,8 +353,12 @@ class TextureCheck:
         return np.stack(found).astype(np.float32), np.array(found_labels, np.int64)
 
 
-def _squashed(affine: np.ndarray) -> bool:
-    """Whether an affine map flattens the texture past ``MIN_AXIS_RATIO``."""
+def _false_fit(affine: np.ndarray) -> bool:
+    """Whether an affine map from a texture is no sheet: mirrored or collapsed (a printed sheet
+    shows its front) or flattened past ``MIN_AXIS_RATIO`` (few clustered matches stretched into a
+    strip), in the box check and the search alike."""
+    if np.linalg.det(affine[:, :2]) <= 0:
+        return True
     axes = np.linalg.svd(affine[:, :2], compute_uv=False)
     return bool(axes[1] < MIN_AXIS_RATIO * axes[0])
 
