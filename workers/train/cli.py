@@ -292,6 +292,7 @@ def draw_detections(image_rgb, detections: dict, classes: list[str], score_thres
     font_scale = max(0.3, min(height, width) / 500)
     keep = np.asarray(detections["scores"]) >= score_threshold
     confirmed = np.asarray(detections.get("confirmed", np.ones(len(keep), bool)), bool)
+    labels_drawn: list[tuple[int, int, int, int]] = []
     for box, score, label, solid in zip(
         np.asarray(detections["boxes"])[keep], np.asarray(detections["scores"])[keep], np.asarray(detections["labels"])[keep],
         confirmed[keep],
@@ -305,10 +306,24 @@ def draw_detections(image_rgb, detections: dict, classes: list[str], score_thres
         name = classes[int(label)] if 0 <= int(label) < len(classes) else str(int(label))
         text = f"{name} {float(score):.2f}"
         (text_w, text_h), baseline = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font_scale, 1)
-        top = max(0, y0 - text_h - baseline)
-        cv2.rectangle(canvas, (x0, top), (x0 + text_w, top + text_h + baseline), colour, -1)
-        cv2.putText(canvas, text, (x0, top + text_h), cv2.FONT_HERSHEY_SIMPLEX, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
+        left, top = _label_position(x0, y0, y1, text_w, text_h + baseline, width, height, labels_drawn)
+        labels_drawn.append((left, top, left + text_w, top + text_h + baseline))
+        cv2.rectangle(canvas, (left, top), (left + text_w, top + text_h + baseline), colour, -1)
+        cv2.putText(canvas, text, (left, top + text_h), cv2.FONT_HERSHEY_SIMPLEX, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
     return cv2.cvtColor(canvas, cv2.COLOR_BGR2RGB)
+
+
+def _label_position(x0: int, y0: int, y1: int, label_w: int, label_h: int, width: int, height: int, taken: list) -> tuple[int, int]:
+    """Top-left corner of a box's label: above the box's top-left corner, or, where an earlier
+    label is there (nested boxes share corners), the first free place down the box's left edge;
+    the first place if none is free."""
+    left = min(max(0, x0), max(0, width - label_w))
+    places = [max(0, y0 - label_h)] + list(range(max(0, y0), max(y0, y1 - label_h) + 1, label_h))
+    for top in places:
+        top = min(top, max(0, height - label_h))
+        if not any(left < r1 and r0 < left + label_w and top < b1 and b0 < top + label_h for r0, b0, r1, b1 in taken):
+            return left, top
+    return left, min(places[0], max(0, height - label_h))
 
 
 def detect(

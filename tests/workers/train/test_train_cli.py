@@ -12,7 +12,7 @@ import pytest
 import typer
 from typer.testing import CliRunner
 
-from workers.train.cli import draw_detections, register
+from workers.train.cli import _PALETTE, draw_detections, register
 
 CLASSES = ["red_card", "blue_card"]
 COLOURS = [(220, 40, 40), (40, 60, 220)]
@@ -187,6 +187,28 @@ def test_draw_detections_draws_texture_confirmed_boxes_solid_and_the_others_dash
     assert 0.3 < bottom_dashed.mean() < 0.8  # dashes and gaps along the same edge
     without_check = {key: value for key, value in found.items() if key != "confirmed"}
     np.testing.assert_array_equal(draw_detections(image, without_check, CLASSES, 0.8), drawn[True])  # no check: solid
+
+
+def test_draw_detections_keeps_the_labels_of_nested_boxes_apart():
+    # Boxes sharing a top-left corner (a sheet and a piece of it) once drew their labels on the
+    # same spot: the later hid the earlier.
+    image = np.zeros((200, 200, 3), np.uint8)
+    found = {
+        "boxes": np.array([[20, 60, 180, 180], [20, 60, 120, 140], [20, 60, 90, 100]], np.float32),
+        "scores": np.array([0.95, 0.9, 0.85], np.float32),
+        "labels": np.array([0, 1, 0], np.int64),
+    }
+    drawn = cv2.cvtColor(draw_detections(image, found, CLASSES, score_threshold=0.8), cv2.COLOR_RGB2BGR)
+    box_edges = {60, 100, 140, 180}
+    label_fills = []  # rows filled with a class's colour across a label's width, box edges aside
+    for colour in _PALETTE[:2]:
+        rows = np.flatnonzero((drawn == colour).all(-1).sum(1) > 20)
+        label_fills.append({int(row) for row in rows} - box_edges)
+    first, second = label_fills
+    assert first and second
+    assert any(row < 60 for row in first)  # the best box's label sits above its corner
+    assert all(row >= 60 for row in second)  # the next one moved down, inside the box
+    assert len(first) >= 2 * len(second)  # both labels of class 0 drawn in full, one below the other
 
 
 # --------------------------------------------------------------------------- train → evaluate → detect
