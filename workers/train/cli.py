@@ -308,7 +308,7 @@ def draw_detections(image_rgb, detections: dict, classes: list[str], score_thres
         (text_w, text_h), baseline = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font_scale, 1)
         left, top = _label_position(x0, y0, y1, text_w, text_h + baseline, width, height, labels_drawn)
         labels_drawn.append((left, top, left + text_w, top + text_h + baseline))
-        cv2.rectangle(canvas, (left, top), (left + text_w, top + text_h + baseline), colour, -1)
+        cv2.rectangle(canvas, labels_drawn[-1][:2], labels_drawn[-1][2:], colour, -1)
         cv2.putText(canvas, text, (left, top + text_h), cv2.FONT_HERSHEY_SIMPLEX, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
     return cv2.cvtColor(canvas, cv2.COLOR_BGR2RGB)
 
