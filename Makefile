@@ -10,6 +10,9 @@ CONFIG ?= configs/quick.yaml
 # curriculum leaves the second core mostly idle); bench/README.md, "Two curricula". Other configs
 # run one unless MEMBERS says (learnability and canonical-baseline runs hand over no model to join).
 MEMBERS ?= $(if $(filter configs/quick.yaml,$(CONFIG)),2,1)
+# pytest-xdist workers for `make test`: the suite is mostly one busy core at a time, so two
+# workers take about half its time on 2 cores (tests/conftest.py sends them a module at a time).
+TEST_WORKERS ?= 2
 
 .PHONY: install run test test-integration bench constraints clean
 
@@ -28,7 +31,7 @@ run: $(STAMP)
 
 ## The test suite (tests/integration runs against local Redis + PostgreSQL, or skips saying why).
 test: $(STAMP)
-	$(BIN)/python -m pytest
+	$(BIN)/python -m pytest -n $(TEST_WORKERS)
 
 test-integration: $(STAMP)
 	$(BIN)/python -m pytest tests/integration -v

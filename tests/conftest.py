@@ -136,3 +136,19 @@ def postgres_database(migrated_postgres_url, tmp_path, monkeypatch):
     """Like ``database``, on a fresh migrated PostgreSQL database."""
     yield from _use_database(migrated_postgres_url, tmp_path, monkeypatch)
 
+
+@pytest.hookimpl(optionalhook=True)  # a hook of pytest-xdist, which `make test` runs under (-n 2)
+def pytest_xdist_make_scheduler(config, log):
+    """Tests go to xdist's workers a module at a time (its module fixtures, a trained detector or a
+    rendered set, built once), and tests/integration as one unit: its modules share one compose
+    stack per session, and a session holds Redis db 9 until it ends (a second worker would wait
+    for it, then fail). xdist's own ``xdist_group`` marks would say this, but pytest 9.2 drops
+    them silently (pytest-dev/pytest-xdist#1386)."""
+    from xdist.scheduler import LoadScopeScheduling
+
+    class ModuleScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid: str) -> str:
+            module = nodeid.split("::", 1)[0]
+            return "tests/integration" if module.startswith("tests/integration/") else module
+
+    return ModuleScheduling(config, log)
