@@ -909,6 +909,10 @@ def main(argv=None) -> dict:
         help="comma list of quarter turns to detect on too, e.g. 0 for upright only (default: the model's detector.test_turns)",
     )
     parser.add_argument("--out", type=Path)
+    parser.add_argument(
+        "--sets-only", action="store_true",
+        help="render (or find) the benchmark's sets, report where they are, and stop: no training, no scoring",
+    )
     args = parser.parse_args(argv)
 
     from foldwise.config import load_config
@@ -949,6 +953,14 @@ def main(argv=None) -> dict:
         ood_dirs.append(make_ood_set(folder, set_recipe, echo))
         report[f"ood_set{key}"] = {"dir": str(ood_dirs[-1]), "recipe": asdict(set_recipe), "seconds": time.perf_counter() - started}
 
+    in_domain_dir = args.in_domain_dir or ROOT / f"var/bench/wild-in-domain-{config.name}"
+    make_in_domain_set(config, in_domain_dir, args.n_in_domain, seed=config.seed + 7919, echo=echo)
+    reframed_dir = make_reframed_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-reframed"))
+    rotated_dir = make_rotated_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-rotated"))
+    if args.sets_only:
+        report["in_domain_set"] = {"dir": str(in_domain_dir), "reframed": str(reframed_dir), "rotated": str(rotated_dir)}
+        return _write_report(report, args.out)
+
     checkpoint = args.model  # several: scored as one ensemble
     if checkpoint is None:
         train_dir = args.train_dir or Path(tempfile.mkdtemp(prefix="foldwise-wild-train-"))
@@ -961,12 +973,8 @@ def main(argv=None) -> dict:
     report["test_turns"] = list(args.test_turns) if args.test_turns is not None else "the model's"
     views = {"test_sizes": args.test_sizes, "test_turns": args.test_turns}
 
-    in_domain_dir = args.in_domain_dir or ROOT / f"var/bench/wild-in-domain-{config.name}"
-    make_in_domain_set(config, in_domain_dir, args.n_in_domain, seed=config.seed + 7919, echo=echo)
     report["in_domain"] = score(checkpoint, in_domain_dir, args.threshold, args.iou, **views)
-    reframed_dir = make_reframed_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-reframed"))
     report["in_domain_reframed"] = score(checkpoint, reframed_dir, args.threshold, args.iou, **views)
-    rotated_dir = make_rotated_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-rotated"))
     report["in_domain_rotated"] = score(checkpoint, rotated_dir, args.threshold, args.iou, **views)
     in_map = report["in_domain"]["map"]
     ratios = []
@@ -978,10 +986,15 @@ def main(argv=None) -> dict:
     from bench.render import cpu_model
 
     report["machine"] = {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version()}
+    return _write_report(report, args.out)
+
+
+def _write_report(report: dict, out: Path | None) -> dict:
+    """The report as JSON on stdout, and in ``out`` where given."""
     text = json.dumps(report, indent=2, default=float)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
+    if out:
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(text)
     print(text)
     return report
 
