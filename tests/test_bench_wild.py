@@ -92,9 +92,17 @@ def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
         "--n-ood-apart", "2", "--ood-apart-size", "64x48", "--ood-apart-dir", str(tmp_path / "ood-apart"),
         "--train-dir", str(tmp_path / "train"), "--members", "2", "--out", str(out),
     ]
+    # --sets-only renders the sets and stops: no training, no scores; the full run then reuses them.
+    rendered = subprocess.run([*command, "--sets-only"], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert rendered.returncode == 0, rendered.stderr[-3000:]
+    sets = json.loads(out.read_text())
+    assert "model" not in sets and "in_domain" not in sets and not (tmp_path / "train").exists()
+    assert sets["in_domain_set"]["dir"] == str(tmp_path / "in") and (tmp_path / "in" / "annotations.json").is_file()
+    assert all((tmp_path / name / "annotations.json").is_file() for name in ("ood", "ood-second", "ood-apart"))
     finished = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert finished.returncode == 0, finished.stderr[-3000:]
     report = json.loads(out.read_text())
+    assert "in-domain set: reusing" in finished.stderr and "out-of-domain set: reusing" in finished.stderr
     assert report["in_domain"]["images"] == 2 and report["out_of_domain"]["images"] == 4
     assert report["in_domain_reframed"]["images"] == 2  # the same images in 4:3 and 3:4 frames
     assert report["in_domain_rotated"]["images"] == 2  # and turned by quarter turns
