@@ -520,12 +520,14 @@ def detector_predictions(
     on_batch: Callable[[int], None] | None = None,
     test_sizes: Sequence[int] | None = None,
     test_turns: Sequence[int] | None = None,
+    texture_check: bool = True,
 ) -> tuple[list[dict], list[dict], list[dict], list[str]]:
     """(predictions, ground truth, groups, the detector's class names) for ``evaluate_predictions``:
     ``detect_object`` on the samples' images, and their boxes with labels mapped to the detector's
     own class list by name (a dataset whose categories come in another order still scores right;
     a dataset class the detector does not know is an error). Groups are condition and difficulty.
-    ``test_sizes`` and ``test_turns`` override the detector config's (see ``detect_object``).
+    ``test_sizes`` and ``test_turns`` override the detector config's, ``texture_check=False`` leaves
+    out the detector's texture check (see ``detect_object``).
     ``detector`` may be a list of detectors of one class list, scored as one (``detect_ensemble``)."""
     from workers.train.checkpoint import detect_ensemble
 
@@ -539,7 +541,7 @@ def detector_predictions(
     to_model = np.array([model_classes.index(name) for name in classes], dtype=np.int64)
     predictions = detect_ensemble(
         detectors, [sample.image_path for sample in samples], batch_size=batch_size, on_batch=on_batch,
-        test_sizes=test_sizes, test_turns=test_turns,
+        test_sizes=test_sizes, test_turns=test_turns, texture_check=texture_check,
     )
     ground_truth = [
         {"boxes": sample.boxes, "labels": to_model[np.asarray(sample.labels, dtype=np.int64)]} for sample in samples

@@ -92,6 +92,52 @@ def test_a_box_named_wrong_is_renamed_to_the_texture_it_matches(checker, scene):
     assert checked["labels"][0] == 0 and checked["scores"][0] > 0.85
 
 
+def _match_set(matches) -> set[tuple]:
+    image_points, labels, texture_points = matches
+    return {(*np.round(p, 2), int(label), *np.round(q, 2)) for p, label, q in zip(image_points, labels, texture_points)}
+
+
+def test_flann_finds_nearly_every_match_brute_force_does_and_is_the_same_each_time(checker, textures, scene):
+    """The KD-trees are drawn at random but seeded: two checks built apart match alike, to the
+    byte. Against brute force over every texture keypoint they keep at least 90% of its matches
+    through the ratio test, and the sheet is confirmed as the same outline."""
+    image, box = scene
+    gray = texture_check.grayscale(image)
+    again = TextureCheck(textures, CLASSES)
+    for ours, theirs in zip(checker._matches(gray), again._matches(gray)):
+        np.testing.assert_array_equal(ours, theirs)
+    exact = TextureCheck(textures, CLASSES, exact=True)
+    assert exact._index is None and checker._index is not None
+    brute_force, flann = _match_set(exact._matches(gray)), _match_set(checker._matches(gray))
+    assert len(brute_force) > 100 and len(brute_force & flann) >= 0.9 * len(brute_force)
+    found = detections((box, 0.5, 0))
+    by_flann, by_brute_force = checker.apply(image, found), exact.apply(image, found)
+    assert by_flann["confirmed"].tolist() == by_brute_force["confirmed"].tolist() == [True]
+    np.testing.assert_allclose(by_flann["boxes"], by_brute_force["boxes"], atol=3.0)
+
+
+def test_a_texture_with_fewer_keypoints_than_neighbours_looked_at_is_matched_alike(monkeypatch):
+    """A texture with fewer keypoints than the ratio test's NEIGHBOURS (a blurred disc, seen
+    straight on only; the other class blank): FLANN is asked for no more neighbours than there
+    are points, each texture keypoint's nearest is itself, and both matchers match alike."""
+    monkeypatch.setattr(texture_check, "TEXTURE_TILTS", ())
+    card = np.full((64, 64), 40, np.uint8)
+    cv2.circle(card, (32, 32), 9, 220, -1)
+    card = cv2.GaussianBlur(card, (0, 0), 2)
+    matched = []
+    for exact in (True, False):
+        check = TextureCheck({"astronaut": card, "coffee": np.full((64, 64), 128, np.uint8)}, CLASSES, exact=exact)
+        count = len(check._features.descriptors)
+        assert 2 <= count < texture_check.NEIGHBOURS
+        indices, distances = check._neighbours(check._features.descriptors)
+        assert indices.shape == distances.shape == (count, count)
+        np.testing.assert_array_equal(indices[:, 0], np.arange(count))
+        np.testing.assert_allclose(distances[:, 0], 0.0, atol=1e-2)
+        matched.append(check._matches(card))
+    for brute_force, flann in zip(*matched):
+        np.testing.assert_array_equal(brute_force, flann)
+
+
 def _tilted_scene(texture: np.ndarray, tilt: float) -> tuple[np.ndarray, np.ndarray]:
     """``texture`` 200 px wide, foreshortened ``tilt`` times across (a sheet seen at arccos(1/tilt)
     off straight on), centred on a blurred noise ground; its true box."""
