@@ -17,9 +17,6 @@ Sets default to the four of ``bench/wild.py`` for configs/quick.yaml (render the
 from __future__ import annotations
 
 import argparse
-import json
-import os
-import platform
 import sys
 import time
 from pathlib import Path
@@ -28,6 +25,8 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+from bench.wild import machine, write_report  # noqa: E402  (light: numpy and paths)
 
 DEFAULT_SETS = ("wild-in-domain-quick", "wild-ood", "wild-ood-b", "wild-ood-apart")
 MATCHERS = {"brute_force": True, "flann": False}  # name: TextureCheck(exact=...)
@@ -116,15 +115,8 @@ def main(argv=None) -> dict:
         "every": args.every,
         "sets": {path.name: compare_on_set(detector, path, args.every, args.threshold, args.iou) for path in sets},
     }
-    from bench.render import cpu_model
-
-    report["machine"] = {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version()}
-    text = json.dumps(report, indent=2, default=float)
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(text)
-    print(text)
-    return report
+    report["machine"] = machine()
+    return write_report(report, args.out)
 
 
 if __name__ == "__main__":

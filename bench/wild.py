@@ -959,7 +959,7 @@ def main(argv=None) -> dict:
     rotated_dir = make_rotated_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-rotated"))
     if args.sets_only:
         report["in_domain_set"] = {"dir": str(in_domain_dir), "reframed": str(reframed_dir), "rotated": str(rotated_dir)}
-        return _write_report(report, args.out)
+        return write_report(report, args.out)
 
     checkpoint = args.model  # several: scored as one ensemble
     if checkpoint is None:
@@ -983,13 +983,18 @@ def main(argv=None) -> dict:
         report[f"ratio{key}"] = None if not in_map else report[f"out_of_domain{key}"]["map"] / in_map
         ratios.append(report[f"ratio{key}"])
     report["goal"] = {"ratio_at_least": 0.8, "met": all(ratio is not None and ratio >= 0.8 for ratio in ratios)}
+    report["machine"] = machine()
+    return write_report(report, args.out)
+
+
+def machine() -> dict:
+    """The CPU, its core count and Python's version, for a report's ``machine``."""
     from bench.render import cpu_model
 
-    report["machine"] = {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version()}
-    return _write_report(report, args.out)
+    return {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version()}
 
 
-def _write_report(report: dict, out: Path | None) -> dict:
+def write_report(report: dict, out: Path | None) -> dict:
     """The report as JSON on stdout, and in ``out`` where given."""
     text = json.dumps(report, indent=2, default=float)
     if out:

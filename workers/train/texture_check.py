@@ -226,7 +226,8 @@ class TextureCheck:
         # views hold one point several times, and its copies are no rival to it.
         indices, distances = self._neighbours(descriptors)
         found = indices >= 0
-        labels, points = features.labels[np.maximum(indices, 0)], features.points[np.maximum(indices, 0)]
+        nearest = np.maximum(indices, 0)  # -1 (none found) read as 0, then masked by ``found``
+        labels, points = features.labels[nearest], features.points[nearest]
         offsets = points - points[:, :1]
         other_point = (labels != labels[:, :1]) | (np.hypot(offsets[..., 0], offsets[..., 1]) > SAME_POINT_PX)
         rivals = found & other_point
