@@ -148,7 +148,12 @@ def pytest_xdist_make_scheduler(config, log):
 
     class ModuleScheduling(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
-            module = nodeid.split("::", 1)[0]
-            return "tests/integration" if module.startswith("tests/integration/") else module
+            return xdist_unit(nodeid)
 
     return ModuleScheduling(config, log)
+
+
+def xdist_unit(nodeid: str) -> str:
+    """The unit of tests one xdist worker runs together: the test's module, or tests/integration."""
+    module = nodeid.split("::", 1)[0]
+    return "tests/integration" if module.startswith("tests/integration/") else module
