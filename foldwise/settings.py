@@ -6,10 +6,15 @@ import os
 from functools import lru_cache
 from pathlib import Path
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 REPO_ROOT = Path(__file__).resolve().parent.parent
+
+
+def default_cache_dir() -> Path:
+    """$XDG_CACHE_HOME/foldwise, else ~/.cache/foldwise."""
+    return Path(os.environ.get("XDG_CACHE_HOME") or "~/.cache").expanduser() / "foldwise"
 
 
 class Settings(BaseSettings):
@@ -41,6 +46,14 @@ class Settings(BaseSettings):
     # says). Processes that share a machine each take a part of it: `foldwise run --members 2`
     # gives each of its two curricula one of two cores.
     threads: int = Field(default=0, ge=0)
+    # What a process can make again but would rather not: the texture check's keypoints and
+    # trees, seconds to make (workers/train/texture_check.py). Empty: nothing is kept.
+    cache_dir: Path | None = Field(default_factory=default_cache_dir)
+
+    @field_validator("cache_dir", mode="before")
+    @classmethod
+    def _empty_is_none(cls, value):
+        return None if isinstance(value, str) and not value.strip() else value
 
     @property
     def asset_root_paths(self) -> list[Path]:

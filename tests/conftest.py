@@ -2,13 +2,29 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 import sqlite3
+import tempfile
 from contextlib import contextmanager
 
 import pytest
 from sqlalchemy import event
 from sqlalchemy.engine import Engine
+
+
+def pytest_configure(config):
+    """What the code under test caches (FOLDWISE_CACHE_DIR: the texture check's keypoints) goes to
+    a folder of this run (each xdist worker its own), never the user's ~/.cache."""
+    folder = tempfile.mkdtemp(prefix="foldwise-test-cache-")
+    config._foldwise_cache_dir = folder
+    os.environ["FOLDWISE_CACHE_DIR"] = folder
+
+
+def pytest_unconfigure(config):
+    folder = getattr(config, "_foldwise_cache_dir", None)
+    if folder:
+        shutil.rmtree(folder, ignore_errors=True)
 
 
 @event.listens_for(Engine, "connect")

@@ -16,7 +16,7 @@ import sys
 import tomllib
 import zipfile
 from collections.abc import Mapping
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 import pytest
@@ -302,6 +302,9 @@ def test_foldwise_services_share_one_definition_and_one_artifact_store(compose):
     for name, service in services.items():
         data_dir = service_environment(service)["FOLDWISE_DATA_DIR"]
         assert volume_mounts(service).get(data_dir) == "artifacts", f"{name} does not mount the store at {data_dir}"
+        # The texture check's cache outlives a container: a restarted detect worker reads it back.
+        cache_dir = PurePosixPath(service_environment(service)["FOLDWISE_CACHE_DIR"])
+        assert cache_dir.is_relative_to(data_dir) and cache_dir != PurePosixPath(data_dir), f"{name} keeps its cache outside the store"
     assert "artifacts" in compose["volumes"]
 
 

@@ -24,7 +24,7 @@ import time
 from collections.abc import Callable, Iterator, Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any, TypeVar
 from urllib.parse import urlsplit, urlunsplit
 
@@ -266,6 +266,10 @@ class Stack:
         if self.broker_url is not None:
             environment["FOLDWISE_BROKER_URL"] = self.broker_url
         environment["FOLDWISE_DATA_DIR"] = str(self.data_dir)
+        # Folders compose puts in the artifacts volume (the texture check's cache) go in the local store.
+        cache_dir = compose_environment.get("FOLDWISE_CACHE_DIR")
+        if cache_dir and PurePosixPath(cache_dir).is_relative_to(data_dir):
+            environment["FOLDWISE_CACHE_DIR"] = str(self.data_dir / PurePosixPath(cache_dir).relative_to(data_dir))
         # The checkout under test, not the one the venv's editable install points to.
         environment["PYTHONPATH"] = os.pathsep.join(filter(None, [str(REPO), os.environ.get("PYTHONPATH")]))
         # Two cores for the whole suite: no process fans out over threads.

@@ -71,9 +71,16 @@ class Detector:
         if not self.config.texture_check or not self.textures:
             return None
         if self._texture_check is None:
+            from foldwise.settings import get_settings
             from workers.train.texture_check import TextureCheck
 
-            self._texture_check = TextureCheck(self.textures, self.classes, search=self.config.texture_search)
+            cache = get_settings().cache_dir
+            self._texture_check = TextureCheck(
+                self.textures,
+                self.classes,
+                search=self.config.texture_search,
+                cache_dir=None if cache is None else cache / "texture-check",
+            )
         return self._texture_check
 
     @property

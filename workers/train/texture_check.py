@@ -47,15 +47,28 @@ A bent sheet is not an affine image of its texture, so the outline is approximat
 threshold (8% of the box's diagonal) leaves room for that. The constants
 were chosen on foldwise's own out-of-domain set and are stable around it (bench/README.md,
 "The texture check").
+
+Building a check (SIFT over each texture's nine views, then the KD-trees) takes seconds, which a
+process checking one image (`foldwise detect`, a detect worker's first request) would spend
+mostly there. Given a ``cache_dir``, the textures' keypoints and the trees are kept there, keyed
+by everything that makes them (the textures' pixels, the SIFT and tree settings, OpenCV's
+version), and read back instead of made again: the same check, to the byte.
 """
 
 from __future__ import annotations
 
+import hashlib
+import logging
+import os
+import tempfile
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 # Lowe's ratio test: a keypoint's best texture match must beat its second best by this factor.
 RATIO = 0.8
@@ -113,6 +126,8 @@ FLANN_SEED = 0
 # out-of-domain set 7 false confirmations without it, 5 at 0.2, 1 at 0.3, for one true one
 # lost (bench/README.md, "Renaming on a map").
 MIN_AXIS_RATIO = 0.3
+# Raised when what a cached check holds changes meaning (its key covers the settings above).
+CACHE_VERSION = 1
 
 
 @dataclass
@@ -167,14 +182,160 @@ def sift_scale(height: int, width: int) -> float:
     return min(float(UPSCALE), SIFT_MAX_SIDE / max(height, width))
 
 
+def texture_features(grays: list[np.ndarray]) -> _TextureFeatures:
+    """SIFT keypoints of each class's grayscale texture and of its tilted views, in the
+    texture's own pixels (class ``i`` is ``grays[i]``)."""
+    import cv2
+
+    sift = cv2.SIFT_create(contrastThreshold=CONTRAST_THRESHOLD)
+    descriptors, labels, points, sizes = [], [], [], []
+    for index, gray in enumerate(grays):
+        for view, mask, to_texture in tilted_views(gray):
+            keypoints, found = sift.detectAndCompute(view, mask)
+            if found is None:
+                continue
+            at = np.array([k.pt for k in keypoints], dtype=np.float32).reshape(-1, 2)
+            descriptors.append(found)
+            labels.append(np.full(len(keypoints), index, dtype=np.int64))
+            points.append((at @ to_texture[:, :2].T + to_texture[:, 2]).astype(np.float32))
+        sizes.append((gray.shape[1], gray.shape[0]))
+    return _TextureFeatures(
+        descriptors=np.concatenate(descriptors) if descriptors else np.zeros((0, 128), np.float32),
+        labels=np.concatenate(labels) if labels else np.zeros(0, np.int64),
+        points=np.concatenate(points) if points else np.zeros((0, 2), np.float32),
+        sizes=sizes,
+    )
+
+
+def cache_key(grays: list[np.ndarray]) -> str:
+    """What a cached check is filed under: the textures' pixels in class order, and every setting
+    and version that changes their keypoints or trees."""
+    import cv2
+
+    digest = hashlib.sha256()
+    made_by = (CACHE_VERSION, cv2.__version__, CONTRAST_THRESHOLD, TEXTURE_TILTS, TEXTURE_TILT_DIRECTIONS, FLANN_TREES, FLANN_SEED)
+    digest.update(repr(made_by).encode())
+    for gray in grays:
+        digest.update(repr(gray.shape).encode())
+        digest.update(np.ascontiguousarray(gray).tobytes())
+    return digest.hexdigest()[:32]
+
+
+@dataclass
+class _Stored:
+    features: _TextureFeatures
+    index_digest: str  # sha256 of the trees' file written with these features ("" for none)
+
+
+class _CheckCache:
+    """One check's keypoints (``KEY.npz``) and FLANN trees (``KEY.flann``) in a folder. Each file
+    is written whole and then renamed into place, so a reader finds the old file or the new one;
+    the keypoints name the trees' digest, so a pair from two writers is never read together. A
+    file that cannot be read or written is made again, with a warning: the cache only saves time."""
+
+    def __init__(self, directory: Path, key: str) -> None:
+        self.directory = directory
+        self.features_path = directory / f"{key}.npz"
+        self.index_path = directory / f"{key}.flann"
+
+    def load(self) -> _Stored | None:
+        try:
+            with np.load(self.features_path) as stored:
+                descriptors = stored["descriptors"].astype(np.float32)
+                labels = stored["labels"].astype(np.int64)
+                points = stored["points"].astype(np.float32)
+                sizes = [(int(width), int(height)) for width, height in stored["sizes"].reshape(-1, 2)]
+                index_digest = str(stored["index_digest"])
+        except FileNotFoundError:
+            return None
+        except Exception as error:  # a torn or foreign file: np.load raises several kinds
+            log.warning("texture check: cached keypoints %s unreadable (%s); made again", self.features_path, error)
+            return None
+        n = len(descriptors)
+        if descriptors.shape != (n, 128) or labels.shape != (n,) or points.shape != (n, 2) or (n and labels.max() >= len(sizes)):
+            log.warning("texture check: cached keypoints %s malformed; made again", self.features_path)
+            return None
+        return _Stored(_TextureFeatures(descriptors, labels, points, sizes), index_digest)
+
+    def load_index(self, descriptors: np.ndarray, digest: str):
+        """The stored trees over ``descriptors``, or None where there are none that match them."""
+        import cv2
+
+        try:
+            if not digest or _file_digest(self.index_path) != digest:
+                return None
+            index = cv2.flann_Index()
+            if not index.load(descriptors, str(self.index_path)):
+                return None
+        except (OSError, cv2.error) as error:
+            log.warning("texture check: cached trees %s unreadable (%s); made again", self.index_path, error)
+            return None
+        return index
+
+    def store(self, features: _TextureFeatures, index) -> None:
+        import cv2
+
+        try:
+            self.directory.mkdir(parents=True, exist_ok=True)
+            digest = ""
+            if index is not None:
+                temporary = self._temporary(".flann")
+                try:
+                    index.save(str(temporary))
+                    digest = _file_digest(temporary)
+                    os.replace(temporary, self.index_path)
+                finally:
+                    temporary.unlink(missing_ok=True)
+            descriptors = features.descriptors
+            # OpenCV's SIFT descriptors are whole numbers in [0, 255]: a byte each, a quarter the size.
+            if descriptors.size and np.array_equal(descriptors, np.clip(np.round(descriptors), 0, 255)):
+                descriptors = descriptors.astype(np.uint8)
+            temporary = self._temporary(".npz")
+            try:
+                with open(temporary, "wb") as handle:
+                    np.savez(
+                        handle,
+                        descriptors=descriptors,
+                        labels=features.labels,
+                        points=features.points,
+                        sizes=np.array(features.sizes, np.int64).reshape(-1, 2),
+                        index_digest=np.array(digest),
+                    )
+                os.replace(temporary, self.features_path)
+            finally:
+                temporary.unlink(missing_ok=True)
+        except (OSError, cv2.error) as error:
+            log.warning("texture check: cannot keep keypoints in %s (%s); made again next time", self.directory, error)
+
+    def _temporary(self, suffix: str) -> Path:
+        descriptor, name = tempfile.mkstemp(prefix=".", suffix=suffix, dir=self.directory)
+        os.close(descriptor)
+        return Path(name)
+
+
+def _file_digest(path: Path) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        for block in iter(lambda: handle.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 class TextureCheck:
     """SIFT features of each class's texture, and :meth:`apply` to check one image's detections."""
 
     def __init__(
-        self, textures: Mapping[str, np.ndarray], classes: list[str], search: bool = False, exact: bool = False
+        self,
+        textures: Mapping[str, np.ndarray],
+        classes: list[str],
+        search: bool = False,
+        exact: bool = False,
+        cache_dir: str | Path | None = None,
     ) -> None:
         """``exact``: compare each image keypoint with every texture keypoint (brute force) instead of
-        searching FLANN's KD-trees (bench/texture_matching.py measures the two side by side)."""
+        searching FLANN's KD-trees (bench/texture_matching.py measures the two side by side).
+        ``cache_dir``: where the textures' keypoints and trees are kept between processes (None:
+        made here each time)."""
         import cv2
 
         missing = [name for name in classes if name not in textures]
@@ -182,29 +343,21 @@ class TextureCheck:
             raise ValueError(f"texture check: no texture for class(es) {missing}")
         self.classes = list(classes)
         self.search = search
-        sift = cv2.SIFT_create(contrastThreshold=CONTRAST_THRESHOLD)
-        descriptors, labels, points, sizes = [], [], [], []
-        for index, name in enumerate(self.classes):
-            gray = grayscale(np.asarray(textures[name], dtype=np.uint8))
-            for view, mask, to_texture in tilted_views(gray):
-                keypoints, found = sift.detectAndCompute(view, mask)
-                if found is None:
-                    continue
-                at = np.array([k.pt for k in keypoints], dtype=np.float32).reshape(-1, 2)
-                descriptors.append(found)
-                labels.append(np.full(len(keypoints), index, dtype=np.int64))
-                points.append((at @ to_texture[:, :2].T + to_texture[:, 2]).astype(np.float32))
-            sizes.append((gray.shape[1], gray.shape[0]))
-        self._features = _TextureFeatures(
-            descriptors=np.concatenate(descriptors) if descriptors else np.zeros((0, 128), np.float32),
-            labels=np.concatenate(labels) if labels else np.zeros(0, np.int64),
-            points=np.concatenate(points) if points else np.zeros((0, 2), np.float32),
-            sizes=sizes,
-        )
+        grays = [grayscale(np.asarray(textures[name], dtype=np.uint8)) for name in self.classes]
+        cache = _CheckCache(Path(cache_dir), cache_key(grays)) if cache_dir is not None else None
+        stored = cache.load() if cache is not None else None
+        self._features = stored.features if stored is not None else texture_features(grays)
         self._index = None
+        made_index = False
         if not exact and len(self._features.descriptors) >= 2:
-            cv2.setRNGSeed(FLANN_SEED)  # the KD-trees' random splits (OpenCV's RNG of this thread)
-            self._index = cv2.flann_Index(self._features.descriptors, dict(algorithm=1, trees=FLANN_TREES))
+            if stored is not None:
+                self._index = cache.load_index(self._features.descriptors, stored.index_digest)
+            if self._index is None:
+                cv2.setRNGSeed(FLANN_SEED)  # the KD-trees' random splits (OpenCV's RNG of this thread)
+                self._index = cv2.flann_Index(self._features.descriptors, dict(algorithm=1, trees=FLANN_TREES))
+                made_index = True
+        if cache is not None and (stored is None or made_index):
+            cache.store(self._features, self._index)
         # One search of the index at a time: a served detector may check from several threads.
         self._index_lock = threading.Lock()
 

@@ -507,3 +507,26 @@ def test_a_texture_checked_detector_carries_its_textures_and_checks_what_the_net
     for image, alone, checked in zip(arrays, network, detect_object(searching, arrays)):
         for key, value in reference.apply(image, alone).items():
             np.testing.assert_array_equal(checked[key], value)
+
+
+@pytest.mark.parametrize("setting", ["folder", "empty"])
+def test_a_detectors_texture_check_is_kept_in_the_settings_cache_folder(tmp_path, monkeypatch, setting):
+    """FOLDWISE_CACHE_DIR: a detector keeps its texture check's keypoints and trees under
+    texture-check/ there, so the next process reads them instead of making them; set empty,
+    nothing is kept."""
+    import skimage.data
+
+    from foldwise.settings import get_settings
+    from workers.train.checkpoint import Detector
+
+    cache = tmp_path / "cache"
+    monkeypatch.setenv("FOLDWISE_CACHE_DIR", str(cache) if setting == "folder" else "")
+    get_settings.cache_clear()
+    try:
+        meta = {"classes": CLASSES, "config": config(family="faster_rcnn", texture_check=True).model_dump(mode="json")}
+        textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}
+        assert Detector(model=torch.nn.Identity(), meta=meta, textures=textures).texture_check() is not None
+    finally:
+        get_settings.cache_clear()
+    kept = sorted(path.suffix for path in (cache / "texture-check").glob("*")) if cache.exists() else []
+    assert kept == ([".flann", ".npz"] if setting == "folder" else [])

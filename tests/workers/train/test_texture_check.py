@@ -341,3 +341,94 @@ def test_a_large_photograph_is_shrunk_for_sift_and_checked_in_its_own_pixels(che
     checked = checker.apply(large, detections((box * factor, 0.5, 0)))
     assert checked["scores"][0] >= CONFIRMED_FLOOR
     assert _iou(checked["boxes"][0], box * factor) > 0.8
+
+
+def _checked(check: TextureCheck, image: np.ndarray, box: np.ndarray) -> dict:
+    return check.apply(image, detections((box + np.array([6, -5, 4, 3], np.float32), 0.5, 0), (box * 0.5, 0.85, 1)))
+
+
+def _assert_same_outputs(first: dict, second: dict) -> None:
+    assert sorted(first) == sorted(second)
+    for name in first:
+        np.testing.assert_array_equal(first[name], second[name])
+
+
+def test_a_cached_check_is_read_back_instead_of_made_and_checks_alike(textures, scene, tmp_path, monkeypatch):
+    """With a cache folder the textures' keypoints and KD-trees are made once: a second check of
+    the same textures makes neither (SIFT over the textures and the trees' seeded build would
+    fail here), and checks an image to the byte as the first and as one without a cache do."""
+    image, box = scene
+    made = TextureCheck(textures, CLASSES, search=True, cache_dir=tmp_path)
+    stored = sorted(path.suffix for path in tmp_path.iterdir())
+    assert stored == [".flann", ".npz"]
+
+    def not_again(*_args, **_kwargs):
+        raise AssertionError("made again, not read from the cache")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(texture_check, "texture_features", not_again)
+        patched.setattr(cv2, "setRNGSeed", not_again)  # called only to build the trees
+        cached = TextureCheck(textures, CLASSES, search=True, cache_dir=tmp_path)
+    for name in ("descriptors", "labels", "points"):
+        np.testing.assert_array_equal(getattr(cached._features, name), getattr(made._features, name))
+    assert cached._features.sizes == made._features.sizes
+    uncached = TextureCheck(textures, CLASSES, search=True)
+    reference = _checked(uncached, image, box)
+    assert reference["confirmed"].any()
+    _assert_same_outputs(_checked(cached, image, box), reference)
+    _assert_same_outputs(_checked(made, image, box), reference)
+
+
+def test_a_torn_or_mismatched_cache_is_made_again(textures, scene, tmp_path, caplog):
+    """A keypoint file that is not one (a torn write, another program's) is made again with a
+    warning, and so are trees that are not the ones the keypoints were stored with: the check
+    still checks as one without a cache, and the files it writes back are read the next time."""
+    image, box = scene
+    TextureCheck(textures, CLASSES, cache_dir=tmp_path)
+    (features,) = tmp_path.glob("*.npz")
+    (trees,) = tmp_path.glob("*.flann")
+    reference = _checked(TextureCheck(textures, CLASSES), image, box)
+
+    features.write_bytes(b"PK\x03\x04 not a zip")
+    with caplog.at_level("WARNING", logger=texture_check.__name__):
+        remade = TextureCheck(textures, CLASSES, cache_dir=tmp_path)
+    assert "unreadable" in caplog.text and str(features) in caplog.text
+    _assert_same_outputs(_checked(remade, image, box), reference)
+    assert texture_check._CheckCache(tmp_path, features.stem).load() is not None
+
+    trees.write_bytes(trees.read_bytes()[: trees.stat().st_size // 2])  # torn: its digest no longer matches
+    stored = texture_check._CheckCache(tmp_path, features.stem).load()
+    assert texture_check._CheckCache(tmp_path, features.stem).load_index(stored.features.descriptors, stored.index_digest) is None
+    rebuilt = TextureCheck(textures, CLASSES, cache_dir=tmp_path)
+    _assert_same_outputs(_checked(rebuilt, image, box), reference)
+    stored = texture_check._CheckCache(tmp_path, features.stem).load()
+    assert texture_check._CheckCache(tmp_path, features.stem).load_index(stored.features.descriptors, stored.index_digest) is not None
+
+
+def test_other_textures_order_or_settings_are_filed_apart(textures, monkeypatch):
+    """The cache key covers what makes the keypoints and trees: one changed pixel, the classes in
+    another order, or another SIFT threshold or tree count is another entry."""
+    grays = [texture_check.grayscale(textures[name]) for name in CLASSES]
+    key = texture_check.cache_key(grays)
+    assert texture_check.cache_key([gray.copy() for gray in grays]) == key
+    touched = grays[1].copy()
+    touched[0, 0] ^= 1
+    assert texture_check.cache_key([grays[0], touched]) != key
+    assert texture_check.cache_key(grays[::-1]) != key
+    monkeypatch.setattr(texture_check, "CONTRAST_THRESHOLD", 0.03)
+    assert texture_check.cache_key(grays) != key
+    monkeypatch.undo()
+    monkeypatch.setattr(texture_check, "FLANN_TREES", 4)
+    assert texture_check.cache_key(grays) != key
+
+
+def test_a_cache_folder_that_cannot_be_made_only_costs_time(textures, scene, tmp_path, caplog):
+    """A cache folder that cannot be made (a file stands there) is warned about, and the check
+    works as without one."""
+    image, box = scene
+    blocked = tmp_path / "cache"
+    blocked.write_text("a file, not a folder")
+    with caplog.at_level("WARNING", logger=texture_check.__name__):
+        check = TextureCheck(textures, CLASSES, cache_dir=blocked)
+    assert "cannot keep keypoints" in caplog.text
+    _assert_same_outputs(_checked(check, image, box), _checked(TextureCheck(textures, CLASSES), image, box))
