@@ -891,6 +891,13 @@ def main(argv=None) -> dict:
     parser.add_argument("--ood-apart-size", type=_frame_argument, default="320x240", help="WIDTHxHEIGHT of that set's images")
     parser.add_argument("--ood-apart-seed", type=int, default=11)
     parser.add_argument("--ood-apart-dir", type=Path, default=None, help="default: var/bench/wild-ood-apart[-FACTORS]")
+    # A fourth, on request: larger frames (photographs are rarely as small as 320x240; a sheet then
+    # holds more pixels for the network's larger views and for SIFT). Off by default: Cycles takes
+    # about 10 min for 100 images at 640x480 on 2 cores.
+    parser.add_argument("--n-ood-large", type=int, default=0, help="images of the large-frame set (0: none; e.g. 100)")
+    parser.add_argument("--ood-large-size", type=_frame_argument, default="640x480", help="WIDTHxHEIGHT of that set's images")
+    parser.add_argument("--ood-large-seed", type=int, default=13)
+    parser.add_argument("--ood-large-dir", type=Path, default=None, help="default: var/bench/wild-ood-large[-FACTORS]")
     parser.add_argument(
         "--factors", default="all",
         help=f"which parts of the scene are wild: all, none, or a comma list of {','.join(FACTORS)} (the rest plain)",
@@ -937,6 +944,7 @@ def main(argv=None) -> dict:
     for name, n, (frame_width, frame_height), seed, folder, photos in (
         ("second", args.n_ood_second, args.ood_second_size, args.ood_second_seed, args.ood_second_dir, "training"),
         ("apart", args.n_ood_apart, args.ood_apart_size, args.ood_apart_seed, args.ood_apart_dir, "held_apart"),
+        ("large", args.n_ood_large, args.ood_large_size, args.ood_large_seed, args.ood_large_dir, "training"),
     ):
         if n:
             extra = OodRecipe(

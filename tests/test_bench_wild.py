@@ -90,6 +90,7 @@ def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
         "--n-ood-second", "3", "--ood-second-size", "48x64", "--ood-second-seed", "11",
         "--ood-second-dir", str(tmp_path / "ood-second"),
         "--n-ood-apart", "2", "--ood-apart-size", "64x48", "--ood-apart-dir", str(tmp_path / "ood-apart"),
+        "--n-ood-large", "1", "--ood-large-size", "96x72", "--ood-large-dir", str(tmp_path / "ood-large"),
         "--train-dir", str(tmp_path / "train"), "--members", "2", "--out", str(out),
     ]
     # --sets-only renders the sets and stops: no training, no scores; the full run then reuses them.
@@ -98,7 +99,7 @@ def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
     sets = json.loads(out.read_text())
     assert "model" not in sets and "in_domain" not in sets and not (tmp_path / "train").exists()
     assert sets["in_domain_set"]["dir"] == str(tmp_path / "in") and (tmp_path / "in" / "annotations.json").is_file()
-    assert all((tmp_path / name / "annotations.json").is_file() for name in ("ood", "ood-second", "ood-apart"))
+    assert all((tmp_path / name / "annotations.json").is_file() for name in ("ood", "ood-second", "ood-apart", "ood-large"))
     finished = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert finished.returncode == 0, finished.stderr[-3000:]
     report = json.loads(out.read_text())
@@ -122,8 +123,12 @@ def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
     assert apart["images"] == 2 and 0.0 <= apart["map"] <= 1.0
     assert report["ood_set_apart"]["recipe"]["photos"] == "held_apart" and report["ood_set_apart"]["recipe"]["seed"] == 11
     assert report["ratio_apart"] == (None if not in_map else apart["map"] / in_map)
+    # The large-frame set, asked for here, is scored and counts toward the goal like the others.
+    large = report["out_of_domain_large"]
+    assert large["images"] == 1 and report["ood_set_large"]["recipe"]["width"] == 96 and report["ood_set_large"]["recipe"]["seed"] == 13
+    assert report["ratio_large"] == (None if not in_map else large["map"] / in_map)
     assert report["goal"]["ratio_at_least"] == 0.8
-    ratios = (report["ratio"], report["ratio_second"], report["ratio_apart"])
+    ratios = (report["ratio"], report["ratio_second"], report["ratio_apart"], report["ratio_large"])
     assert report["goal"]["met"] == all(r is not None and r >= 0.8 for r in ratios)
     assert report["machine"]["cpu"]
     for part in ("in_domain", "out_of_domain"):  # finding the sheet is never harder than naming it too
@@ -260,7 +265,7 @@ def test_test_turns_are_read_as_the_config_reads_them_and_bad_ones_refused(capsy
 
 def test_frame_sizes_of_every_out_of_domain_set_are_read_alike_and_bad_ones_refused(capsys):
     assert wild._frame_argument("480X360") == (480, 360)
-    for option in ("--ood-size", "--ood-second-size", "--ood-apart-size"):
+    for option in ("--ood-size", "--ood-second-size", "--ood-apart-size", "--ood-large-size"):
         for bad, problem in (("480", "is not WIDTHxHEIGHT"), ("4x3x2", "is not WIDTHxHEIGHT"), ("0x240", "at least 1 pixel")):
             with pytest.raises(SystemExit):
                 wild.main([option, bad])
