@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+import tempfile
 from functools import lru_cache
 from pathlib import Path
 
@@ -13,8 +14,12 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 
 
 def default_cache_dir() -> Path:
-    """$XDG_CACHE_HOME/foldwise, else ~/.cache/foldwise."""
-    return Path(os.environ.get("XDG_CACHE_HOME") or "~/.cache").expanduser() / "foldwise"
+    """$XDG_CACHE_HOME/foldwise, else ~/.cache/foldwise; a folder under the system's temporary one
+    where there is no home to find (a container run as a user without one)."""
+    try:
+        return Path(os.environ.get("XDG_CACHE_HOME") or "~/.cache").expanduser() / "foldwise"
+    except RuntimeError:  # Path.expanduser: no $HOME and no password entry
+        return Path(tempfile.gettempdir()) / "foldwise-cache"
 
 
 class Settings(BaseSettings):
