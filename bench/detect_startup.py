@@ -74,9 +74,10 @@ def run_case(models: list[Path], image: Path, cache_dir: Path | None) -> dict:
     return result
 
 
-def _files(folder: Path) -> dict[str, int]:
-    """Every file under ``folder`` and its modification time (ns)."""
-    return {str(path.relative_to(folder)): path.stat().st_mtime_ns for path in folder.rglob("*") if path.is_file()}
+def _files(folder: Path) -> dict[str, tuple[int, int]]:
+    """Every file under ``folder``, its inode and size: a file written again is renamed into place,
+    a new inode (reading a check only touches its time, to keep it in the cache)."""
+    return {str(path.relative_to(folder)): (path.stat().st_ino, path.stat().st_size) for path in folder.rglob("*") if path.is_file()}
 
 
 def measure(models: list[Path], image: Path, repeats: int) -> dict:

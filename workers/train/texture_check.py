@@ -128,6 +128,9 @@ FLANN_SEED = 0
 MIN_AXIS_RATIO = 0.3
 # Raised when what a cached check holds changes meaning (its key covers the settings above).
 CACHE_VERSION = 1
+# Checks kept in a cache folder (about 30 MB each for the five default textures); the ones read or
+# written longest ago are removed past this, so a user trying texture after texture does not fill a disk.
+CACHE_KEEP = 8
 
 
 @dataclass
@@ -255,6 +258,10 @@ class _CheckCache:
         if descriptors.shape != (n, 128) or labels.shape != (n,) or points.shape != (n, 2) or (n and labels.max() >= len(sizes)):
             log.warning("texture check: cached keypoints %s malformed; made again", self.features_path)
             return None
+        try:
+            os.utime(self.features_path)  # read now: the last to be removed (CACHE_KEEP)
+        except OSError:
+            pass
         return _Stored(_TextureFeatures(descriptors, labels, points, sizes), index_digest)
 
     def load_index(self, descriptors: np.ndarray, digest: str):
@@ -306,6 +313,26 @@ class _CheckCache:
                 temporary.unlink(missing_ok=True)
         except (OSError, cv2.error) as error:
             log.warning("texture check: cannot keep keypoints in %s (%s); made again next time", self.directory, error)
+            return
+        self._prune()
+
+    def _prune(self) -> None:
+        """Remove all but the ``CACHE_KEEP`` checks read or written last (a check another process
+        is reading as it goes is made again there: the cache only saves time)."""
+
+        def last_used(path: Path) -> int:
+            try:
+                return path.stat().st_mtime_ns
+            except OSError:  # removed meanwhile by another process
+                return -1
+
+        kept = sorted(self.directory.glob("*.npz"), key=last_used, reverse=True)
+        for features in kept[CACHE_KEEP:]:
+            for path in (features, features.with_suffix(".flann")):
+                try:
+                    path.unlink(missing_ok=True)
+                except OSError as error:
+                    log.warning("texture check: cannot remove %s from the cache (%s)", path, error)
 
     def _temporary(self, suffix: str) -> Path:
         descriptor, name = tempfile.mkstemp(prefix=".", suffix=suffix, dir=self.directory)

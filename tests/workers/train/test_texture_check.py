@@ -432,3 +432,28 @@ def test_a_cache_folder_that_cannot_be_made_only_costs_time(textures, scene, tmp
         check = TextureCheck(textures, CLASSES, cache_dir=blocked)
     assert "cannot keep keypoints" in caplog.text
     _assert_same_outputs(_checked(check, image, box), _checked(TextureCheck(textures, CLASSES), image, box))
+
+
+def test_the_cache_keeps_the_checks_used_last(tmp_path, monkeypatch):
+    """Past CACHE_KEEP checks the ones read or written longest ago are removed, keypoints and trees
+    together; reading a check makes it the newest."""
+    import os
+
+    monkeypatch.setattr(texture_check, "CACHE_KEEP", 2)
+    monkeypatch.setattr(texture_check, "TEXTURE_TILTS", ())  # small checks: the rule, not SIFT, is under test
+    rng = np.random.default_rng(0)
+    cards = [cv2.GaussianBlur(rng.integers(0, 255, (96, 96)).astype(np.uint8), (0, 0), 1.5) for _ in range(3)]
+
+    def keep(card):
+        TextureCheck({"astronaut": card, "coffee": 255 - card}, CLASSES, cache_dir=tmp_path)
+        return texture_check.cache_key([card, 255 - card])
+
+    def stored():
+        return {path.stem for path in tmp_path.glob("*.npz")}, {path.stem for path in tmp_path.glob("*.flann")}
+
+    first, second = keep(cards[0]), keep(cards[1])
+    os.utime(tmp_path / f"{first}.npz", ns=(1, 1))  # written long ago
+    os.utime(tmp_path / f"{second}.npz", ns=(2, 2))
+    keep(cards[0])  # read back: now the newest
+    third = keep(cards[2])
+    assert stored() == ({first, third}, {first, third})
