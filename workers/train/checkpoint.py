@@ -447,6 +447,23 @@ def detect_object(
     return results
 
 
+def detection_records(found: dict[str, np.ndarray], classes: Sequence[str], score_threshold: float = 0.0) -> list[dict[str, Any]]:
+    """One image's detections at or above ``score_threshold`` as JSON-able records, best first:
+    ``box`` [x0, y0, x1, y1] in the image's pixels (2 decimals), ``class``, ``label`` (its index),
+    ``score`` and ``confirmed`` (whether the texture check confirmed it; None without a check)."""
+    confirmed = found.get("confirmed")
+    return [
+        {
+            "box": [round(float(v), 2) for v in found["boxes"][i]],
+            "class": str(classes[int(found["labels"][i])]) if 0 <= int(found["labels"][i]) < len(classes) else None,
+            "label": int(found["labels"][i]),
+            "score": float(found["scores"][i]),
+            "confirmed": None if confirmed is None else bool(confirmed[i]),
+        }
+        for i in np.flatnonzero(found["scores"] >= score_threshold)
+    ]
+
+
 def detect_ensemble(
     detectors: Sequence[Detector],
     images: Sequence[np.ndarray | str | Path],

@@ -359,6 +359,14 @@ def detect(
             "(R-CNN families; default: the checkpoint's detector.test_turns).",
         ),
     ] = None,
+    json_path: Annotated[
+        Optional[Path],
+        typer.Option(
+            "--json",
+            help="Also write the detections at or above --threshold as JSON: per image its path, size, "
+            "annotated copy and boxes (x0, y0, x1, y1 in its pixels) with class, score and texture confirmation.",
+        ),
+    ] = None,
 ) -> None:
     """Detect the object in images; write copies with boxes, class names and scores drawn."""
     import cv2
@@ -381,7 +389,7 @@ def detect(
     detectors = [_load_model(path, device) for path in model]
     classes = [str(name) for name in detectors[0].meta.get("classes", [])]
 
-    from workers.train.checkpoint import detect_ensemble
+    from workers.train.checkpoint import detect_ensemble, detection_records
 
     try:
         detections = detect_ensemble(detectors, pictures, batch_size=batch_size, test_sizes=test_sizes, test_turns=test_turns)
@@ -389,6 +397,7 @@ def detect(
         _fail(str(error))
     out_dir.mkdir(parents=True, exist_ok=True)
     used: set[str] = set()
+    records: list[dict[str, Any]] = []
     for path, picture, found in zip(images, pictures, detections):
         name = f"{path.stem}.png"
         counter = 1
@@ -408,6 +417,23 @@ def detect(
             if float(score) >= score_threshold
         ]
         typer.echo(f"{path} -> {target}: {len(kept)} detection(s){': ' + ', '.join(kept) if kept else ''}")
+        records.append(
+            {
+                "path": str(path),
+                "width": int(picture.shape[1]),
+                "height": int(picture.shape[0]),
+                "annotated": str(target),
+                "detections": detection_records(found, classes, score_threshold),
+            }
+        )
+    if json_path is not None:
+        document = {"models": [str(path) for path in model], "classes": classes, "threshold": score_threshold, "images": records}
+        try:
+            json_path.parent.mkdir(parents=True, exist_ok=True)
+            json_path.write_text(json.dumps(document, indent=2))
+        except OSError as error:
+            _fail(f"cannot write {json_path}: {error}")
+        typer.echo(f"detections: {json_path}")
 
 
 # --------------------------------------------------------------------------- ensemble

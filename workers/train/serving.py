@@ -33,7 +33,7 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
     import cv2
     import numpy as np
 
-    from workers.train.checkpoint import detect_object
+    from workers.train.checkpoint import detect_object, detection_records
 
     started = time.perf_counter()
     pixels = cv2.imdecode(np.frombuffer(image, dtype=np.uint8), cv2.IMREAD_COLOR)
@@ -49,21 +49,10 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
     (found,) = detect_object(detector, [cv2.cvtColor(pixels, cv2.COLOR_BGR2RGB)])
     classes = detector.classes
     check = detector.texture_check()
-    confirmed = found.get("confirmed")  # with the texture check only
-    keep = np.flatnonzero(found["scores"] >= score_threshold)
     return {
         "image": {"width": int(width), "height": int(height)},
         "classes": classes,
-        "detections": [
-            {
-                "box": [round(float(v), 2) for v in found["boxes"][i]],
-                "class": classes[int(found["labels"][i])],
-                "label": int(found["labels"][i]),
-                "score": float(found["scores"][i]),
-                "confirmed": None if confirmed is None else bool(confirmed[i]),
-            }
-            for i in keep
-        ],
+        "detections": detection_records(found, classes, score_threshold),
         "seconds": time.perf_counter() - started,
         "members": len(detector.meta.get("members", ())) or 1,  # an ensemble file's detectors
         "texture_check": check is not None,

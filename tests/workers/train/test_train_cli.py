@@ -374,3 +374,31 @@ def test_ensemble_joins_checkpoints_into_one_file_that_detects_as_they_do_togeth
         result = runner.invoke(app, ["ensemble", *arguments, "--out", str(tmp_path / "bad.pt")])
         assert result.exit_code == 1 and problem in result.output and "Traceback" not in result.output
     assert not (tmp_path / "bad.pt").exists()
+
+
+def test_detect_writes_the_drawn_detections_as_json(trained, dataset, tmp_path):
+    """--json: per image its path, size and annotated copy, and the detections drawn (those at or
+    above --threshold) as boxes in its pixels with class and score, the same as the detector gives."""
+    from workers.train.checkpoint import detect_object, load_detector
+
+    images = sorted((dataset / "images").glob("*.png"))[:2]
+    model = trained["checkpoints"]["faster_rcnn"]
+    target = tmp_path / "out" / "detections.json"
+    result = runner.invoke(
+        make_app(),
+        ["detect", "--model", str(model), *map(str, images), "--out-dir", str(tmp_path / "drawn"), "--threshold", "0.05", "--json", str(target)],
+    )
+    assert result.exit_code == 0, result.output
+    assert f"detections: {target}" in result.output
+    document = json.loads(target.read_text())
+    assert document["models"] == [str(model)] and document["classes"] == CLASSES and document["threshold"] == 0.05
+    assert [entry["path"] for entry in document["images"]] == [str(image) for image in images]
+    for entry, found in zip(document["images"], detect_object(load_detector(model), list(map(str, images)))):
+        assert (entry["width"], entry["height"]) == (IMAGE_SIZE, IMAGE_SIZE) and Path(entry["annotated"]).is_file()
+        keep = found["scores"] >= 0.05
+        assert [d["score"] for d in entry["detections"]] == pytest.approx(found["scores"][keep].tolist())
+        assert [d["label"] for d in entry["detections"]] == found["labels"][keep].tolist()
+        assert [d["class"] for d in entry["detections"]] == [CLASSES[label] for label in found["labels"][keep]]
+        np.testing.assert_allclose([d["box"] for d in entry["detections"]] or np.zeros((0, 4)), found["boxes"][keep], atol=0.006)
+        assert all(d["confirmed"] is None for d in entry["detections"])  # this detector has no texture check
+    assert sum(len(entry["detections"]) for entry in document["images"]) > 0
