@@ -77,7 +77,8 @@ def run_case(models: list[Path], image: Path, cache_dir: Path | None) -> dict:
 def _files(folder: Path) -> dict[str, tuple[int, int]]:
     """Every file under ``folder``, its inode and size: a file written again is renamed into place,
     a new inode (reading a check only touches its time, to keep it in the cache)."""
-    return {str(path.relative_to(folder)): (path.stat().st_ino, path.stat().st_size) for path in folder.rglob("*") if path.is_file()}
+    stats = {str(path.relative_to(folder)): path.stat() for path in folder.rglob("*") if path.is_file()}
+    return {name: (stat.st_ino, stat.st_size) for name, stat in stats.items()}
 
 
 def measure(models: list[Path], image: Path, repeats: int) -> dict:

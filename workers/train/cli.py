@@ -409,21 +409,20 @@ def detect(
         target = out_dir / name
         if not cv2.imwrite(str(target), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR)):
             _fail(f"cannot write {target}")
-        confirmed = found.get("confirmed")  # with the texture check only
-        kept = [
-            f"{classes[int(label)] if 0 <= int(label) < len(classes) else int(label)} {float(score):.2f}"
-            + (" (texture confirmed)" if confirmed is not None and confirmed[i] else "")
-            for i, (score, label) in enumerate(zip(found["scores"], found["labels"]))
-            if float(score) >= score_threshold
+        kept = detection_records(found, classes, score_threshold)
+        said = [
+            f"{record['class'] if record['class'] is not None else record['label']} {record['score']:.2f}"
+            + (" (texture confirmed)" if record["confirmed"] else "")
+            for record in kept
         ]
-        typer.echo(f"{path} -> {target}: {len(kept)} detection(s){': ' + ', '.join(kept) if kept else ''}")
+        typer.echo(f"{path} -> {target}: {len(said)} detection(s){': ' + ', '.join(said) if said else ''}")
         records.append(
             {
                 "path": str(path),
                 "width": int(picture.shape[1]),
                 "height": int(picture.shape[0]),
                 "annotated": str(target),
-                "detections": detection_records(found, classes, score_threshold),
+                "detections": kept,
             }
         )
     if json_path is not None:
