@@ -402,3 +402,15 @@ def test_detect_writes_the_drawn_detections_as_json(trained, dataset, tmp_path):
         np.testing.assert_allclose([d["box"] for d in entry["detections"]] or np.zeros((0, 4)), found["boxes"][keep], atol=0.006)
         assert all(d["confirmed"] is None for d in entry["detections"])  # this detector has no texture check
     assert sum(len(entry["detections"]) for entry in document["images"]) > 0
+
+
+def test_detect_names_a_json_file_it_cannot_write(trained, dataset, tmp_path):
+    image = str(sorted((dataset / "images").glob("*.png"))[0])
+    blocked = tmp_path / "a-file"
+    blocked.write_text("not a folder")
+    result = runner.invoke(
+        make_app(),
+        ["detect", "--model", str(trained["checkpoints"]["faster_rcnn"]), image, "--out-dir", str(tmp_path / "d"), "--json", str(blocked / "d.json")],
+    )
+    assert result.exit_code == 1 and f"cannot write {blocked / 'd.json'}" in result.output
+    assert (tmp_path / "d" / Path(image).with_suffix(".png").name).is_file()  # the drawn copies are kept
