@@ -343,6 +343,53 @@ def test_a_large_photograph_is_shrunk_for_sift_and_checked_in_its_own_pixels(che
     assert _iou(checked["boxes"][0], box * factor) > 0.8
 
 
+def test_sharpening_keeps_flat_regions_and_steepens_edges():
+    """The unsharp mask leaves a flat image as it is and raises an edge's contrast on both sides,
+    saturating at 0 and 255 instead of wrapping round."""
+    flat = np.full((40, 40), 90, np.uint8)
+    np.testing.assert_array_equal(texture_check.sharpen(flat), flat)
+    step = np.zeros((40, 40), np.uint8)
+    step[:, 20:] = 200
+    sharpened = texture_check.sharpen(step)
+    assert sharpened.dtype == np.uint8 and sharpened.shape == step.shape
+    assert sharpened[:, 19].max() == 0 and sharpened[:, 20].min() > 200  # darker below, brighter above the edge
+    np.testing.assert_array_equal(sharpened[:, :10], step[:, :10])  # far from it, unchanged
+    bright = np.full((40, 40), 250, np.uint8)
+    bright[:, 20:] = 255
+    assert texture_check.sharpen(bright)[:, 20].min() == 255
+
+
+def _soft_sheet(textures, width: int, blur: float, quality: int) -> np.ndarray:
+    """The astronaut texture at ``width`` px over a noise ground, softened by a Gaussian blur and
+    JPEG as a lens and a camera's compression soften a photographed sheet."""
+    rng = np.random.default_rng(3)
+    ground = cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3)).astype(np.uint8), (0, 0), 3)
+    texture = textures["astronaut"]
+    affine = cv2.getRotationMatrix2D((0, 0), 12, width / texture.shape[1])
+    affine[:, 2] += (40, 60)
+    mask = cv2.warpAffine(np.full(texture.shape[:2], 255, np.uint8), affine, (320, 240)) > 0
+    image = np.where(mask[:, :, None], cv2.warpAffine(texture, affine, (320, 240)), ground)
+    _, encoded = cv2.imencode(".jpg", cv2.GaussianBlur(image, (0, 0), blur), [cv2.IMWRITE_JPEG_QUALITY, quality])
+    return cv2.imdecode(encoded, cv2.IMREAD_UNCHANGED)
+
+
+@pytest.mark.parametrize("width,blur", [(150, 1.0), (100, 1.5), (70, 1.0)])
+def test_a_soft_sheet_matches_its_texture_more_often_with_the_image_sharpened(checker, textures, monkeypatch, width, blur):
+    """Sharpening the image before SIFT brings back the fine detail a soft sheet lost: its own
+    texture's matches rise by half or more, and the other texture's stay a few."""
+    image = _soft_sheet(textures, width, blur, quality=60)
+    built = texture_check.SHARPEN_AMOUNT
+    assert built > 0
+
+    def matches(amount: float) -> np.ndarray:
+        monkeypatch.setattr(texture_check, "SHARPEN_AMOUNT", amount)
+        return np.bincount(checker._matches(texture_check.grayscale(image))[1], minlength=2)
+
+    plain, sharpened = matches(0.0), matches(built)
+    assert sharpened[0] >= 1.5 * plain[0] and plain[0] > 0
+    assert sharpened[1] <= max(4, 0.1 * sharpened[0])
+
+
 def _checked(check: TextureCheck, image: np.ndarray, box: np.ndarray) -> dict:
     return check.apply(image, detections((box + np.array([6, -5, 4, 3], np.float32), 0.5, 0), (box * 0.5, 0.85, 1)))
 
