@@ -1,6 +1,6 @@
 """bench/texture_matching.py: the texture check's two matchers check the same network detections
 on each set, and the report gives each one's time, mAP and confirmations, their speed ratio and
-the share of images they check alike."""
+the share of images they check alike; each --sharpen amount adds FLANN's check at that sharpening."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench import texture_matching  # noqa: E402
+from workers.train import texture_check  # noqa: E402
 
 CLASSES = ["astronaut", "coffee"]
 
@@ -60,12 +61,15 @@ def test_both_matchers_check_the_same_detections_and_the_report_compares_them(tm
     searching = config(family="faster_rcnn", texture_check=True, texture_search=True)
     train_detector(samples, None, 1, searching, CLASSES, model, seed=0, textures=textures)
     out = tmp_path / "matching.json"
-    report = texture_matching.main(["--model", str(model), "--set", str(tmp_path / "sheets"), "--out", str(out)])
+    report = texture_matching.main(
+        ["--model", str(model), "--set", str(tmp_path / "sheets"), "--out", str(out), "--sharpen", "0", "--sharpen", "2"]
+    )
     assert json.loads(out.read_text()) == json.loads(json.dumps(report, default=float))
     result = report["sets"]["sheets"]
     assert result["images"] == 4
     brute_force, flann = result["brute_force"], result["flann"]
-    for matcher in (brute_force, flann):
+    assert report["sharpen_built"] == texture_check.SHARPEN_AMOUNT > 0
+    for matcher in (brute_force, flann, result["flann_sharpen_0"], result["flann_sharpen_2"]):
         assert matcher["seconds_per_image"] > 0 and matcher["build_seconds"] > 0
         # Every sheet is plain to see: the search finds each, whatever the barely trained network says.
         assert matcher["confirmed"] >= 4 and matcher["map"] == pytest.approx(1.0)
@@ -77,6 +81,22 @@ def test_both_matchers_check_the_same_detections_and_the_report_compares_them(tm
         texture_matching.main(["--model", str(model), "--set", str(tmp_path / "nowhere")])
     error = capsys.readouterr().err
     assert "nowhere" in error and "python bench/wild.py --sets-only" in error
+    # A negative sharpening is refused by name; the built amount is back after the run.
+    with pytest.raises(SystemExit):
+        texture_matching.main(["--model", str(model), "--set", str(tmp_path / "sheets"), "--sharpen", "-1"])
+    assert "--sharpen must be at least 0" in capsys.readouterr().err
+    assert texture_check.SHARPEN_AMOUNT == report["sharpen_built"]
+
+
+def test_sharpening_is_set_inside_and_restored_after_a_failure():
+    built = texture_check.SHARPEN_AMOUNT
+    with pytest.raises(RuntimeError):
+        with texture_matching.sharpening(0.0):
+            assert texture_check.SHARPEN_AMOUNT == 0.0
+            raise RuntimeError("a check that fails")
+    assert texture_check.SHARPEN_AMOUNT == built
+    with texture_matching.sharpening(None):
+        assert texture_check.SHARPEN_AMOUNT == built
 
 
 def test_outputs_are_the_same_only_with_the_same_boxes_classes_and_confirmations():
