@@ -62,14 +62,14 @@ def test_both_matchers_check_the_same_detections_and_the_report_compares_them(tm
     train_detector(samples, None, 1, searching, CLASSES, model, seed=0, textures=textures)
     out = tmp_path / "matching.json"
     report = texture_matching.main(
-        ["--model", str(model), "--set", str(tmp_path / "sheets"), "--out", str(out), "--sharpen", "0", "--sharpen", "2"]
+        ["--model", str(model), "--set", str(tmp_path / "sheets"), "--out", str(out), "--sharpen", "1", "--sharpen", "2"]
     )
     assert json.loads(out.read_text()) == json.loads(json.dumps(report, default=float))
     result = report["sets"]["sheets"]
     assert result["images"] == 4
     brute_force, flann = result["brute_force"], result["flann"]
-    assert report["sharpen_built"] == texture_check.SHARPEN_AMOUNT > 0
-    for matcher in (brute_force, flann, result["flann_sharpen_0"], result["flann_sharpen_2"]):
+    assert report["sharpen_built"] == texture_check.SHARPEN_AMOUNT
+    for matcher in (brute_force, flann, result["flann_sharpen_1"], result["flann_sharpen_2"]):
         assert matcher["seconds_per_image"] > 0 and matcher["build_seconds"] > 0
         # Every sheet is plain to see: the search finds each, whatever the barely trained network says.
         assert matcher["confirmed"] >= 4 and matcher["map"] == pytest.approx(1.0)
@@ -94,6 +94,9 @@ def test_sharpening_is_set_inside_and_restored_after_a_failure():
         with texture_matching.sharpening(0.0):
             assert texture_check.SHARPEN_AMOUNT == 0.0
             raise RuntimeError("a check that fails")
+    assert texture_check.SHARPEN_AMOUNT == built
+    with texture_matching.sharpening(1.0):
+        assert texture_check.SHARPEN_AMOUNT == 1.0
     assert texture_check.SHARPEN_AMOUNT == built
     with texture_matching.sharpening(None):
         assert texture_check.SHARPEN_AMOUNT == built
