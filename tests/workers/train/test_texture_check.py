@@ -367,12 +367,8 @@ def _soft_sheet(textures, width: int, blur: float, quality: int) -> np.ndarray:
     """The astronaut texture at ``width`` px over a noise ground, softened by a Gaussian blur and
     JPEG as a lens and a camera's compression soften a photographed sheet."""
     rng = np.random.default_rng(3)
-    ground = cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3)).astype(np.uint8), (0, 0), 3)
-    texture = textures["astronaut"]
-    affine = cv2.getRotationMatrix2D((0, 0), 12, width / texture.shape[1])
-    affine[:, 2] += (40, 60)
-    mask = cv2.warpAffine(np.full(texture.shape[:2], 255, np.uint8), affine, (320, 240)) > 0
-    image = np.where(mask[:, :, None], cv2.warpAffine(texture, affine, (320, 240)), ground)
+    image = cv2.GaussianBlur(rng.integers(0, 255, (240, 320, 3)).astype(np.uint8), (0, 0), 3)
+    _paste(image, textures["astronaut"], width, 12, (40, 60))
     _, encoded = cv2.imencode(".jpg", cv2.GaussianBlur(image, (0, 0), blur), [cv2.IMWRITE_JPEG_QUALITY, quality])
     return cv2.imdecode(encoded, cv2.IMREAD_UNCHANGED)
 
