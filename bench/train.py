@@ -62,8 +62,11 @@ def quick_settings() -> dict[str, Any]:
         config = load_config(path)
         # One view: the families compare at one inference each (quick.yaml's test_sizes and
         # test_turns multiply the R-CNNs' inference cost by the pixels of its sizes and by its
-        # turns; bench/README.md), and yolo reads neither.
-        detector = config.detector.model_copy(update={"test_sizes": (), "test_turns": (), "view_vote": None})
+        # turns; bench/README.md), and yolo reads neither. The networks alone: the texture check
+        # (which also needs the textures, not rendered here) is timed by texture_matching.py.
+        detector = config.detector.model_copy(
+            update={"test_sizes": (), "test_turns": (), "view_vote": None, "texture_check": False, "texture_search": False}
+        )
         return {"detector": detector, "image_size": config.render.image_size, "source": str(path.relative_to(REPO))}
     return {"detector": DetectorConfig(), "image_size": 128, "source": "DetectorConfig defaults (no configs/quick.yaml)"}
 

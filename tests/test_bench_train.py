@@ -21,9 +21,13 @@ def test_the_families_compare_at_one_view_of_quick_yamls_detector():
     base = settings["detector"]
     assert settings["source"] == "configs/quick.yaml"
     assert base.test_sizes == () and base.test_turns == ()  # one inference per image for every family
+    # The networks alone: quick.yaml's texture check would need the textures, which the bench's
+    # canonical sets do not carry (training refused to start without them).
+    assert quick.texture_check and not base.texture_check and not base.texture_search
     for family in ("faster_rcnn", "fast_rcnn", "yolo"):  # yolo reads neither: its config must validate
         config = train.family_config(base, family, input_size=128, threads=1, batch_size=None)
         assert config.family == family and config.test_sizes == () and config.test_turns == ()
+        assert not config.texture_check
 
 
 def test_score_times_a_second_pass_and_reports_the_first_beside_it(tmp_path, monkeypatch):
