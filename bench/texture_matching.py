@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -48,19 +47,6 @@ def same_detections(first: dict, second: dict, tolerance_px: float = 0.5) -> boo
     )
 
 
-@contextmanager
-def sharpening(amount: float | None):
-    """The texture check's image sharpening set to ``amount`` inside (None: as built)."""
-    from workers.train import texture_check
-
-    built = texture_check.SHARPEN_AMOUNT
-    texture_check.SHARPEN_AMOUNT = built if amount is None else float(amount)
-    try:
-        yield
-    finally:
-        texture_check.SHARPEN_AMOUNT = built
-
-
 def compare_on_set(
     detector, data: Path, every: int, score_threshold: float, iou_threshold: float, sharpen: tuple[float, ...] = ()
 ) -> dict:
@@ -68,7 +54,7 @@ def compare_on_set(
     detections; then FLANN with the image sharpened at each amount of ``sharpen``."""
     from workers.train.data import load_coco_dataset, read_image_rgb
     from workers.train.evaluation import detector_predictions, evaluate_predictions
-    from workers.train.texture_check import TextureCheck
+    from workers.train.texture_check import SHARPEN_AMOUNT, TextureCheck
 
     samples, classes = load_coco_dataset(data)
     samples = samples[::every]
@@ -76,19 +62,20 @@ def compare_on_set(
     network, truth, _groups, model_classes = detector_predictions(detector, samples, classes, texture_check=False)
     result: dict = {"dir": str(data), "images": len(samples), "network_seconds": time.perf_counter() - started}
     checked: dict[str, list[dict]] = {}
-    variants = [(name, exact, None) for name, exact in MATCHERS.items()]
+    variants = [(name, exact, SHARPEN_AMOUNT) for name, exact in MATCHERS.items()]
     variants += [(f"flann_sharpen_{amount:g}", False, amount) for amount in sharpen]
     for name, exact, amount in variants:
         started = time.perf_counter()
-        check = TextureCheck(detector.textures, detector.classes, search=detector.config.texture_search, exact=exact)
+        check = TextureCheck(
+            detector.textures, detector.classes, search=detector.config.texture_search, exact=exact, sharpen=amount
+        )
         built = time.perf_counter() - started
         outputs, seconds = [], 0.0
-        with sharpening(amount):
-            for sample, found in zip(samples, network):
-                image = read_image_rgb(sample.image_path)
-                started = time.perf_counter()
-                outputs.append(check.apply(image, found))
-                seconds += time.perf_counter() - started
+        for sample, found in zip(samples, network):
+            image = read_image_rgb(sample.image_path)
+            started = time.perf_counter()
+            outputs.append(check.apply(image, found))
+            seconds += time.perf_counter() - started
         checked[name] = outputs
         scores = evaluate_predictions(
             outputs, truth, model_classes, score_threshold=score_threshold, iou_threshold=iou_threshold, coco=False

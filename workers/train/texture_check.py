@@ -162,16 +162,16 @@ def grayscale(image: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(np.ascontiguousarray(image[:, :, :3]), cv2.COLOR_RGB2GRAY)
 
 
-def sharpen(gray: np.ndarray) -> np.ndarray:
-    """A uint8 grayscale image through an unsharp mask: ``(1 + SHARPEN_AMOUNT) * gray -
-    SHARPEN_AMOUNT * blurred`` (Gaussian, ``SHARPEN_SIGMA``), saturated to [0, 255]. Flat regions
-    are left as they are; edges and fine texture gain contrast."""
+def sharpen(gray: np.ndarray, amount: float) -> np.ndarray:
+    """A uint8 grayscale image through an unsharp mask: ``(1 + amount) * gray - amount * blurred``
+    (Gaussian, ``SHARPEN_SIGMA``), saturated to [0, 255]; at amount 0 the image itself. Flat
+    regions are left as they are; edges and fine texture gain contrast."""
     import cv2
 
-    if SHARPEN_AMOUNT <= 0:
+    if amount <= 0:
         return gray
     blurred = cv2.GaussianBlur(gray, (0, 0), SHARPEN_SIGMA)
-    return cv2.addWeighted(gray, 1 + SHARPEN_AMOUNT, blurred, -SHARPEN_AMOUNT, 0)
+    return cv2.addWeighted(gray, 1 + amount, blurred, -amount, 0)
 
 
 def tilted_views(gray: np.ndarray):
@@ -381,12 +381,18 @@ class TextureCheck:
         search: bool = False,
         exact: bool = False,
         cache_dir: str | Path | None = None,
+        sharpen: float = SHARPEN_AMOUNT,
     ) -> None:
         """``exact``: compare each image keypoint with every texture keypoint (brute force) instead of
         searching FLANN's KD-trees (bench/texture_matching.py measures the two side by side).
         ``cache_dir``: where the textures' keypoints and trees are kept between processes (None:
-        made here each time)."""
+        made here each time). ``sharpen``: the image's unsharp mask before SIFT (0: none;
+        bench/texture_matching.py --sharpen measures others)."""
         import cv2
+
+        if not sharpen >= 0:
+            raise ValueError(f"texture check: sharpen must be at least 0 (0: none), got {sharpen}")
+        self.sharpen = float(sharpen)
 
         missing = [name for name in classes if name not in textures]
         if missing:
@@ -416,7 +422,7 @@ class TextureCheck:
         that pass the ratio test."""
         import cv2
 
-        gray = sharpen(gray)
+        gray = sharpen(gray, self.sharpen)
         scale = sift_scale(*gray.shape)
         interpolation = cv2.INTER_LINEAR if scale >= 1 else cv2.INTER_AREA
         enlarged = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=interpolation) if scale != 1 else gray

@@ -343,24 +343,24 @@ def test_a_large_photograph_is_shrunk_for_sift_and_checked_in_its_own_pixels(che
     assert _iou(checked["boxes"][0], box * factor) > 0.8
 
 
-def test_sharpening_keeps_flat_regions_and_steepens_edges(monkeypatch):
-    """The unsharp mask (off as built, SHARPEN_AMOUNT 0: the image as it is) leaves a flat image as
-    it is and raises an edge's contrast on both sides, saturating at 0 and 255 instead of wrapping
-    round."""
+def test_sharpening_keeps_flat_regions_and_steepens_edges(textures):
+    """The unsharp mask (off as built: amount 0 is the image as it is) leaves a flat image as it is
+    and raises an edge's contrast on both sides, saturating at 0 and 255 instead of wrapping
+    round; a negative amount is refused by name."""
     step = np.zeros((40, 40), np.uint8)
     step[:, 20:] = 200
-    monkeypatch.setattr(texture_check, "SHARPEN_AMOUNT", 0.0)
-    assert texture_check.sharpen(step) is step
-    monkeypatch.setattr(texture_check, "SHARPEN_AMOUNT", 1.0)
+    assert texture_check.SHARPEN_AMOUNT == 0 and texture_check.sharpen(step, 0.0) is step
     flat = np.full((40, 40), 90, np.uint8)
-    np.testing.assert_array_equal(texture_check.sharpen(flat), flat)
-    sharpened = texture_check.sharpen(step)
+    np.testing.assert_array_equal(texture_check.sharpen(flat, 1.0), flat)
+    sharpened = texture_check.sharpen(step, 1.0)
     assert sharpened.dtype == np.uint8 and sharpened.shape == step.shape
     assert sharpened[:, 19].max() == 0 and sharpened[:, 20].min() > 200  # darker below, brighter above the edge
     np.testing.assert_array_equal(sharpened[:, :10], step[:, :10])  # far from it, unchanged
     bright = np.full((40, 40), 250, np.uint8)
     bright[:, 20:] = 255
-    assert texture_check.sharpen(bright)[:, 20].min() == 255
+    assert texture_check.sharpen(bright, 1.0)[:, 20].min() == 255
+    with pytest.raises(ValueError, match="sharpen must be at least 0"):
+        TextureCheck(textures, CLASSES, sharpen=-0.5)
 
 
 def _soft_sheet(textures, width: int, blur: float, quality: int) -> np.ndarray:
@@ -381,7 +381,7 @@ def test_a_soft_sheet_matches_its_texture_more_often_with_the_image_sharpened(ch
     image = _soft_sheet(textures, width, blur, quality=60)
 
     def matches(amount: float) -> np.ndarray:
-        monkeypatch.setattr(texture_check, "SHARPEN_AMOUNT", amount)
+        monkeypatch.setattr(checker, "sharpen", amount)
         return np.bincount(checker._matches(texture_check.grayscale(image))[1], minlength=2)
 
     plain, sharpened = matches(0.0), matches(1.0)
