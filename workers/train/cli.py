@@ -48,16 +48,18 @@ def _set_threads(threads: int) -> None:
         torch.set_num_threads(threads)
 
 
+DATA_HELP = "A dataset folder (`foldwise render --out DIR`), a COCO JSON file, or a Pascal VOC folder."
+
+
 def _load_samples(data: Path):
-    """The dataset at ``data`` (a folder written by ``foldwise render``), or a clear exit."""
-    from workers.train.data import DatasetError, load_coco_dataset
+    """The dataset at ``data`` (a folder written by ``foldwise render``, a COCO JSON file or a
+    Pascal VOC folder: ``load_dataset``), or a clear exit."""
+    from workers.train.data import DatasetError, load_dataset
 
     if not data.exists():
         _fail(f"dataset folder {data} does not exist")
-    if not data.is_dir():
-        _fail(f"{data} is not a folder (expected a dataset folder written by `foldwise render --out DIR`)")
     try:
-        samples, classes = load_coco_dataset(data)
+        samples, classes = load_dataset(data)
     except (DatasetError, KeyError, TypeError, ValueError) as error:
         detail = f"missing field {error}" if isinstance(error, KeyError) else str(error)
         _fail(f"cannot read dataset {data}: {detail}")
@@ -91,7 +93,7 @@ def _fmt(value: Any, digits: int = 4) -> str:
 
 def train(
     detector: Annotated[Family, typer.Option("--detector", help="Detector family.")],
-    data: Annotated[Path, typer.Option("--data", help="Dataset folder written by `foldwise render --out DIR`.")],
+    data: Annotated[Path, typer.Option("--data", help=DATA_HELP)],
     iterations: Annotated[int, typer.Option("--iterations", min=1, help="Training iterations (mini-batches).")],
     out: Annotated[Path, typer.Option("--out", help="Checkpoint to write.")],
     init: Annotated[
@@ -213,7 +215,7 @@ def _result_tables(result) -> list:
 
 def evaluate(
     model: Annotated[Path, typer.Option("--model", help="Checkpoint written by `foldwise train`.")],
-    data: Annotated[Path, typer.Option("--data", help="Dataset folder written by `foldwise render --out DIR`.")],
+    data: Annotated[Path, typer.Option("--data", help=DATA_HELP)],
     json_out: Annotated[Optional[Path], typer.Option("--json", help="Also write the full result as JSON here.")] = None,
     score_threshold: Annotated[
         float, typer.Option("--threshold", min=0.0, max=1.0, help="The paper's confidence cut.")
@@ -504,7 +506,7 @@ def export(
 
 def finetune(
     model: Annotated[Path, typer.Option("--model", help="The foldwise checkpoint to fine-tune.")],
-    data: Annotated[Path, typer.Option("--data", help="Real images: a COCO JSON file or folder, or a Pascal VOC folder.")],
+    data: Annotated[Path, typer.Option("--data", help=f"Real images. {DATA_HELP}")],
     out: Annotated[Path, typer.Option("--out", help="Folder for the models, the table and Fig. 11.")],
     sweep: Annotated[str, typer.Option("--sweep", help="Real training images per point, e.g. 0,25,50,100,200.")] = "0,25,50,100,200",
     iterations: Annotated[int, typer.Option("--iterations", min=1, max=1_000_000, help="Iterations per model.")] = 200,
@@ -513,8 +515,8 @@ def finetune(
 ) -> None:
     """Fine-tune a foldwise model on real photographs: a sweep over the number of real training
     images, a fresh-initialisation baseline beside it, both scored on a held-out real split (Fig. 11)."""
-    from workers.train.data import DatasetError
-    from workers.train.finetune import load_real_dataset, match_classes, split, sweep as run_sweep, write_fig11
+    from workers.train.data import DatasetError, load_dataset
+    from workers.train.finetune import match_classes, split, sweep as run_sweep, write_fig11
 
     def bad_input(message: str) -> NoReturn:
         typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)
@@ -531,7 +533,7 @@ def finetune(
         bad_input(f"{model} is an ensemble of {len(detector.meta['members'])} detectors: fine-tune one of the checkpoints it joins")
     model_classes = [str(name) for name in detector.meta["classes"]]
     try:
-        samples, classes = load_real_dataset(data)
+        samples, classes = load_dataset(data)
         samples = match_classes(samples, classes, model_classes)
         pool, test = split(samples, test_fraction, seed)
     except DatasetError as error:

@@ -3,13 +3,15 @@
 ``load_coco_dataset`` reads the dataset folder written by ``foldwise render --out DIR``
 (``DIR/annotations.json`` in COCO form, images under ``DIR/images/``) and checks every box
 before any training starts, so a bad annotation fails here with the image named, not as a
-NaN loss an hour later.
+NaN loss an hour later. ``load_dataset`` also reads what labelling tools export for real
+photographs: a COCO JSON file anywhere, or a Pascal VOC folder.
 """
 
 from __future__ import annotations
 
 import json
 import math
+import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -120,6 +122,66 @@ def load_coco_dataset(directory: str | Path) -> tuple[list[Sample], list[str]]:
                 difficulty=image.get("difficulty"),
             )
         )
+    return samples, classes
+
+
+def load_dataset(path: str | Path) -> tuple[list[Sample], list[str]]:
+    """Samples and class names of a dataset in any form foldwise reads: a folder holding
+    ``annotations.json`` (``foldwise render --out``), a COCO JSON file (its image file names
+    relative to its folder), or a Pascal VOC folder (``Annotations/*.xml`` beside ``JPEGImages/``)."""
+    path = Path(path)
+    if not path.exists():
+        raise DatasetError(f"{path}: no such file or folder")
+    if (path.is_file() and path.suffix.lower() == ".json") or (path / "annotations.json").is_file():
+        return load_coco_dataset(path)
+    if (path / "Annotations").is_dir():
+        return load_voc_dataset(path)
+    raise DatasetError(
+        f"{path}: not a dataset: no annotations.json in it (a folder `foldwise render --out` writes), "
+        "nor a COCO JSON file, nor a Pascal VOC folder (Annotations/*.xml beside JPEGImages/)"
+    )
+
+
+def load_voc_dataset(folder: str | Path) -> tuple[list[Sample], list[str]]:
+    """Samples of a Pascal VOC folder, and its class names in the order they first appear."""
+    folder = Path(folder)
+    classes: list[str] = []
+    samples = []
+    files = sorted((folder / "Annotations").glob("*.xml"))
+    if not files:
+        raise DatasetError(f"{folder}/Annotations holds no .xml annotation")
+    for xml_path in files:
+        try:
+            root = ElementTree.parse(xml_path).getroot()
+        except ElementTree.ParseError as error:
+            raise DatasetError(f"{xml_path}: not valid XML: {error}") from None
+        filename = root.findtext("filename")
+        if not filename:
+            raise DatasetError(f"{xml_path}: no <filename>")
+        image_path = folder / "JPEGImages" / filename
+        if not image_path.is_file():
+            raise DatasetError(f"{xml_path}: image file {image_path} does not exist")
+        width = float(root.findtext("size/width") or 0)
+        height = float(root.findtext("size/height") or 0)
+        boxes, labels = [], []
+        for number, obj in enumerate(root.iter("object")):
+            name = (obj.findtext("name") or "").strip()
+            where = f"{xml_path} (object {number})"
+            if not name:
+                raise DatasetError(f"{where}: no <name>")
+            try:
+                # VOC pixels are 1-based and inclusive: x0 - 1 .. x1 in 0-based pixel edges.
+                box = [float(obj.findtext(f"bndbox/{key}")) for key in ("xmin", "ymin", "xmax", "ymax")]
+            except (TypeError, ValueError):
+                raise DatasetError(f"{where}: <bndbox> needs numeric xmin, ymin, xmax, ymax") from None
+            box = [box[0] - 1, box[1] - 1, box[2], box[3]]
+            if width and height:
+                validate_box(box, width, height, where)
+            if name not in classes:
+                classes.append(name)
+            boxes.append(box)
+            labels.append(classes.index(name))
+        samples.append(Sample(image_path, np.asarray(boxes, np.float32).reshape(-1, 4), np.asarray(labels, np.int64)))
     return samples, classes
 
 

@@ -1,7 +1,7 @@
 """Fine-tuning a foldwise model on real photographs (the paper's §5.5.2 and Fig. 11).
 
-A real set is a COCO JSON file (or a folder holding ``annotations.json``) or a Pascal VOC
-folder (``Annotations/*.xml`` beside ``JPEGImages/``). Its classes are matched to the
+A real set is read by ``workers.train.data.load_dataset``: a COCO JSON file (or a folder holding
+``annotations.json``) or a Pascal VOC folder (``Annotations/*.xml`` beside ``JPEGImages/``). Its classes are matched to the
 checkpoint's by name, and it may hold a subset of them; labels are renumbered to the
 checkpoint's order, so the fine-tuned model keeps every class it had. The set is split once,
 by a seeded shuffle, into a training pool and a test split; for each size n of the sweep the
@@ -14,68 +14,13 @@ from __future__ import annotations
 
 import csv
 import json
-import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
 
-from workers.train.data import DatasetError, Sample, load_coco_dataset, validate_box
-
-
-def load_real_dataset(path: str | Path) -> tuple[list[Sample], list[str]]:
-    """Samples and class names of a COCO file or folder, or of a Pascal VOC folder."""
-    path = Path(path)
-    if (path.is_file() and path.suffix.lower() == ".json") or (path / "annotations.json").is_file():
-        return load_coco_dataset(path)
-    if (path / "Annotations").is_dir():
-        return _load_voc(path)
-    raise DatasetError(
-        f"{path}: not a real-image set: expected a COCO JSON file, a folder with annotations.json, "
-        "or a Pascal VOC folder (Annotations/*.xml and JPEGImages/)"
-    )
-
-
-def _load_voc(folder: Path) -> tuple[list[Sample], list[str]]:
-    classes: list[str] = []
-    samples = []
-    files = sorted((folder / "Annotations").glob("*.xml"))
-    if not files:
-        raise DatasetError(f"{folder}/Annotations holds no .xml annotation")
-    for xml_path in files:
-        try:
-            root = ElementTree.parse(xml_path).getroot()
-        except ElementTree.ParseError as error:
-            raise DatasetError(f"{xml_path}: not valid XML: {error}") from None
-        filename = root.findtext("filename")
-        if not filename:
-            raise DatasetError(f"{xml_path}: no <filename>")
-        image_path = folder / "JPEGImages" / filename
-        if not image_path.is_file():
-            raise DatasetError(f"{xml_path}: image file {image_path} does not exist")
-        width = float(root.findtext("size/width") or 0)
-        height = float(root.findtext("size/height") or 0)
-        boxes, labels = [], []
-        for number, obj in enumerate(root.iter("object")):
-            name = (obj.findtext("name") or "").strip()
-            where = f"{xml_path} (object {number})"
-            if not name:
-                raise DatasetError(f"{where}: no <name>")
-            try:
-                # VOC pixels are 1-based and inclusive: x0 - 1 .. x1 in 0-based pixel edges.
-                box = [float(obj.findtext(f"bndbox/{key}")) for key in ("xmin", "ymin", "xmax", "ymax")]
-            except (TypeError, ValueError):
-                raise DatasetError(f"{where}: <bndbox> needs numeric xmin, ymin, xmax, ymax") from None
-            box = [box[0] - 1, box[1] - 1, box[2], box[3]]
-            if width and height:
-                validate_box(box, width, height, where)
-            if name not in classes:
-                classes.append(name)
-            boxes.append(box)
-            labels.append(classes.index(name))
-        samples.append(Sample(image_path, np.asarray(boxes, np.float32).reshape(-1, 4), np.asarray(labels, np.int64)))
-    return samples, classes
+from workers.train.data import DatasetError, Sample
 
 
 def match_classes(samples: list[Sample], classes: list[str], model_classes: list[str]) -> list[Sample]:

@@ -5,6 +5,7 @@ the model's classes, an unknown class named, and a sweep with its fresh baseline
 from __future__ import annotations
 
 import csv
+import json
 import sys
 from pathlib import Path
 
@@ -15,8 +16,8 @@ from typer.testing import CliRunner
 
 from foldwise.config import DetectorConfig
 from workers.train.cli import register
-from workers.train.data import DatasetError
-from workers.train.finetune import load_real_dataset, match_classes, split
+from workers.train.data import DatasetError, load_dataset
+from workers.train.finetune import match_classes, split
 from workers.train.training import train_detector
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
@@ -36,7 +37,7 @@ def standin(tmp_path_factory):
 @pytest.fixture(scope="module")
 def tiny_model(standin, tmp_path_factory):
     """A 3-class model (the real set holds 2 of them, in another order): 2 iterations at 64 px."""
-    samples, classes = load_real_dataset(standin / "voc")
+    samples, classes = load_dataset(standin / "voc")
     samples = match_classes(samples, classes, MODEL_CLASSES)
     path = tmp_path_factory.mktemp("model") / "tiny.pt"
     config = DetectorConfig(family="yolo", input_size=64, batch_size=2, num_threads=1)
@@ -45,8 +46,8 @@ def tiny_model(standin, tmp_path_factory):
 
 
 def test_voc_and_coco_give_the_same_set_matched_to_the_models_classes(standin):
-    voc, voc_classes = load_real_dataset(standin / "voc")
-    coco, coco_classes = load_real_dataset(standin / "coco.json")
+    voc, voc_classes = load_dataset(standin / "voc")
+    coco, coco_classes = load_dataset(standin / "coco.json")
     assert len(voc) == len(coco) == 12 and set(voc_classes) == set(coco_classes) == {"coffee", "astronaut"}
     voc, coco = match_classes(voc, voc_classes, MODEL_CLASSES), match_classes(coco, coco_classes, MODEL_CLASSES)
     for a, b in zip(sorted(voc, key=lambda s: s.image_path.name), sorted(coco, key=lambda s: s.image_path.name)):
@@ -56,13 +57,13 @@ def test_voc_and_coco_give_the_same_set_matched_to_the_models_classes(standin):
 
 
 def test_an_unknown_class_is_named_with_the_known_ones(standin):
-    samples, classes = load_real_dataset(standin / "voc")
+    samples, classes = load_dataset(standin / "voc")
     with pytest.raises(DatasetError, match=r"class\(es\) \['coffee'\] .* its classes: astronaut, rocket"):
         match_classes(samples, classes, ["astronaut", "rocket"])
 
 
 def test_the_split_is_seeded_and_disjoint(standin):
-    samples, _ = load_real_dataset(standin / "voc")
+    samples, _ = load_dataset(standin / "voc")
     pool, test = split(samples, 0.5, seed=3)
     again, _ = split(samples, 0.5, seed=3)
     assert [s.image_path for s in pool] == [s.image_path for s in again]
@@ -89,6 +90,22 @@ def test_finetune_refuses_an_unknown_class_and_a_folder_that_is_no_set_in_one_li
     other = tmp_path / "no-coffee.pt"
     config = DetectorConfig(family="yolo", input_size=64, batch_size=2, num_threads=1)
     train_detector([], init=None, iterations=0, config=config, classes=["astronaut", "rocket"], out=other)
-    for data, message in ((standin / "voc", "its classes: astronaut, rocket"), (tmp_path / "nowhere", "not a real-image set")):
+    for data, message in ((standin / "voc", "its classes: astronaut, rocket"), (tmp_path, "not a dataset"), (tmp_path / "nowhere", "no such file or folder")):
         result = CliRunner().invoke(app, ["finetune", "--model", str(other), "--data", str(data), "--out", str(tmp_path / "o")])
         assert result.exit_code == 2 and message in result.output and result.output.strip().count("\n") == 0, result.output
+
+
+def test_evaluate_reads_a_real_set_as_a_voc_folder_or_a_coco_file_alike(standin, tiny_model, tmp_path):
+    """Labelling tools export VOC folders and COCO files kept anywhere: `foldwise evaluate` scores
+    the model on either (the set holding two of its three classes), the same as on the other."""
+    payloads = []
+    for name, data in (("voc", standin / "voc"), ("coco", standin / "coco.json")):
+        target = tmp_path / f"{name}.json"
+        result = CliRunner().invoke(app, ["evaluate", "--model", str(tiny_model), "--data", str(data), "--json", str(target)])
+        assert result.exit_code == 0, result.output
+        payloads.append(json.loads(target.read_text()))
+    voc, coco = payloads
+    assert voc["num_images"] == coco["num_images"] == 12 and voc["num_ground_truth"] == coco["num_ground_truth"] > 0
+    assert voc["classes"] == coco["classes"] == MODEL_CLASSES
+    assert voc["per_class"]["chelsea"]["num_ground_truth"] == 0  # the model's class the set does not hold
+    assert voc["map_unthresholded"] == pytest.approx(coco["map_unthresholded"], abs=0.02)  # VOC's boxes keep one decimal
