@@ -16,11 +16,15 @@ TEST_WORKERS ?= 2
 
 .PHONY: install run test test-integration bench constraints clean
 
+# Installing ends by compiling the render pipeline's numba kernels, as the Docker image does at
+# build time: otherwise each of make run's curricula compiles them on its first images (a minute
+# of CPU each on a 2-core machine) inside the run's time.
 $(STAMP): pyproject.toml constraints.txt
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else "foldwise needs Python 3.11 (bpy 5.0.1 requires it)")'
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev]'
+	$(BIN)/python -c 'from workers.render.pipeline import compile_kernels; compile_kernels()'
 	touch $(STAMP)
 
 install: $(STAMP)

@@ -551,6 +551,22 @@ def test_image_compiles_the_render_kernels_into_a_cache_its_workers_load(instruc
     assert misses == 0 and hits >= 10, (misses, hits)
 
 
+
+def test_make_install_compiles_the_render_kernels_as_the_image_does(instructions):
+    """`make install` (the first `make run` or `make test`) ends with the Dockerfile's own compile
+    step, after the packages are in and before the stamp that marks the install done, so no
+    curriculum of `make run` compiles the kernels inside the run's time (the step itself is run
+    and checked above)."""
+    makefile = (REPO / "Makefile").read_text()
+    recipe = makefile.split("$(STAMP): pyproject.toml constraints.txt\n", 1)[1].split("\n\n", 1)[0].splitlines()
+    (image_step,) = [arguments for keyword, arguments in instructions if keyword == "RUN" and "compile_kernels" in arguments]
+    command = re.search(r'python -c "([^"]+)"', image_step).group(1)
+    compiles = [i for i, line in enumerate(recipe) if command in line]
+    installs = [i for i, line in enumerate(recipe) if "pip install" in line and "-e '.[dev]'" in line]
+    stamps = [i for i, line in enumerate(recipe) if line.strip() == "touch $(STAMP)"]
+    assert len(compiles) == len(installs) == len(stamps) == 1, recipe
+    assert installs[0] < compiles[0] < stamps[0], recipe
+
 # The shared libraries bpy's extension module needs from the system (its NEEDED entries, through
 # the libraries bundled in the wheel), and the Debian package that provides each in the image.
 # A library missing here is one a new bpy wants: find its package (`dpkg -S`) and add both.
