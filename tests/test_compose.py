@@ -551,7 +551,6 @@ def test_image_compiles_the_render_kernels_into_a_cache_its_workers_load(instruc
     assert misses == 0 and hits >= 10, (misses, hits)
 
 
-
 def test_make_install_compiles_the_render_kernels_as_the_image_does(instructions):
     """`make install` (the first `make run` or `make test`) ends with the Dockerfile's own compile
     step, after the packages are in and before the stamp that marks the install done, so no
@@ -566,6 +565,7 @@ def test_make_install_compiles_the_render_kernels_as_the_image_does(instructions
     stamps = [i for i, line in enumerate(recipe) if line.strip() == "touch $(STAMP)"]
     assert len(compiles) == len(installs) == len(stamps) == 1, recipe
     assert installs[0] < compiles[0] < stamps[0], recipe
+
 
 # The shared libraries bpy's extension module needs from the system (its NEEDED entries, through
 # the libraries bundled in the wheel), and the Debian package that provides each in the image.
