@@ -57,7 +57,7 @@ def _load_samples(data: Path):
     from workers.train.data import DatasetError, load_dataset
 
     if not data.exists():
-        _fail(f"dataset folder {data} does not exist")
+        _fail(f"dataset {data} does not exist (no such folder or file)")
     try:
         samples, classes = load_dataset(data)
     except (DatasetError, KeyError, TypeError, ValueError) as error:

@@ -88,7 +88,7 @@ def test_missing_dataset_folder_is_a_clear_error(tmp_path):
     ):
         result = runner.invoke(make_app(), args)
         assert result.exit_code == 1
-        assert f"dataset folder {missing} does not exist" in result.output
+        assert f"dataset {missing} does not exist (no such folder or file)" in result.output
 
 
 def test_folder_without_annotations_is_a_clear_error(tmp_path):
