@@ -14,7 +14,7 @@ MEMBERS ?= $(if $(filter configs/quick.yaml,$(CONFIG)),2,1)
 # workers take about half its time on 2 cores (tests/conftest.py sends them a module at a time).
 TEST_WORKERS ?= 2
 
-.PHONY: install run test test-integration bench constraints clean
+.PHONY: install run test test-integration lint bench constraints clean
 
 # Installing ends by compiling the render pipeline's numba kernels, as the Docker image does at
 # build time: otherwise each of make run's curricula compiles them on its first images (a minute
@@ -39,6 +39,10 @@ test: $(STAMP)
 
 test-integration: $(STAMP)
 	$(BIN)/python -m pytest tests/integration -v
+
+## Lint and format check (ruff, configured in pyproject.toml's [tool.ruff]).
+lint: $(STAMP)
+	$(BIN)/ruff check . && $(BIN)/ruff format --check .
 
 bench: $(STAMP)
 	$(BIN)/python bench/render.py
