@@ -10,8 +10,7 @@ import numpy as np
 import pytest
 
 from foldwise import store
-from tests.services.api.test_api import AUTH, client, database_url, migrated_template  # noqa: F401
-from tests.services.api.test_bad_input import _experiments
+from tests.services.api.helpers import AUTH, experiment_count
 
 
 def _png(side: int = 32, value: int = 128) -> bytes:
@@ -28,7 +27,7 @@ def _gif() -> bytes:
     return buffer.getvalue()
 
 
-def _upload(client, kind: str, files: dict[str, bytes], headers=AUTH):  # noqa: F811
+def _upload(client, kind: str, files: dict[str, bytes], headers=AUTH):
     return client.post(f"/assets/{kind}", files=[("files", (name, payload)) for name, payload in files.items()], headers=headers)
 
 
@@ -37,7 +36,7 @@ def _leftovers() -> list[str]:
     return sorted(p.name for p in root.iterdir()) if root.exists() else []
 
 
-def test_an_uploaded_object_folder_is_kept_by_content_and_a_config_may_name_it(client, database_url, monkeypatch):  # noqa: F811
+def test_an_uploaded_object_folder_is_kept_by_content_and_a_config_may_name_it(client, database_url, monkeypatch):
     monkeypatch.delenv("FOLDWISE_ASSET_ROOTS", raising=False)  # no folder of the server is allowed: only uploads
     files = {"poster.png": _png(value=90), "mug.png": _png(value=200)}
     first = _upload(client, "objects", files)
@@ -72,7 +71,7 @@ def test_an_uploaded_object_folder_is_kept_by_content_and_a_config_may_name_it(c
         ("textures", {"a.png": _png()}, 422, "objects"),  # an unknown kind: the error lists the known ones
     ],
 )
-def test_a_bad_upload_is_a_4xx_that_names_the_file_and_keeps_nothing(client, database_url, kind, files, code, says):  # noqa: F811
+def test_a_bad_upload_is_a_4xx_that_names_the_file_and_keeps_nothing(client, database_url, kind, files, code, says):
     response = _upload(client, kind, files)
     assert response.status_code == code, response.text
     assert says in str(response.json()["detail"])
@@ -80,13 +79,13 @@ def test_a_bad_upload_is_a_4xx_that_names_the_file_and_keeps_nothing(client, dat
     assert _leftovers() == []
 
 
-def test_an_upload_needs_the_token_and_at_least_one_file(client, database_url):  # noqa: F811
+def test_an_upload_needs_the_token_and_at_least_one_file(client, database_url):
     assert _upload(client, "objects", {"a.png": _png()}, headers={}).status_code == 401
     assert client.post("/assets/objects", headers=AUTH).status_code == 422
-    assert _leftovers() == [] and _experiments(database_url) == 0
+    assert _leftovers() == [] and experiment_count(database_url) == 0
 
 
-def test_a_file_over_the_size_bound_is_a_413(client, database_url, monkeypatch):  # noqa: F811
+def test_a_file_over_the_size_bound_is_a_413(client, database_url, monkeypatch):
     from services.api.routes import assets
 
     monkeypatch.setattr(assets, "MAX_FILE_BYTES", 1000)
