@@ -85,19 +85,47 @@ def build_augmentation(config: AugmentationConfig, crop_size: tuple[int, int]):
 
 
 def _quarter_turn():
-    """A turn by one, two or three quarters (drawn uniformly), the frame turned with it: boxes
-    stay exact (torchvision's rotate kernels, ``expand``)."""
+    """A turn by one, two or three quarters anticlockwise (drawn uniformly), the frame turned
+    with it: pixels move without resampling (``torch.rot90``) and boxes exactly. torchvision's
+    ``rotate(expand=True)`` is not used: on an image without boxes it turns the image but leaves
+    the (empty) boxes' canvas as it was, and the next transform then finds two image sizes
+    ("Found multiple HxW dimensions") whenever the image is not square."""
+    from torchvision import tv_tensors
     from torchvision.transforms import v2
-    from torchvision.transforms.v2 import functional as F
 
     class RandomQuarterTurn(v2.Transform):
         def make_params(self, flat_inputs):
-            return {"angle": 90.0 * int(torch.randint(1, 4, ()).item())}
+            return {"turns": int(torch.randint(1, 4, ()).item())}
 
         def transform(self, inpt, params):
-            return self._call_kernel(F.rotate, inpt, angle=params["angle"], expand=True)
+            if isinstance(inpt, tv_tensors.BoundingBoxes):
+                return quarter_turn_boxes(inpt, params["turns"])
+            if isinstance(inpt, (tv_tensors.Image, tv_tensors.Mask)):
+                return tv_tensors.wrap(torch.rot90(inpt.as_subclass(Tensor), params["turns"], dims=(-2, -1)), like=inpt)
+            return inpt
 
     return RandomQuarterTurn()
+
+
+def quarter_turn_boxes(boxes, turns: int):
+    """XYXY ``BoundingBoxes`` of a (H, W) canvas after ``turns`` quarter turns anticlockwise of
+    the image (``torch.rot90(image, turns, dims=(-2, -1))``), with the turned canvas size."""
+    from torchvision import tv_tensors
+
+    if boxes.format != tv_tensors.BoundingBoxFormat.XYXY:
+        raise ValueError(f"quarter turns need XYXY boxes, got {boxes.format}")
+    height, width = boxes.canvas_size
+    x0, y0, x1, y1 = boxes.as_subclass(Tensor).unbind(-1)
+    turns %= 4
+    if turns == 0:
+        turned, canvas = (x0, y0, x1, y1), (height, width)
+    elif turns == 1:  # (x, y) -> (y, W - x)
+        turned, canvas = (y0, width - x1, y1, width - x0), (width, height)
+    elif turns == 2:  # (x, y) -> (W - x, H - y)
+        turned, canvas = (width - x1, height - y1, width - x0, height - y0), (height, width)
+    else:  # (x, y) -> (H - y, x)
+        turned, canvas = (height - y1, x0, height - y0, x1), (width, height)
+    return tv_tensors.wrap(torch.stack(turned, dim=-1), like=boxes, canvas_size=canvas)
 
 
 def _aspect_crop(long_side: int):

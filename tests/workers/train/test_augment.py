@@ -3,6 +3,7 @@ recorded in the checkpoint, and a training step actually sees augmented images."
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 import torch
@@ -174,3 +175,58 @@ def test_bad_settings_name_the_key(bad):
 
     with pytest.raises(ValidationError, match=next(iter(bad))):
         AugmentationConfig(enabled=True, **bad)
+
+
+def _all_steps(**changes) -> AugmentationConfig:
+    steps = dict(enabled=True, quarter_turn=0.5, zoom=0.5, crop=0.5, photometric=0.5, grayscale=0.2, blur=0.2, noise=0.2, jpeg=0.2)
+    return AugmentationConfig(**{**steps, **changes})
+
+
+@pytest.mark.parametrize("shape", [(42, 64), (64, 42), (30, 30)])
+def test_non_square_images_with_and_without_boxes_pass_every_step(shape):
+    """A quarter turn of a non-square image without boxes used to leave the boxes' canvas
+    unturned, and the next step found two image sizes (torchvision's rotate on empty boxes)."""
+    transform = build_augmentation(_all_steps(quarter_turn=1.0), (48, 48))
+    image = _image(64)[: shape[0], : shape[1]].copy()
+    for boxes in (np.zeros((0, 4), np.float32), np.array([[2, 3, 20, 25]], np.float32)):
+        for seed in range(12):
+            torch.manual_seed(seed)
+            out, target = augmented(transform, image, boxes, np.zeros(len(boxes), np.int64), CPU)
+            assert out.shape[0] == 3 and target["boxes"].shape[1] == 4
+            if len(target["boxes"]):
+                assert float(target["boxes"][:, 2].max()) <= out.shape[2] and float(target["boxes"][:, 3].max()) <= out.shape[1]
+
+
+@pytest.mark.parametrize("turns", [1, 2, 3])
+def test_quarter_turn_boxes_match_rot90_of_the_pixels(turns):
+    from torchvision import tv_tensors
+
+    from workers.train.augment import quarter_turn_boxes
+
+    mask = torch.zeros(37, 53)
+    mask[4:19, 30:51] = 1
+    boxes = tv_tensors.BoundingBoxes(torch.tensor([[30.0, 4.0, 51.0, 19.0]]), format="XYXY", canvas_size=(37, 53))
+    turned = quarter_turn_boxes(boxes, turns)
+    pixels = torch.rot90(mask, turns, dims=(-2, -1))
+    rows, cols = torch.nonzero(pixels.any(1)).flatten(), torch.nonzero(pixels.any(0)).flatten()
+    assert turned.tolist() == [[float(cols[0]), float(rows[0]), float(cols[-1] + 1), float(rows[-1] + 1)]]
+    assert turned.canvas_size == tuple(pixels.shape)
+
+
+def test_training_on_portrait_and_landscape_images_with_every_step(tmp_path):
+    """Mixed orientations in one batch, turned, cropped and zoomed: training runs and the
+    augmented frames come in several shapes."""
+    samples = []
+    for index, (height, width) in enumerate([(48, 80), (80, 48), (64, 64), (40, 72)]):
+        folder = tmp_path / str(index)
+        sample = synthetic_samples(folder, n=1, size=max(height, width), seed=index)[0]
+        image = training.read_image_rgb(sample.image_path)[:height, :width]
+        cv2.imwrite(str(sample.image_path), cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2BGR))
+        x0, y0, x1, y1 = sample.boxes[0]
+        clipped = np.array([[x0, y0, min(x1, width), min(y1, height)]], np.float32)
+        if clipped[0, 2] - clipped[0, 0] < 4 or clipped[0, 3] - clipped[0, 1] < 4:
+            clipped = np.array([[2, 2, width / 2, height / 2]], np.float32)
+        samples.append(training.Sample(sample.image_path, clipped, sample.labels))
+    samples.append(training.Sample(samples[0].image_path, np.zeros((0, 4), np.float32), np.zeros(0, np.int64)))
+    stats = train_detector(samples, None, 4, config(augmentation=_all_steps(quarter_turn=1.0), batch_size=3), CLASSES, tmp_path / "m.pt")
+    assert stats.iterations == 4 and not stats.nonfinite_steps
