@@ -25,7 +25,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from foldwise.assets import AssetNames
+from foldwise.assets import asset_names as list_asset_names
 from foldwise.conditions import Condition, ConditionTable, load_condition_table
+from foldwise.config import AssetsConfig
 from foldwise.seeds import derive_seed
 from foldwise.theta import (
     CANONICAL,
@@ -58,20 +61,6 @@ _EXTRA_ALIASES = {
     "shadow": "sh",
     "objects": "mo",
 }
-
-
-@dataclass(frozen=True)
-class AssetNames:
-    """The names θ may carry (the images behind them live with the render worker)."""
-
-    objects: tuple[str, ...]
-    backgrounds: tuple[str, ...]
-    occluders: tuple[str, ...]
-
-    def __post_init__(self) -> None:
-        for what in ("objects", "backgrounds", "occluders"):
-            if not getattr(self, what):
-                raise ValueError(f"AssetNames.{what} is empty: θ needs at least one")
 
 
 @dataclass(frozen=True)
@@ -226,13 +215,13 @@ def balanced_objects(n: int, n_objects: int, rng: np.random.Generator) -> list[i
 
 
 def asset_names(assets=None) -> AssetNames:
-    """AssetNames from an AssetNames, an asset catalog (``.names``), or None: the built-in
-    defaults (which needs the render extra)."""
-    if assets is None:
-        from workers.render.assets import load_assets
-
-        assets = load_assets()
-    return assets if isinstance(assets, AssetNames) else assets.names
+    """AssetNames from an AssetNames, an ``AssetsConfig``, an asset catalog (``.names``), or None:
+    the built-in defaults. Listing names opens no image (:mod:`foldwise.assets`)."""
+    if isinstance(assets, AssetNames):
+        return assets
+    if assets is None or isinstance(assets, AssetsConfig):
+        return list_asset_names(assets)
+    return assets.names
 
 
 def generate_parameters(

@@ -489,9 +489,10 @@ class Send:
 
 
 def _assets(config: ExperimentConfig):
-    from workers.render.assets import load_assets
+    """The names θ may carry: listed from the asset folders, no image decoded."""
+    from foldwise.assets import asset_names
 
-    return load_assets(config.assets)
+    return asset_names(config.assets)
 
 
 def _sample(
@@ -683,10 +684,9 @@ def _send(send: Send) -> None:
 
     name, args = (RENDER_TASK, [list(send.ids)]) if send.kind == "render" else (TRAIN_TASK, [send.ids[0]])
     if app.conf.task_always_eager:
-        # send_task ignores task_always_eager: run the registered task in this process.
-        import workers.render.tasks  # noqa: F401  (registers the tasks)
-        import workers.train.tasks  # noqa: F401
-
+        # send_task ignores task_always_eager: run the registered task in this process, its
+        # module imported by name from the app's `include` list.
+        app.loader.import_default_modules()
         app.tasks[name].apply(args=args, throw=True)
     elif send.soft_time_limit_s is None:
         app.send_task(name, args=args)

@@ -1,20 +1,9 @@
 """Object textures, backgrounds and occluders: built-in defaults that work offline, or user folders.
 
-Built-in defaults come from the photographs scikit-image ships (no download):
-
-* objects (the detector's classes, in this order): astronaut, coffee, chelsea, rocket,
-  motorcycle_left (``AssetsConfig.n_objects`` keeps the first n);
-* backgrounds: brick, grass, gravel, hubble_deep_field, moon, immunohistochemistry, retina,
-  cell, plus procedural ones (``procedural:noise``, ``procedural:gradient``,
-  ``procedural:stripes``, ``procedural:checker``) drawn from θ's seed;
-* occluders: coins, page, camera, text, clock, colorwheel, and logo (which has its own alpha).
-
-User folders (``AssetsConfig.objects`` / ``backgrounds`` / ``occluders``) replace the
-corresponding defaults: every image file in the folder (``.png .jpg .jpeg .bmp .tif .tiff
-.webp``, searched recursively) is one asset named by its path relative to the folder (objects:
-by the file stem, which becomes the class name). An occluder PNG with an alpha channel keeps
-its own shape; others get a random shape at render time. An empty or missing folder, or an
-image OpenCV cannot read, raises :class:`AssetError` naming the path.
+The names (built-in defaults, and how a user folder's files are named) are
+:mod:`foldwise.assets`'s, which lists them without decoding anything; this module decodes the images
+behind them. An occluder PNG with an alpha channel keeps its own shape; others get a random shape
+at render time. An image OpenCV cannot read raises :class:`AssetError` naming the path.
 
 Decoded images are cached per process: the same few hundred images are reused thousands of
 times by a render worker. Photo backgrounds are cut from cached copies shrunk by powers of 1.25
@@ -34,14 +23,16 @@ from typing import Callable
 import numba
 import numpy as np
 
-from workers.render.asset_check import AssetError, image_files
-
-PROCEDURAL_PREFIX = "procedural:"
-PROCEDURAL_BACKGROUNDS = ("noise", "gradient", "stripes", "checker")
-
-BUILTIN_OBJECTS = ("astronaut", "coffee", "chelsea", "rocket", "motorcycle_left")
-BUILTIN_BACKGROUNDS = ("brick", "grass", "gravel", "hubble_deep_field", "moon", "immunohistochemistry", "retina", "cell")
-BUILTIN_OCCLUDERS = ("coins", "page", "camera", "text", "clock", "colorwheel", "logo")
+from foldwise.asset_check import AssetError
+from foldwise.assets import (
+    BUILTIN_BACKGROUNDS,
+    BUILTIN_OBJECTS,
+    BUILTIN_OCCLUDERS,
+    PROCEDURAL_BACKGROUNDS,
+    PROCEDURAL_PREFIX,
+    AssetNames,
+    folder_files,
+)
 
 
 @dataclass(frozen=True)
@@ -131,20 +122,13 @@ def _procedural_placeholder() -> np.ndarray:
 def _folder_assets(folder: Path, what: str, keep_alpha: bool, name_by_stem: bool) -> list[Asset]:
     import cv2
 
-    folder = Path(folder).expanduser()
-    files = image_files(folder, what)
     assets = []
-    for path in files:
+    for name, path in folder_files(folder, what, name_by_stem):
         # A header check is cheap enough for thousands of files and catches non-images early;
         # a file that still fails to decode raises AssetError when first used.
         if not cv2.haveImageReader(str(path)):
             raise AssetError(f"assets.{what}: cannot read image {str(path)!r} (not a format OpenCV can decode)")
-        name = path.stem if name_by_stem else path.relative_to(folder).as_posix()
         assets.append(Asset(name, (lambda p=str(path): _file_image(p, keep_alpha)), source=str(path)))
-    names = [a.name for a in assets]
-    if len(set(names)) != len(names):
-        duplicates = sorted({n for n in names if names.count(n) > 1})
-        raise AssetError(f"assets.{what}: several images share the name(s) {duplicates} in {str(folder)!r}")
     return assets
 
 
@@ -188,10 +172,8 @@ class AssetCatalog:
         return [a.name for a in self.objects]
 
     @property
-    def names(self):
-        """The names θ may carry (foldwise.sampling.AssetNames)."""
-        from foldwise.sampling import AssetNames
-
+    def names(self) -> AssetNames:
+        """The names θ may carry."""
         return AssetNames(
             objects=tuple(self.classes),
             backgrounds=tuple(a.name for a in self.backgrounds),
