@@ -138,11 +138,12 @@ def read_image(source: Source, *, max_side: int | None = None, max_pixels: int =
     with image:
         stored_w, stored_h = image.size
         full_w, full_h = (stored_h, stored_w) if _orientation(image) in _SWAPPING_ORIENTATIONS else (stored_w, stored_h)
+        target = shrunk_size(full_w, full_h, max_side)
         scale = 1.0
-        if max_side is not None and max(stored_w, stored_h) > max_side:
+        if target != (full_w, full_h):
             scale = max_side / max(stored_w, stored_h)
             # draft() picks the smallest DCT scale at least this large; the exact resize follows.
-            image.draft("RGB", (int(np.ceil(stored_w * scale)), int(np.ceil(stored_h * scale))))
+            image.draft(None, (int(np.ceil(stored_w * scale)), int(np.ceil(stored_h * scale))))
         try:
             image.load()
             upright = ImageOps.exif_transpose(image)
@@ -151,11 +152,19 @@ def read_image(source: Source, *, max_side: int | None = None, max_pixels: int =
         except (OSError, SyntaxError, ValueError, EOFError) as error:
             raise ImageError(f"{where}: truncated or damaged image ({error})") from None
         rgb = _as_rgb(upright)
-        if scale != 1.0:
-            target = (max(1, round(full_w * scale)), max(1, round(full_h * scale)))
-            if rgb.size != target:
-                rgb = rgb.resize(target, Image.Resampling.LANCZOS, reducing_gap=3.0)
-        return np.ascontiguousarray(np.asarray(rgb, dtype=np.uint8)), scale
+        if rgb.size != target:
+            rgb = rgb.resize(target, Image.Resampling.LANCZOS, reducing_gap=3.0)
+        return np.array(rgb, dtype=np.uint8), scale  # a writable copy (torch.from_numpy warns on read-only)
+
+
+def shrunk_size(width: int, height: int, max_side: int | None) -> tuple[int, int]:
+    """The (width, height) ``read_image`` gives an image of this displayed size with ``max_side``:
+    unchanged when its longer side is at most ``max_side``. Boxes scale exactly by the ratio of
+    the two sizes, axis by axis."""
+    if max_side is None or max(width, height) <= max_side:
+        return width, height
+    scale = max_side / max(width, height)
+    return max(1, round(width * scale)), max(1, round(height * scale))
 
 
 def _as_rgb(image):

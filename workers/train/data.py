@@ -5,6 +5,11 @@
 before any training starts, so a bad annotation fails here with the image named, not as a
 NaN loss an hour later. ``load_dataset`` also reads what labelling tools export for real
 photographs: a COCO JSON file anywhere, or a Pascal VOC folder.
+
+Every image is read by ``foldwise.images`` as it is displayed (EXIF orientation applied:
+labelling tools and browsers show phone photos turned, and their boxes refer to that), and a
+photo longer than ``PHOTO_MAX_SIDE`` is shrunk on load; its boxes are scaled here, on loading,
+so that a sample's boxes always fit the pixels ``read_image_rgb`` gives.
 """
 
 from __future__ import annotations
@@ -17,6 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
+from foldwise.images import ImageError, image_size, read_image, shrunk_size
+
+# Photos are shrunk on load so that their longer side is at most this (a 12-50 Mpixel phone
+# photo is 4000-8700 px long): the detector resizes every image to its input size (at most
+# 2048) anyway, and full-size photos would hold gigabytes in a training run.
+PHOTO_MAX_SIDE = 2048
 # A box may overhang the image by this many pixels (float rounding in the renderer).
 _BORDER_TOLERANCE = 1e-3
 
@@ -93,6 +104,8 @@ def load_coco_dataset(directory: str | Path) -> tuple[list[Sample], list[str]]:
     boxes_by_image: dict = {image_id: [] for image_id in image_by_id}
     labels_by_image: dict = {image_id: [] for image_id in image_by_id}
 
+    sizes = {image_id: _declared_size(directory / image["file_name"], image.get("width"), image.get("height"), image["file_name"])
+             for image_id, image in image_by_id.items()}  # fmt: skip
     for annotation in document["annotations"]:
         image = image_by_id.get(annotation["image_id"])
         if image is None:
@@ -104,19 +117,18 @@ def load_coco_dataset(directory: str | Path) -> tuple[list[Sample], list[str]]:
             raise DatasetError(f"{where}: unknown category_id {annotation['category_id']}")
         x, y, w, h = (float(v) for v in annotation["bbox"])
         box = (x, y, x + w, y + h)
-        validate_box(box, float(image["width"]), float(image["height"]), where)
+        validate_box(box, *sizes[image["id"]], where)
         boxes_by_image[image["id"]].append(box)
         labels_by_image[image["id"]].append(label_of_category[annotation["category_id"]])
 
     samples = []
     for image in images:
         path = directory / image["file_name"]
-        if not path.is_file():
-            raise DatasetError(f"{image['file_name']}: image file {path} does not exist")
+        boxes = np.array(boxes_by_image[image["id"]], dtype=np.float32).reshape(-1, 4)
         samples.append(
             Sample(
                 image_path=path,
-                boxes=np.array(boxes_by_image[image["id"]], dtype=np.float32).reshape(-1, 4),
+                boxes=_shrunk_boxes(boxes, *sizes[image["id"]]),
                 labels=np.array(labels_by_image[image["id"]], dtype=np.int64),
                 condition=image.get("condition"),
                 difficulty=image.get("difficulty"),
@@ -161,8 +173,11 @@ def load_voc_dataset(folder: str | Path) -> tuple[list[Sample], list[str]]:
         image_path = folder / "JPEGImages" / filename
         if not image_path.is_file():
             raise DatasetError(f"{xml_path}: image file {image_path} does not exist")
-        width = float(root.findtext("size/width") or 0)
-        height = float(root.findtext("size/height") or 0)
+        try:
+            declared = [float(root.findtext(f"size/{key}") or 0) for key in ("width", "height")]
+        except ValueError:
+            raise DatasetError(f"{xml_path}: <size> needs numeric width and height") from None
+        width, height = _declared_size(image_path, *declared, where=str(xml_path))
         boxes, labels = [], []
         for number, obj in enumerate(root.iter("object")):
             name = (obj.findtext("name") or "").strip()
@@ -175,25 +190,62 @@ def load_voc_dataset(folder: str | Path) -> tuple[list[Sample], list[str]]:
             except (TypeError, ValueError):
                 raise DatasetError(f"{where}: <bndbox> needs numeric xmin, ymin, xmax, ymax") from None
             box = [box[0] - 1, box[1] - 1, box[2], box[3]]
-            if width and height:
-                validate_box(box, width, height, where)
+            validate_box(box, width, height, where)
             if name not in classes:
                 classes.append(name)
             boxes.append(box)
             labels.append(classes.index(name))
-        samples.append(Sample(image_path, np.asarray(boxes, np.float32).reshape(-1, 4), np.asarray(labels, np.int64)))
+        boxes = _shrunk_boxes(np.asarray(boxes, np.float32).reshape(-1, 4), width, height)
+        samples.append(Sample(image_path, boxes, np.asarray(labels, np.int64)))
     return samples, classes
 
 
-def read_image_rgb(path: str | Path) -> np.ndarray:
-    """An image file as (H, W, 3) uint8 RGB; a clear error when it cannot be read."""
-    import cv2
+def _declared_size(path: Path, width, height, where: str) -> tuple[float, float]:
+    """The image's size as displayed, checked against the size its annotation declares (when it
+    declares one: 0 or absent is none). A photo whose EXIF orientation turns it and whose
+    annotation gives the stored size was labelled unturned: an error that says so, since its
+    boxes would not fit the photo as everyone else sees it."""
+    if not path.is_file():
+        raise DatasetError(f"{where}: image file {path} does not exist")
+    try:
+        actual = image_size(path)
+    except ImageError as error:
+        raise DatasetError(f"{where}: {error}") from None
+    try:
+        declared = (float(width or 0), float(height or 0))
+    except (TypeError, ValueError):
+        raise DatasetError(f"{where}: width {width!r} and height {height!r} are not numbers") from None
+    if not all(declared) or declared == actual:
+        return float(actual[0]), float(actual[1])
+    if declared == (actual[1], actual[0]):
+        raise DatasetError(
+            f"{where}: the annotation gives {declared[0]:g}x{declared[1]:g}, but the photo as displayed (its EXIF "
+            f"orientation applied) is {actual[0]}x{actual[1]}: it was labelled without its EXIF turn. Re-export it "
+            "from a tool that shows photos turned (CVAT, Label Studio), or save the photo turned, without the tag"
+        )
+    raise DatasetError(
+        f"{where}: the annotation gives {declared[0]:g}x{declared[1]:g}, but the image is {actual[0]}x{actual[1]}: "
+        "was the image resized or replaced after labelling?"
+    )
 
-    path = Path(path)
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise DatasetError(f"{path}: cannot read image (missing or not an image)")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+def _shrunk_boxes(boxes: np.ndarray, width: float, height: float) -> np.ndarray:
+    """Boxes of a (width, height) image in the pixels ``read_image_rgb`` gives it (a photo
+    longer than PHOTO_MAX_SIDE is shrunk, each axis by its exact ratio)."""
+    new_w, new_h = shrunk_size(int(width), int(height), PHOTO_MAX_SIDE)
+    if (new_w, new_h) == (int(width), int(height)):
+        return boxes
+    return (boxes * np.array([new_w / width, new_h / height] * 2, np.float32)).astype(np.float32)
+
+
+def read_image_rgb(path: str | Path) -> np.ndarray:
+    """An image file as displayed (EXIF orientation applied), (H, W, 3) uint8 RGB, shrunk when
+    longer than PHOTO_MAX_SIDE (the loaders scale its boxes to match); a clear error when it
+    cannot be read."""
+    try:
+        return read_image(path, max_side=PHOTO_MAX_SIDE)[0]
+    except ImageError as error:
+        raise DatasetError(f"cannot read image {error}") from None
 
 
 def as_rgb_uint8(image: np.ndarray, where: str = "image") -> np.ndarray:

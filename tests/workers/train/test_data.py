@@ -129,3 +129,66 @@ def test_as_rgb_uint8_checks_shape_and_type():
         as_rgb_uint8(np.zeros((3, 4, 3), np.float32))
     with pytest.raises(DatasetError, match="RGB"):
         as_rgb_uint8(np.zeros((3, 4, 4), np.uint8))
+
+
+# --------------------------------------------------------------------------- photographs
+
+import photo_sets  # noqa: E402  (tests/workers/train is on sys.path)
+
+from workers.train import data  # noqa: E402
+from workers.train.data import load_dataset  # noqa: E402
+
+
+@pytest.mark.parametrize("export", ["coco", "voc"])
+def test_portrait_landscape_and_exif_turned_photos_load_with_exact_boxes(tmp_path, export):
+    photos = photo_sets.photos(9)
+    assert {p.orientation for p in photos} == {1, 3, 6, 8}
+    assert {p.pixels.shape[0] > p.pixels.shape[1] for p in photos} == {True, False}
+    where = photo_sets.write_coco(tmp_path, photos) if export == "coco" else photo_sets.write_voc(tmp_path, photos)
+    samples, classes = load_dataset(where)
+    assert classes == photo_sets.CLASSES or export == "voc"
+    by_name = {s.image_path.stem: s for s in samples}
+    for photo in photos:
+        sample = by_name[photo.name]
+        np.testing.assert_array_equal(read_image_rgb(sample.image_path), photo_sets.decoded(photo))  # as displayed, exactly
+        np.testing.assert_array_equal(sample.boxes, photo.boxes)
+        assert [classes[i] for i in sample.labels] == [photo_sets.CLASSES[i] for i in photo.labels]
+
+
+def test_a_large_photo_is_shrunk_on_load_and_its_boxes_scaled(tmp_path, monkeypatch):
+    monkeypatch.setattr(data, "PHOTO_MAX_SIDE", 40)
+    photos = photo_sets.photos(3)  # 80 x 48, 48 x 80, 64 x 64 (stored turned)
+    samples, _ = load_dataset(photo_sets.write_coco(tmp_path, photos))
+    for photo, sample in zip(photos, samples):
+        pixels = read_image_rgb(sample.image_path)
+        height, width = photo.pixels.shape[:2]
+        assert max(pixels.shape[:2]) == 40
+        ratio = np.array([pixels.shape[1] / width, pixels.shape[0] / height] * 2, np.float32)
+        np.testing.assert_allclose(sample.boxes, photo.boxes * ratio, rtol=1e-6)
+        x0, y0, x1, y1 = (int(round(v)) for v in sample.boxes[0])
+        inside = pixels[y0 + 1 : y1 - 1, x0 + 1 : x1 - 1].reshape(-1, 3).astype(int)  # the sheet's stripes
+        assert np.abs(inside - photo_sets.COLOURS[int(photo.labels[0])]).min(axis=1).mean() < 80
+
+
+def test_a_photo_labelled_without_its_exif_turn_is_named(tmp_path):
+    photo = photo_sets.photos(1)[0]
+    path = photo_sets.write_coco(tmp_path, [photo_sets.twin(photo, 6)])
+    document = json.loads(path.read_text())
+    document["images"][0]["width"], document["images"][0]["height"] = 48, 80  # the stored size
+    path.write_text(json.dumps(document))
+    with pytest.raises(DatasetError, match="EXIF"):
+        load_dataset(path)
+    document["images"][0]["width"], document["images"][0]["height"] = 100, 60
+    path.write_text(json.dumps(document))
+    with pytest.raises(DatasetError, match="resized or replaced"):
+        load_dataset(path)
+    del document["images"][0]["width"], document["images"][0]["height"]  # no size: the image's own
+    path.write_text(json.dumps(document))
+    assert load_dataset(path)[0][0].boxes.tolist() == photo.boxes.tolist()
+
+
+def test_an_image_that_is_not_one_fails_on_load_naming_it(tmp_path):
+    path = photo_sets.write_coco(tmp_path, photo_sets.photos(2))
+    (tmp_path / "images" / "photo01.jpg").write_bytes(b"<html>not found</html>")
+    with pytest.raises(DatasetError, match=r"photo01\.jpg.*not an image"):
+        load_dataset(path)
