@@ -3,9 +3,12 @@ line saying what is wrong with it and where.
 
 PyYAML's safe loader keeps the last of a key given twice without a word, reads YAML 1.1
 (`1e-3` is text there, `no` is false, `010` is eight) and recurses once per level of nesting,
-so 10,000 levels are a RecursionError. :func:`load_yaml` reads YAML 1.2's core schema, refuses
-repeated keys, binary data and deep nesting; :func:`check_nesting` bounds the nesting of data
-from any source (a JSON body), aliases included.
+so 10,000 levels are a RecursionError. Its merge keys (``<<``) and aliases let a few lines
+stand for billions of values (a "billion laughs"). :func:`load_yaml` reads YAML 1.2's core
+schema, refuses repeated keys, binary data, merge keys, deep nesting and documents of more than
+MAX_NODES values or MAX_ALIASES aliases (counted while composing, so a huge document stops
+early); :func:`check_nesting` bounds the nesting and size of data from any source (a JSON body),
+each alias counted as the values it stands for.
 """
 
 from __future__ import annotations
@@ -19,6 +22,14 @@ import yaml
 # mixed.active_learning.m, is at 5): deeper is a mistake or an attack.
 MAX_NESTING = 32
 TOO_DEEP = f"nested deeper than {MAX_NESTING} levels"
+# Values (mappings, lists, keys and scalars) a document may hold, aliases expanded: a config
+# holds about a hundred. Pure-Python YAML reads ~15,000 a second here, so this bounds the cost
+# of any document to a fraction of a second.
+MAX_NODES = 5_000
+TOO_LARGE = f"more than {MAX_NODES:,} values"
+# Aliases (*name) a document may use; a config needs none.
+MAX_ALIASES = 100
+MERGE_TAG = "tag:yaml.org,2002:merge"
 
 
 class DocumentError(ValueError):
@@ -31,26 +42,46 @@ def _at(mark: yaml.Mark) -> str:
 
 class _StrictLoader(yaml.SafeLoader):
     """The safe loader, YAML 1.2 core scalars (resolvers below), no repeated key, no
-    ``!!binary``, nesting bounded while composing (the composer recurses)."""
+    ``!!binary``, no merge key; nesting, values and aliases bounded while composing (the
+    composer recurses, and the scanner reads no further than the composer asks)."""
 
     def __init__(self, stream: str) -> None:
         super().__init__(stream)
         self._depth = 0
+        self._nodes = 0
+        self._aliases = 0
 
     def compose_node(self, parent: Any, index: Any) -> Any:
         self._depth += 1
         try:
             if self._depth > MAX_NESTING:
                 raise DocumentError(f"{TOO_DEEP} {_at(self.peek_event().start_mark)}")
+            if self.check_event(yaml.AliasEvent):
+                self._aliases += 1
+                if self._aliases > MAX_ALIASES:
+                    raise DocumentError(f"more than {MAX_ALIASES} aliases {_at(self.peek_event().start_mark)}")
+            else:
+                self._nodes += 1
+                if self._nodes > MAX_NODES:
+                    raise DocumentError(f"{TOO_LARGE} {_at(self.peek_event().start_mark)}")
             return super().compose_node(parent, index)
         finally:
             self._depth -= 1
 
+    def flatten_mapping(self, node: yaml.MappingNode) -> None:
+        # A merge key copies the merged mappings into this one: each level of merges of merges
+        # doubles the work, 23 lines took 21 s. A config has no use for it.
+        for key_node, _ in node.value:
+            if key_node.tag == MERGE_TAG:
+                raise DocumentError(f"YAML merge keys (<<) are not accepted: write the keys out {_at(key_node.start_mark)}")
+        super().flatten_mapping(node)
+
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        self.flatten_mapping(node)
         seen: set[Any] = set()
         for key_node, _ in node.value:
-            if not isinstance(key_node, yaml.ScalarNode) or key_node.tag == "tag:yaml.org,2002:merge":
-                continue  # an unhashable key is the safe loader's error; merged keys may be overridden
+            if not isinstance(key_node, yaml.ScalarNode):
+                continue  # an unhashable key is the safe loader's error
             key = self.construct_object(key_node)
             if key in seen:
                 raise DocumentError(f"duplicate key {key!r} {_at(key_node.start_mark)}")
@@ -100,10 +131,13 @@ def load_yaml(text: str) -> Any:
 
 
 def check_nesting(data: Any) -> None:
-    """DocumentError if ``data`` nests dicts and lists deeper than MAX_NESTING. Walked without
-    recursion; a structure shared through YAML aliases is measured once (a chain of aliases can
-    nest deep on shallow lines), and one that contains itself is an error."""
+    """DocumentError if ``data`` nests dicts and lists deeper than MAX_NESTING or holds more
+    than MAX_NODES values (a mapping's key and value count as two). Walked without recursion; a
+    structure shared through YAML aliases is walked once but counted as often as it is used (a
+    chain of aliases can nest deep and grow large on a few lines), and one that contains itself
+    is an error."""
     heights: dict[int, int] = {}
+    sizes: dict[int, int] = {}
     in_progress: set[int] = set()
     stack: list[Any] = [data]
     while stack:
@@ -115,12 +149,19 @@ def check_nesting(data: Any) -> None:
             heights[id(node)] = 0
             stack.pop()
             continue
+        if len(node) > MAX_NODES:
+            raise DocumentError(TOO_LARGE)  # before listing a huge list's children
         children = [c for c in (node.values() if isinstance(node, dict) else node) if isinstance(c, (dict, list, tuple))]
         pending = [c for c in children if id(c) not in heights]
         if id(node) in in_progress or not pending:
             if any(id(c) in in_progress for c in pending):
                 raise DocumentError("a YAML alias refers to the mapping or list that contains it")
             heights[id(node)] = 1 + max((heights[id(c)] for c in children), default=0)
+            scalars = (2 * len(node) if isinstance(node, dict) else len(node)) - len(children)
+            size = 1 + scalars + sum(sizes[id(c)] for c in children)
+            if size > MAX_NODES:
+                raise DocumentError(TOO_LARGE)
+            sizes[id(node)] = size
             in_progress.discard(id(node))
             stack.pop()
         else:

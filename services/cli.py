@@ -46,7 +46,7 @@ def _load(config_path: Path, preflight: bool = False):
     ImageNet weights (when it asks for them) are checked too, before any work starts."""
     from foldwise.config import ConfigError, load_config
     from foldwise.weights import missing_imagenet_weights
-    from workers.render.asset_check import AssetError, validate_assets
+    from foldwise.asset_check import AssetError, validate_assets
 
     try:
         config = load_config(config_path)

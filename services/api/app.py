@@ -9,6 +9,7 @@ Serve with ``uvicorn services.api.app:app``. Imports neither torch nor bpy (the 
 of the Celery app import them only inside task bodies, and are never imported here).
 """
 
+import re
 from typing import Any
 
 from fastapi import FastAPI, Request, status
@@ -19,6 +20,7 @@ from fastapi.responses import JSONResponse
 from foldwise.config import ExperimentConfig
 from foldwise.settings import Settings, get_settings
 from services import queries
+from services.api.middleware import BodyLimit, BodyRule, SecurityHeaders
 from services.api.probes import BrokerProbe, SchemaCheck
 from services.api.routes import artifacts, assets, dashboard, detect, experiments, health, models, queues
 
@@ -27,6 +29,16 @@ ROUTERS = (
     assets.router, queues.router,
     dashboard.router,
 )  # fmt: skip
+
+
+# Every body is counted as it streams in (services.api.middleware.BodyLimit); these paths take
+# more than the default. An upload's multipart framing adds a little to its files' bytes.
+BODY_RULES = (
+    BodyRule(re.compile(r"/experiments"), experiments.MAX_CONFIG_BYTES, "config"),
+    BodyRule(re.compile(r"/(models|studies)/[^/]+/detect"), detect.MAX_IMAGE_BYTES, "image"),
+    BodyRule(re.compile(r"/assets/[^/]+"), assets.MAX_UPLOAD_BYTES + (1 << 20), "upload"),
+)
+DEFAULT_BODY_RULE = BodyRule(re.compile(".*"), 1 << 20, "request body")
 
 
 def document_config_schema(app: FastAPI) -> None:
@@ -86,6 +98,8 @@ def create_app(
     app.add_exception_handler(RequestValidationError, id_out_of_range)
     for router in ROUTERS:
         app.include_router(router)
+    app.add_middleware(BodyLimit, rules=BODY_RULES, default=DEFAULT_BODY_RULE)
+    app.add_middleware(SecurityHeaders)  # added last: outermost, so the 413s above carry the headers too
     document_config_schema(app)
     return app
 

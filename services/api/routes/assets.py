@@ -37,7 +37,7 @@ router = APIRouter(prefix="/assets", tags=["assets"])
 
 
 def _file_name(upload: UploadFile) -> str:
-    from workers.render.asset_check import IMAGE_SUFFIXES
+    from foldwise.asset_check import IMAGE_SUFFIXES
 
     name = upload.filename or ""
     if not name:
@@ -76,7 +76,7 @@ def upload_assets(
 ) -> dict[str, Any]:
     """Keep the uploaded images as one asset folder of the artifact store and answer its path,
     to put in a config as ``assets.<kind>``."""
-    from workers.render.asset_check import AssetError, check_class_names, check_image_file  # Pillow only
+    from foldwise.asset_check import AssetError, check_class_names, check_image_file  # Pillow only
 
     if len(files) > MAX_FILES:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"{len(files)} files: at most {MAX_FILES} per upload")

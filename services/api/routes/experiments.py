@@ -8,6 +8,7 @@ import json
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
+from starlette.concurrency import run_in_threadpool
 
 from db.models import ExperimentStatus
 from foldwise.config import ConfigError, ExperimentConfig, parse_config, parse_config_text
@@ -66,7 +67,11 @@ def _unique_keys(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
 
 
 async def read_config(request: Request) -> ExperimentConfig:
-    """The request body as a validated experiment config (JSON or YAML)."""
+    """The request body as a validated experiment config (JSON or YAML).
+
+    The body is read here, on the event loop (the app's BodyLimit stops it at MAX_CONFIG_BYTES
+    as it streams in); parsing and validating are CPU work, done on a worker thread so that a
+    slow document delays no other request."""
     media_type = _media_type(request)
     is_json = media_type in JSON_TYPES or (media_type or "").endswith("+json")
     if not is_json and media_type not in YAML_TYPES:
@@ -77,9 +82,16 @@ async def read_config(request: Request) -> ExperimentConfig:
     declared = request.headers.get("content-length")
     if declared and declared.isdigit() and int(declared) > MAX_CONFIG_BYTES:
         raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"config larger than {MAX_CONFIG_BYTES} bytes")
-    body = await request.body()
-    if len(body) > MAX_CONFIG_BYTES:
-        raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"config larger than {MAX_CONFIG_BYTES} bytes")
+    body = bytearray()
+    async for chunk in request.stream():
+        body += chunk
+        if len(body) > MAX_CONFIG_BYTES:
+            raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"config larger than {MAX_CONFIG_BYTES} bytes")
+    return await run_in_threadpool(parse_config_body, bytes(body), is_json)
+
+
+def parse_config_body(body: bytes, is_json: bool) -> ExperimentConfig:
+    """A body's bytes as a validated config, or the 422 that names what is wrong."""
     if not body.strip():
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "empty body: send an experiment config")
     try:
@@ -164,7 +176,7 @@ def create_experiment(
 ) -> dict[str, Any]:
     """Record a new experiment (status pending); the scheduler starts it on its next pass.
     ``?study=NAME`` groups it with others run side by side (one per detector, say)."""
-    from workers.render.asset_check import AssetError, check_asset_roots, validate_assets  # Pillow only
+    from foldwise.asset_check import AssetError, check_asset_roots, validate_assets  # Pillow only
 
     try:
         from foldwise import store

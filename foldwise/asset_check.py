@@ -9,6 +9,7 @@ Imports neither numba, OpenCV nor torch (the API calls it).
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 # What each accepted file name says its content is, as Pillow names the formats (MPO: the
@@ -29,17 +30,61 @@ MIN_SIDE = {"objects": 16, "backgrounds": 16, "occluders": 8}
 MAX_PIXELS = 64_000_000
 
 
+# Linux's PATH_MAX and NAME_MAX: past them every file call fails with ENAMETOOLONG.
+MAX_PATH_CHARS = 4096
+MAX_NAME_BYTES = 255
+
+
 class AssetError(ValueError):
     """An asset folder or image that cannot be used; the message names the path."""
 
 
+def _shown(text: str, limit: int = 80) -> str:
+    return repr(text if len(text) <= limit else text[: limit - 1] + "…")
+
+
+def asset_path(folder: Path | str, what: str) -> Path:
+    """The asset folder a config names, ``~`` expanded: the one check of an asset path before
+    any file call, so that a path the system cannot take is an AssetError naming the problem
+    (an unknown ``~user``, a path or a name too long, a loop of symbolic links), not an
+    exception from deep inside pathlib."""
+    text = str(folder)
+    if len(text) > MAX_PATH_CHARS:
+        raise AssetError(f"assets.{what}: a path of {len(text):,} characters; at most {MAX_PATH_CHARS} are allowed")
+    path = Path(text)
+    if text.startswith("~"):
+        try:
+            path = path.expanduser()
+        except RuntimeError:  # pathlib's word for "no such user"
+            user = text[1:].split(os.sep, 1)[0]
+            raise AssetError(f"assets.{what}: {_shown(text)}: there is no user {user!r} on this server to expand ~{user}") from None
+        if len(str(path)) > MAX_PATH_CHARS:
+            raise AssetError(f"assets.{what}: {_shown(text)} is {len(str(path)):,} characters once ~ is expanded; at most {MAX_PATH_CHARS}")
+    for part in path.parts:
+        if len(os.fsencode(part)) > MAX_NAME_BYTES:
+            raise AssetError(
+                f"assets.{what}: {_shown(text)}: the name {_shown(part, 40)} is {len(os.fsencode(part)):,} bytes; "
+                f"at most {MAX_NAME_BYTES} are allowed"
+            )
+    try:
+        path.resolve()
+    except RuntimeError:  # pathlib's word for ELOOP
+        raise AssetError(f"assets.{what}: {_shown(text)} is a loop of symbolic links") from None
+    except OSError as error:
+        raise AssetError(f"assets.{what}: {_shown(text)} cannot be resolved ({error.strerror or error})") from None
+    return path
+
+
 def image_files(folder: Path, what: str) -> list[Path]:
     """The images under ``folder`` (recursively), or AssetError if it is missing or holds none."""
-    folder = Path(folder).expanduser()
-    if not folder.is_dir():
-        what_it_is = "is not a folder" if folder.exists() else "does not exist"
-        raise AssetError(f"assets.{what}: folder {str(folder)!r} {what_it_is}")
-    files = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    folder = asset_path(folder, what)
+    try:
+        if not folder.is_dir():
+            what_it_is = "is not a folder" if folder.exists() else "does not exist"
+            raise AssetError(f"assets.{what}: folder {str(folder)!r} {what_it_is}")
+        files = sorted(p for p in folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_SUFFIXES)
+    except OSError as error:  # unreadable (permissions), or a name the system refuses deeper down
+        raise AssetError(f"assets.{what}: folder {str(folder)!r} cannot be read ({error.strerror or error})") from None
     if not files:
         raise AssetError(f"assets.{what}: folder {str(folder)!r} holds no images ({' '.join(IMAGE_SUFFIXES)})")
     return files
@@ -91,7 +136,7 @@ def check_asset_roots(config, roots: list[Path], uploads: Path | None = None) ->
     """AssetError unless every user folder of ``config`` lies under one of ``roots`` or in
     ``uploads`` (the store's uploaded folders, checked on arrival), links resolved."""
     for what, folder in _user_folders(config):
-        real = Path(folder).expanduser().resolve()
+        real = asset_path(folder, what).resolve()
         if uploads is not None and uploads in real.parents:
             continue
         upload_hint = f"; or upload the images with POST /assets/{what}" if uploads is not None else ""

@@ -14,9 +14,9 @@ import pytest
 import yaml
 
 from foldwise.config import AssetsConfig
-from workers.render.asset_check import MAX_PIXELS, AssetError, validate_assets
+from foldwise.asset_check import MAX_PIXELS, AssetError, validate_assets
 
-REPO_ROOT = Path(__file__).resolve().parents[3]
+REPO_ROOT = Path(__file__).resolve().parents[2]
 
 
 def _png(path: Path, width: int, height: int) -> Path:
@@ -111,7 +111,7 @@ def test_a_png_claiming_ten_billion_pixels_is_refused_without_decoding(tmp_path)
     # VmHWM, the peak RSS of this process image (ru_maxrss would carry pytest's own over exec).
     script = (
         "import re; from foldwise.config import AssetsConfig;"
-        "from workers.render.asset_check import validate_assets, AssetError\n"
+        "from foldwise.asset_check import validate_assets, AssetError\n"
         f"try: validate_assets(AssetsConfig(objects={str(folder)!r}))\n"
         "except AssetError: pass\n"
         "print(re.search(r'VmHWM:\\s+(\\d+)', open('/proc/self/status').read()).group(1))"
@@ -156,3 +156,59 @@ def test_a_file_the_check_passes_but_opencv_refuses_still_renders(tmp_path, fold
     intact = _png(tmp_path / "intact.png", 40, 30)  # the same pixels (seeded by the size)
     expected = cv2.cvtColor(cv2.imread(str(intact)), cv2.COLOR_BGR2RGB)
     assert pixels.shape == (30, 40, 3) and np.array_equal(pixels, expected)
+
+
+def _loop(folder: Path) -> Path:
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "loop").symlink_to(folder / "loop")
+    return folder / "loop"
+
+
+@pytest.mark.parametrize(
+    ("folder", "message"),
+    [
+        (lambda root: "~nosuchuser-foldwise", "there is no user 'nosuchuser-foldwise' on this server to expand ~nosuchuser-foldwise"),
+        (lambda root: "~nosuchuser-foldwise/objects", "no user 'nosuchuser-foldwise'"),
+        (lambda root: str(root / (("d" * 200 + "/") * 25)), "a path of 5,"),
+        (lambda root: str(root / ("n" * 256)), "is 256 bytes; at most 255 are allowed"),
+        (lambda root: str(root / ("é" * 128)), "is 256 bytes; at most 255 are allowed"),
+        (lambda root: str(_loop(root)), "is a loop of symbolic links"),
+    ],
+)
+def test_an_asset_path_the_system_cannot_take_is_named(tmp_path, folder, message):
+    from foldwise.asset_check import asset_path, check_asset_roots
+
+    path = folder(tmp_path)
+    for check in (
+        lambda: validate_assets(AssetsConfig(objects=path)),
+        lambda: check_asset_roots(AssetsConfig(objects=path), [tmp_path]),
+        lambda: asset_path(path, "objects"),
+    ):
+        with pytest.raises(AssetError) as caught:
+            check()
+        assert str(caught.value).startswith("assets.objects: ") and message in str(caught.value)
+        assert len(str(caught.value)) < 400  # a long path is shortened in the message
+
+
+def test_a_path_under_the_limits_is_taken_as_it_is(tmp_path):
+    from foldwise.asset_check import asset_path
+
+    assert asset_path(tmp_path / ("n" * 255), "objects") == tmp_path / ("n" * 255)
+    assert asset_path("~", "backgrounds") == Path.home()
+
+
+def test_foldwise_run_names_an_unknown_user_in_one_line(tmp_path):
+    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
+    config["assets"] = {**config.get("assets", {}), "objects": "~nosuchuser-foldwise"}
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(config))
+    env = {"FOLDWISE_DATA_DIR": str(tmp_path / "data"), "PATH": "/usr/bin:/bin", "COLUMNS": "200"}
+    done = subprocess.run(
+        [sys.executable, "-m", "services.cli", "run", str(path)], cwd=REPO_ROOT, capture_output=True, text=True, env=env
+    )
+    output = (done.stdout + done.stderr).strip()
+    assert done.returncode == 2, output
+    assert output == (
+        "error: assets.objects: '~nosuchuser-foldwise': there is no user 'nosuchuser-foldwise' on this server to "
+        "expand ~nosuchuser-foldwise"
+    )
