@@ -505,7 +505,9 @@ def export(
 
 
 def finetune(
-    model: Annotated[Path, typer.Option("--model", help="The foldwise checkpoint to fine-tune.")],
+    model: Annotated[
+        Path, typer.Option("--model", help="The foldwise checkpoint to fine-tune; an ensemble (`make run`'s) is fine-tuned member by member.")
+    ],
     data: Annotated[Path, typer.Option("--data", help=f"Real images. {DATA_HELP}")],
     out: Annotated[Path, typer.Option("--out", help="Folder for the models, the table and Fig. 11.")],
     sweep: Annotated[str, typer.Option("--sweep", help="Real training images per point, e.g. 0,25,50,100,200.")] = "0,25,50,100,200",
@@ -529,8 +531,7 @@ def finetune(
     if not sizes or sizes[0] < 0:
         bad_input(f"--sweep: {sweep!r} needs one or more counts >= 0")
     detector = _load_model(model)
-    if "members" in detector.meta:
-        bad_input(f"{model} is an ensemble of {len(detector.meta['members'])} detectors: fine-tune one of the checkpoints it joins")
+    members = len(detector.meta.get("members", [])) or 1
     model_classes = [str(name) for name in detector.meta["classes"]]
     try:
         samples, classes = load_dataset(data)
@@ -539,17 +540,29 @@ def finetune(
     except DatasetError as error:
         bad_input(str(error))
     typer.echo(f"{len(samples)} real images of {', '.join(classes)}: {len(pool)} to train from, {len(test)} to test on")
+    what = f"an ensemble of {members} detectors, each fine-tuned and joined again" if members > 1 else "one detector"
+    typer.echo(f"{model.name}: {what}")
 
     def report(point) -> None:
         fresh = "—" if point.fresh_map is None else f"{point.fresh_map:.3f}"
         line = f"n = {point.n:4d}: fine-tuned mAP {point.finetuned_map:.3f}, fresh initialisation {fresh}"
         typer.echo(line)
 
+    from workers.train.checkpoint import CheckpointError
+    from workers.train.training import TrainingDiverged
+
     try:
         points = run_sweep(model, pool, test, sizes, iterations, out, seed=seed, on_point=report)
     except DatasetError as error:
         bad_input(str(error))
-    paths = write_fig11(points, out, title=f"{model.name} on {data.name}")
+    except (CheckpointError, TrainingDiverged, ValueError) as error:
+        _fail(f"fine-tuning failed: {error}")
+    title = f"{model.name}{f' (ensemble of {members})' if members > 1 else ''} on {data.name}"
+    paths = write_fig11(points, out, title=title)
+    largest = max(sizes)
+    if largest > 0:
+        kind = f"an ensemble of {members}" if members > 1 else "one detector"
+        typer.echo(f"fine-tuned on {largest} images ({kind}): {out / f'finetuned-{largest}.pt'}")
     typer.echo("Fig. 11: " + "  ".join(str(path) for path in paths))
 
 

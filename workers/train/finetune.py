@@ -8,6 +8,11 @@ by a seeded shuffle, into a training pool and a test split; for each size n of t
 checkpoint is fine-tuned on the first n pool images, a fresh model (the checkpoint's
 architecture, new weights) is trained on the same n beside it, and both are scored on the
 test split under the paper's protocol.
+
+An ensemble (what ``foldwise run --members`` hands over) is fine-tuned member by member, each
+from its own weights with its own settings, and the members are joined again into an ensemble
+file; its fresh baseline is an ensemble of as many fresh models, one per member's
+architecture. Fig. 11 then reports the ensemble on both lines.
 """
 
 from __future__ import annotations
@@ -60,6 +65,25 @@ class SweepPoint:
     fresh_unthresholded: float | None
 
 
+def member_checkpoints(checkpoint: Path, folder: Path) -> list[Path]:
+    """The detector checkpoints a file joins: itself for one detector; for an ensemble, each
+    member written whole to ``folder/member-<i>.pt`` (training starts from one network's file)."""
+    import torch
+
+    from workers.train.checkpoint import ENSEMBLE_FORMAT, _load_payload
+
+    payload = _load_payload(checkpoint)
+    if payload["format"] != ENSEMBLE_FORMAT:
+        return [Path(checkpoint)]
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for index, member in enumerate(payload["members"], start=1):
+        path = folder / f"member-{index}.pt"
+        torch.save(member, path)
+        paths.append(path)
+    return paths
+
+
 def sweep(
     checkpoint: Path,
     pool: list[Sample],
@@ -70,21 +94,21 @@ def sweep(
     seed: int = 0,
     on_point: Callable[[SweepPoint], None] | None = None,
 ) -> list[SweepPoint]:
-    """Fine-tune the checkpoint and train a fresh model on the first n pool images for each n."""
+    """Fine-tune the checkpoint and train a fresh model on the first n pool images for each n.
+    An ensemble checkpoint gives ensembles (``finetuned-<n>.pt``, ``fresh-<n>.pt``) of models
+    trained member by member (``members/``)."""
     from foldwise.config import DetectorConfig
-    from workers.train.checkpoint import load_detector, payload_textures, read_checkpoint
+    from workers.train.checkpoint import load_detector, payload_textures, read_checkpoint, save_ensemble
     from workers.train.evaluation import evaluate_detector
     from workers.train.training import train_detector
 
-    payload = read_checkpoint(checkpoint)
-    meta = payload["meta"]
-    textures = payload_textures(payload)  # the fresh model checks with the same textures
-    classes = list(meta["classes"])
-    config = DetectorConfig.model_validate(meta["config"])
     too_many = [n for n in sizes if n > len(pool)]
     if too_many:
         raise DatasetError(f"sweep sizes {too_many} exceed the {len(pool)} images of the training pool")
     out_dir.mkdir(parents=True, exist_ok=True)
+    members = member_checkpoints(checkpoint, out_dir / "members")
+    payloads = [read_checkpoint(path) for path in members]
+    classes = list(payloads[0]["meta"]["classes"])
 
     def score(path: Path) -> tuple[float, float]:
         result = evaluate_detector(
@@ -92,18 +116,31 @@ def sweep(
         )
         return result.map, result.map_unthresholded
 
+    def train_all(n: int, kind: str) -> Path:
+        """One model per member, on the first n pool images, joined when there are several."""
+        target = out_dir / f"{kind}-{n}.pt"
+        paths = [target] if len(members) == 1 else [out_dir / "members" / f"{kind}-{n}-{i}.pt" for i in range(1, len(members) + 1)]
+        for index, (member, payload, path) in enumerate(zip(members, payloads, paths)):
+            config = DetectorConfig.model_validate(payload["meta"]["config"])
+            # Members differ by seed: a fresh ensemble of one seed would be one model repeated.
+            member_seed = seed + index
+            if kind == "finetuned":
+                train_detector(pool[:n], init=member, iterations=iterations, config=config, classes=classes, out=path, seed=member_seed)
+            else:  # the fresh model checks with the same textures
+                train_detector(
+                    pool[:n], init=None, iterations=iterations, config=config, classes=classes, out=path, seed=member_seed,
+                    textures=payload_textures(payload),
+                )  # fmt: skip
+        if len(paths) > 1:
+            save_ensemble(paths, target)
+        return target
+
     points = []
     for n in sizes:
         if n == 0:
             finetuned, fresh = score(checkpoint), (None, None)
         else:
-            tuned_path, fresh_path = out_dir / f"finetuned-{n}.pt", out_dir / f"fresh-{n}.pt"
-            train_detector(pool[:n], init=checkpoint, iterations=iterations, config=config, classes=classes, out=tuned_path, seed=seed)
-            train_detector(
-                pool[:n], init=None, iterations=iterations, config=config, classes=classes, out=fresh_path, seed=seed,
-                textures=textures,
-            )
-            finetuned, fresh = score(tuned_path), score(fresh_path)
+            finetuned, fresh = score(train_all(n, "finetuned")), score(train_all(n, "fresh"))
         point = SweepPoint(n, finetuned[0], fresh[0], finetuned[1], fresh[1])
         points.append(point)
         if on_point:

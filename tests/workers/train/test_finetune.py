@@ -109,3 +109,52 @@ def test_evaluate_reads_a_real_set_as_a_voc_folder_or_a_coco_file_alike(standin,
     assert voc["classes"] == coco["classes"] == MODEL_CLASSES
     assert voc["per_class"]["chelsea"]["num_ground_truth"] == 0  # the model's class the set does not hold
     assert voc["map_unthresholded"] == pytest.approx(coco["map_unthresholded"], abs=0.02)  # VOC's boxes keep one decimal
+
+
+# --------------------------------------------------------------------------- photographs, an ensemble
+
+import photo_sets  # noqa: E402  (tests/workers/train is on sys.path)
+
+from foldwise.config import AugmentationConfig  # noqa: E402
+from workers.train.checkpoint import load_detector, save_ensemble  # noqa: E402
+
+
+@pytest.fixture(scope="module")
+def photo_set(tmp_path_factory):
+    """Portrait, landscape and EXIF-turned JPEGs, one without any object, as a COCO export."""
+    photos = photo_sets.photos(9, seed=4)
+    photos.append(photo_sets.Photo("lookalike", photos[1].pixels[:, ::-1].copy(), np.zeros((0, 4), np.float32), np.zeros(0, np.int64), 6))
+    return photo_sets.write_coco(tmp_path_factory.mktemp("photos"), photos)
+
+
+@pytest.fixture(scope="module")
+def photo_ensemble(photo_set, tmp_path_factory):
+    """What `make run` hands over: an ensemble of two members (other seeds), trained with
+    quarter turns and crops."""
+    samples, classes = load_dataset(photo_set)
+    folder = tmp_path_factory.mktemp("ensemble")
+    augmentation = AugmentationConfig(enabled=True, quarter_turn=1.0, crop=0.5, zoom=0.5)
+    config = DetectorConfig(family="yolo", input_size=64, batch_size=3, num_threads=1, augmentation=augmentation)
+    members = []
+    for seed in (1, 2):
+        path = folder / f"member{seed}.pt"
+        train_detector(samples[:4], init=None, iterations=1, config=config, classes=classes, out=path, seed=seed)
+        members.append(path)
+    return save_ensemble(members, folder / "ensemble.pt")
+
+
+def test_finetune_takes_an_ensemble_and_mixed_photos_and_hands_back_an_ensemble(photo_set, photo_ensemble, tmp_path):
+    out = tmp_path / "finetune"
+    result = CliRunner().invoke(app, [
+        "finetune", "--model", str(photo_ensemble), "--data", str(photo_set), "--sweep", "0,5",
+        "--iterations", "2", "--out", str(out),
+    ])  # fmt: skip
+    assert result.exit_code == 0, result.output
+    assert result.exception is None or isinstance(result.exception, SystemExit)
+    assert "an ensemble of 2 detectors" in result.output and "n =    5: fine-tuned mAP" in result.output
+    for kind in ("finetuned", "fresh"):
+        joined = load_detector(out / f"{kind}-5.pt")
+        assert len(joined.meta["members"]) == 2 and joined.classes == photo_sets.CLASSES
+    rows = list(csv.DictReader(open(out / "fig11.csv")))
+    assert [int(row["n"]) for row in rows] == [0, 5] and rows[1]["fresh_map"] != ""
+    assert "ensemble of 2" in (out / "fig11.svg").read_text()
