@@ -575,3 +575,131 @@ def evaluate_detector(
         groups=groups,
         coco=coco,
     )
+
+
+# --------------------------------------------------------------------------- at the threshold: precision, recall, confusion
+
+# The "true class" of a false box that overlaps no object (at the IoU threshold).
+NO_OBJECT = "no object"
+
+
+@dataclass
+class ImageErrors:
+    """What went wrong on one image at the threshold (``index`` into the sequences scored)."""
+
+    index: int
+    true_positives: int
+    false_positives: int  # kept boxes matching no object of their class
+    false_negatives: int  # objects no kept box found
+
+    @property
+    def errors(self) -> int:
+        return self.false_positives + self.false_negatives
+
+
+@dataclass
+class ThresholdResult:
+    """Precision and recall of the detections kept at ``score_threshold`` (each kept box either
+    finds an object of its class at IoU ≥ ``iou_threshold`` not found before it, or is false;
+    the VOC matching of ``evaluate_predictions``), and what the false boxes were.
+
+    ``confusion[given][true]``: false boxes given class ``given`` whose best-overlapping object
+    (at IoU ≥ ``iou_threshold``) is of class ``true`` (``true == given``: a second box on an
+    object already found), or ``NO_OBJECT`` when they overlap none that much. Counts of zero are
+    left out. ``per_class[name]``: tp, fp, fn, precision, recall. Precision is NaN where nothing
+    was kept, recall NaN where there is no object."""
+
+    score_threshold: float
+    iou_threshold: float
+    classes: list[str]
+    true_positives: int
+    false_positives: int
+    false_negatives: int
+    precision: float
+    recall: float
+    per_class: dict[str, dict[str, float]]
+    confusion: dict[str, dict[str, int]]
+    per_image: list[ImageErrors]
+
+    def worst_images(self, count: int) -> list[ImageErrors]:
+        """The ``count`` images with most errors (false boxes plus objects missed), worst first;
+        images without error are left out; ties keep image order."""
+        wrong = [item for item in self.per_image if item.errors]
+        return sorted(wrong, key=lambda item: -item.errors)[:count]
+
+    def to_dict(self) -> dict[str, Any]:
+        return json_safe({**asdict(self), "per_image": [asdict(item) for item in self.per_image]})
+
+
+def _ratio(numerator: int, denominator: int) -> float:
+    return numerator / denominator if denominator else float("nan")
+
+
+def precision_recall_at(
+    predictions: Sequence[Mapping[str, Any]],
+    ground_truth: Sequence[Mapping[str, Any]],
+    classes: Sequence[str],
+    score_threshold: float = 0.8,
+    iou_threshold: float = 0.5,
+) -> ThresholdResult:
+    """Precision, recall and the confusion between classes of the detections at or above
+    ``score_threshold``, image by image (the inputs of ``evaluate_predictions``: boxes xyxy,
+    scores, 0-based labels). Totals are summed over classes (micro average)."""
+    classes = [str(name) for name in classes]
+    if not classes:
+        raise ValueError("classes: at least one class name is needed")
+    if not 0.0 <= float(score_threshold) <= 1.0:
+        raise ValueError(f"score_threshold: expected a value in [0, 1], got {score_threshold}")
+    if not 0.0 < float(iou_threshold) <= 1.0:
+        raise ValueError(f"iou_threshold: expected a value in (0, 1], got {iou_threshold}")
+    if len(predictions) != len(ground_truth):
+        raise ValueError(
+            f"predictions and ground_truth must cover the same images: {len(predictions)} vs {len(ground_truth)}"
+        )
+    det = _flatten(predictions, "predictions", len(classes), with_scores=True)
+    gt = _flatten(ground_truth, "ground_truth", len(classes), with_scores=False)
+    assert det.scores is not None
+    kept = np.flatnonzero(det.scores >= score_threshold)
+    order = kept[np.argsort(-det.scores[kept], kind="stable")]
+    is_tp = _match(det, gt, order, float(iou_threshold))
+
+    confusion: dict[str, dict[str, int]] = {}
+    for row in order[~is_tp]:
+        same_image = np.flatnonzero(gt.image == det.image[row])
+        true = NO_OBJECT
+        if len(same_image):
+            overlaps = pairwise_iou(np.repeat(det.boxes[row : row + 1], len(same_image), axis=0), gt.boxes[same_image])
+            best = int(np.argmax(overlaps))
+            if overlaps[best] >= iou_threshold:
+                true = classes[int(gt.labels[same_image[best]])]
+        given = confusion.setdefault(classes[int(det.labels[row])], {})
+        given[true] = given.get(true, 0) + 1
+
+    num_images = len(ground_truth)
+    tp_labels, fp_labels = det.labels[order[is_tp]], det.labels[order[~is_tp]]
+    per_class = {}
+    for k, name in enumerate(classes):
+        tp, fp = int(np.count_nonzero(tp_labels == k)), int(np.count_nonzero(fp_labels == k))
+        fn = int(np.count_nonzero(gt.labels == k)) - tp
+        per_class[name] = {"tp": tp, "fp": fp, "fn": fn, "precision": _ratio(tp, tp + fp), "recall": _ratio(tp, tp + fn)}
+    tp_per_image = np.bincount(det.image[order[is_tp]], minlength=num_images)
+    fp_per_image = np.bincount(det.image[order[~is_tp]], minlength=num_images)
+    gt_per_image = np.bincount(gt.image, minlength=num_images)
+    per_image = [
+        ImageErrors(i, int(tp_per_image[i]), int(fp_per_image[i]), int(gt_per_image[i] - tp_per_image[i])) for i in range(num_images)
+    ]
+    tp, fp = int(is_tp.sum()), int((~is_tp).sum())
+    fn = len(gt.labels) - tp
+    return ThresholdResult(
+        score_threshold=float(score_threshold),
+        iou_threshold=float(iou_threshold),
+        classes=classes,
+        true_positives=tp,
+        false_positives=fp,
+        false_negatives=fn,
+        precision=_ratio(tp, tp + fp),
+        recall=_ratio(tp, tp + fn),
+        per_class=per_class,
+        confusion=confusion,
+        per_image=per_image,
+    )

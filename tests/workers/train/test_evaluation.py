@@ -556,3 +556,58 @@ def test_evaluate_detector_maps_labels_by_class_name(monkeypatch, tmp_path):
     assert result.breakdown["condition/difficulty"]["po/hard"].map == 1.0
     with pytest.raises(ValueError, match=r"not trained on: \['c'\]"):
         evaluate_detector(detector, samples, ["b", "a", "c"])
+
+
+# --------------------------------------------------------------------------- at the threshold
+
+from workers.train.evaluation import NO_OBJECT, precision_recall_at  # noqa: E402
+
+
+def _dets(boxes, scores, labels):
+    return {"boxes": np.asarray(boxes, float).reshape(-1, 4), "scores": np.asarray(scores, float), "labels": np.asarray(labels, int)}
+
+
+def _truth(boxes, labels):
+    return {"boxes": np.asarray(boxes, float).reshape(-1, 4), "labels": np.asarray(labels, int)}
+
+
+def test_precision_and_recall_count_only_the_boxes_kept_at_the_threshold():
+    predictions = [
+        _dets([[0, 0, 10, 10], [20, 20, 30, 30], [40, 40, 50, 50]], [0.95, 0.7, 0.9], [0, 1, 1]),
+        _dets([], [], []),
+    ]
+    truth = [_truth([[0, 0, 10, 10], [20, 20, 30, 30]], [0, 1]), _truth([[5, 5, 9, 9]], [1])]
+    result = precision_recall_at(predictions, truth, ["a", "b"], score_threshold=0.8, iou_threshold=0.5)
+    # kept: a on its object (TP), b on nothing (FP); b at 0.7 dropped, so its object is missed
+    assert (result.true_positives, result.false_positives, result.false_negatives) == (1, 1, 2)
+    assert result.precision == pytest.approx(0.5) and result.recall == pytest.approx(1 / 3)
+    assert result.per_class["a"] == {"tp": 1, "fp": 0, "fn": 0, "precision": 1.0, "recall": 1.0}
+    assert result.per_class["b"]["fn"] == 2 and result.per_class["b"]["precision"] == 0.0
+    assert result.confusion == {"b": {NO_OBJECT: 1}}
+    lower = precision_recall_at(predictions, truth, ["a", "b"], score_threshold=0.5)
+    assert (lower.true_positives, lower.false_positives, lower.false_negatives) == (2, 1, 1)
+
+
+def test_the_confusion_names_the_class_a_false_box_was_given_and_the_true_one():
+    predictions = [
+        _dets([[0, 0, 10, 10], [0, 0, 10, 11], [20, 20, 30, 30], [60, 60, 70, 70]], [0.99, 0.9, 0.95, 0.85], [0, 0, 0, 1])
+    ]
+    truth = [_truth([[0, 0, 10, 10], [20, 20, 30, 30]], [0, 1])]
+    result = precision_recall_at(predictions, truth, ["a", "b"])
+    # a second "a" on the found a; an "a" on the b; a "b" on nothing; the b itself missed
+    assert result.confusion == {"a": {"a": 1, "b": 1}, "b": {NO_OBJECT: 1}}
+    assert (result.true_positives, result.false_positives, result.false_negatives) == (1, 3, 1)
+    assert result.per_class["b"]["recall"] == 0.0
+
+
+def test_worst_images_rank_by_errors_and_undefined_ratios_are_nan():
+    predictions = [_dets([], [], []), _dets([[0, 0, 5, 5], [9, 9, 12, 12]], [0.9, 0.9], [0, 0]), _dets([[0, 0, 5, 5]], [0.9], [0])]
+    truth = [_truth([[0, 0, 5, 5]], [0]), _truth([], []), _truth([[0, 0, 5, 5]], [0])]
+    result = precision_recall_at(predictions, truth, ["a"])
+    assert [(item.index, item.errors) for item in result.worst_images(5)] == [(1, 2), (0, 1)]
+    assert result.worst_images(1)[0].false_positives == 2
+    nothing = precision_recall_at([_dets([], [], [])], [_truth([], [])], ["a"])
+    assert math.isnan(nothing.precision) and math.isnan(nothing.recall)
+    assert nothing.to_dict()["precision"] is None
+    with pytest.raises(ValueError, match="same images"):
+        precision_recall_at([], [_truth([], [])], ["a"])
