@@ -4,11 +4,11 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 CONFIG ?= configs/quick.yaml
-# Curricula of CONFIG run side by side (seeds seed, seed+1, ...), a process each, their final
-# models handed over as one ensemble. quick.yaml runs two: out of domain their ensemble beat their
-# average member by 0.02-0.04 in each of three measurements, for 1.07x one curriculum's time on 2 cores (one
-# curriculum leaves the second core mostly idle); bench/README.md, "Two curricula". Other configs
-# run one unless MEMBERS says (learnability and canonical-baseline runs hand over no model to join).
+# Curricula of CONFIG trained side by side (seeds seed, seed+1, ...), a process each, their final
+# models handed over as one ensemble. quick.yaml trains two: out of domain the pair beats its
+# average member, in little more than one curriculum's time on 2 cores, where one curriculum
+# leaves the second core mostly idle (bench/README.md, "Two curricula"). Other configs train one
+# unless MEMBERS says (learnability and canonical-baseline runs hand over no model to join).
 MEMBERS ?= $(if $(filter configs/quick.yaml,$(CONFIG)),2,1)
 # pytest-xdist workers for `make test`: the suite is mostly one busy core at a time, so two
 # workers take about half its time on 2 cores (tests/conftest.py sends them a module at a time).
@@ -17,8 +17,8 @@ TEST_WORKERS ?= 2
 .PHONY: install run test test-integration lint bench constraints clean
 
 # Installing ends by compiling the render pipeline's numba kernels, as the Docker image does at
-# build time: otherwise each of make run's curricula compiles them on its first images (a minute
-# of CPU each on a 2-core machine) inside the run's time.
+# build time: otherwise each of make run's curricula compiles them on its first images, about a
+# minute of CPU, inside the run's time.
 $(STAMP): pyproject.toml constraints.txt
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else "foldwise needs Python 3.11 (bpy 5.0.1 requires it)")'
 	$(PYTHON) -m venv $(VENV)
