@@ -224,29 +224,48 @@ def evaluate(
     batch_size: Annotated[int, typer.Option("--batch-size", min=1, help="Images per forward pass.")] = 16,
     device: Annotated[Optional[str], typer.Option("--device", help="cpu or cuda (default: the checkpoint's choice).")] = None,
     threads: Annotated[int, typer.Option("--threads", min=0, help="Torch CPU threads (0: torch decides).")] = 0,
+    report: Annotated[
+        Optional[Path],
+        typer.Option(
+            "--report",
+            help="Write a page to look at here: DIR/index.html with the worst images (most false boxes plus "
+            "objects missed at --threshold), each a PNG with the true boxes and the detections drawn.",
+        ),
+    ] = None,
+    worst: Annotated[int, typer.Option("--worst", min=1, max=500, help="Images in the --report.")] = 12,
 ) -> None:
-    """Score a checkpoint on a dataset: VOC mAP (paper protocol and unthresholded), COCO metrics."""
+    """Score a checkpoint on a dataset: VOC mAP (paper protocol and unthresholded), COCO metrics,
+    precision and recall at the threshold and the confusion between classes."""
     import time
 
     samples, classes = _load_samples(data)
     _set_threads(threads)
     detector = _load_model(model, device)
 
-    from workers.train.evaluation import evaluate_detector
+    from workers.train.evaluation import detector_predictions, evaluate_predictions, precision_recall_at
 
     console = command_console()
     started = time.perf_counter()
     try:
         with CommandProgress(console, "evaluating", len(samples), "images", PROGRESS_INTERVAL_S) as bar:
-            result = evaluate_detector(
-                detector, samples, classes, score_threshold=score_threshold, iou_threshold=iou_threshold,
-                batch_size=batch_size, on_batch=lambda done: bar.update(done),
-            )  # fmt: skip
+            predictions, truth, groups, model_classes = detector_predictions(
+                detector, samples, classes, batch_size=batch_size, on_batch=lambda done: bar.update(done)
+            )
+        result = evaluate_predictions(
+            predictions, truth, model_classes, score_threshold=score_threshold, iou_threshold=iou_threshold, groups=groups
+        )
+        at_threshold = precision_recall_at(predictions, truth, model_classes, score_threshold, iou_threshold)
     except ValueError as error:
         _fail(str(error))
     seconds = time.perf_counter() - started
-    for table in _result_tables(result):
+    for table in _result_tables(result) + _threshold_tables(at_threshold):
         console.print(table)
+    console.print(
+        f"at score ≥ {score_threshold:g}, IoU ≥ {iou_threshold:g}: precision {_fmt(at_threshold.precision, 3)} "
+        f"({at_threshold.true_positives} of {at_threshold.true_positives + at_threshold.false_positives} boxes right), "
+        f"recall {_fmt(at_threshold.recall, 3)} ({at_threshold.true_positives} of "
+        f"{at_threshold.true_positives + at_threshold.false_negatives} objects found)"
+    )
     console.print(
         f"mAP (paper protocol: score ≥ {score_threshold:g}, IoU ≥ {iou_threshold:g}): {_fmt(result.map)}   "
         f"mAP (unthresholded): {_fmt(result.map_unthresholded)}   "
@@ -256,10 +275,117 @@ def evaluate(
     if result.num_ground_truth == 0:
         typer.secho("warning: the dataset has no annotated box; mAP is undefined", fg=typer.colors.YELLOW, err=True)
     if json_out is not None:
-        payload = {"model": str(model), "data": str(data), "seconds": seconds, **result.to_dict()}
+        payload = {
+            "model": str(model), "data": str(data), "seconds": seconds, **result.to_dict(), "at_threshold": at_threshold.to_dict(),
+        }  # fmt: skip
         json_out.parent.mkdir(parents=True, exist_ok=True)
         json_out.write_text(json.dumps(payload, indent=2, allow_nan=False))
         console.print(f"wrote {json_out}")
+    if report is not None:
+        try:
+            page = write_report(report, samples, predictions, truth, at_threshold, worst, title=f"{model.name} on {data.name}")
+        except OSError as error:
+            _fail(f"cannot write the report to {report}: {error}")
+        console.print(f"report: {page}")
+
+
+def _threshold_tables(result) -> list:
+    """Precision and recall per class at the threshold, and the confusion of the false boxes."""
+    from rich.table import Table
+
+    cut = f"score ≥ {result.score_threshold:g}, IoU ≥ {result.iou_threshold:g}"
+    per_class = Table(title=f"At the threshold ({cut}): boxes right (TP), false (FP), objects missed (FN)", title_justify="left")
+    for column in ("class", "TP", "FP", "FN", "precision", "recall"):
+        per_class.add_column(column, justify="left" if column == "class" else "right", no_wrap=True)
+    for name, item in result.per_class.items():
+        per_class.add_row(name, str(item["tp"]), str(item["fp"]), str(item["fn"]), _fmt(item["precision"], 3), _fmt(item["recall"], 3))
+    per_class.add_section()
+    per_class.add_row(
+        "all", str(result.true_positives), str(result.false_positives), str(result.false_negatives),
+        _fmt(result.precision, 3), _fmt(result.recall, 3),
+    )  # fmt: skip
+    tables = [per_class]
+    if result.confusion:
+        from workers.train.evaluation import NO_OBJECT
+
+        truths = [name for name in result.classes if any(name in row for row in result.confusion.values())]
+        truths += [NO_OBJECT] if any(NO_OBJECT in row for row in result.confusion.values()) else []
+        confusion = Table(
+            title="False boxes: the class given (rows) against the object they overlap most (columns; "
+            f"the same class: a second box on an object found already; {NO_OBJECT}: IoU < {result.iou_threshold:g} with every object)",
+            title_justify="left",
+        )
+        confusion.add_column("given \\ true", no_wrap=True)
+        for name in truths:
+            confusion.add_column(name, justify="right", no_wrap=True)
+        for given in result.classes:
+            if given in result.confusion:
+                confusion.add_row(given, *(str(result.confusion[given].get(name, 0)) for name in truths))
+        tables.append(confusion)
+    return tables
+
+
+# Ground truth is drawn white over a black outline, so that it shows on any photo beside the
+# detections' class colours.
+_TRUTH_COLOURS = ((0, 0, 0), (255, 255, 255))
+REPORT_MIN_SIDE = 480
+
+
+def write_report(folder: Path, samples, predictions, truth, at_threshold, count: int, title: str) -> Path:
+    """``folder/index.html``: the ``count`` worst images at the threshold, each drawn as a PNG
+    (true boxes white, labelled "true"; the detections kept at the threshold as ``foldwise
+    detect`` draws them) with its errors listed; returns the page."""
+    import html
+
+    import cv2
+    import numpy as np
+
+    from workers.train.data import read_image_rgb
+
+    folder.mkdir(parents=True, exist_ok=True)
+    classes = at_threshold.classes
+    rows = []
+    for rank, item in enumerate(at_threshold.worst_images(count), start=1):
+        sample = samples[item.index]
+        canvas = read_image_rgb(sample.image_path)
+        # Small images are blown up (whole pixels) so that the labels stay readable.
+        zoom = max(1, REPORT_MIN_SIDE // max(canvas.shape[:2]))
+        if zoom > 1:
+            canvas = cv2.resize(canvas, None, fx=zoom, fy=zoom, interpolation=cv2.INTER_NEAREST)
+        found = {**predictions[item.index], "boxes": np.asarray(predictions[item.index]["boxes"]) * zoom}
+        thickness = max(1, round(min(canvas.shape[:2]) / 200))
+        for box, label in zip(np.asarray(truth[item.index]["boxes"]) * zoom, np.asarray(truth[item.index]["labels"])):
+            x0, y0, x1, y1 = (int(round(float(v))) for v in box)
+            for colour, width in zip(_TRUTH_COLOURS, (thickness + 2, thickness)):
+                cv2.rectangle(canvas, (x0, y0), (x1, y1), colour, width)
+            cv2.putText(canvas, f"true {classes[int(label)]}", (x0 + 2, max(y1 - 4, 10)), cv2.FONT_HERSHEY_SIMPLEX,
+                        max(0.3, min(canvas.shape[:2]) / 600), (255, 255, 255), 1, cv2.LINE_AA)  # fmt: skip
+        drawn = draw_detections(canvas, found, classes, at_threshold.score_threshold)
+        name = f"{rank:03d}-{sample.image_path.stem}.png"
+        if not cv2.imwrite(str(folder / name), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR)):
+            raise OSError(f"cannot write {folder / name}")
+        caption = (
+            f"{html.escape(str(sample.image_path))}: {item.false_positives} false box(es), {item.false_negatives} object(s) "
+            f"missed, {item.true_positives} found"
+        )
+        rows.append(f'<figure><img src="{html.escape(name)}" alt="{html.escape(name)}"><figcaption>{caption}</figcaption></figure>')
+    cut = f"score ≥ {at_threshold.score_threshold:g}, IoU ≥ {at_threshold.iou_threshold:g}"
+    summary = (
+        f"precision {_fmt(at_threshold.precision, 3)}, recall {_fmt(at_threshold.recall, 3)} at {cut}: "
+        f"{at_threshold.true_positives} boxes right, {at_threshold.false_positives} false, {at_threshold.false_negatives} objects missed"
+    )
+    body = "\n".join(rows) if rows else "<p>No image has a false box or a missed object at this threshold.</p>"
+    page = folder / "index.html"
+    page.write_text(
+        "<!doctype html>\n<html><head><meta charset=\"utf-8\"><title>" + html.escape(title) + "</title><style>"
+        "body{font-family:sans-serif;margin:1em}figure{display:inline-block;margin:.5em;vertical-align:top}"
+        "img{max-width:480px;max-height:480px;border:1px solid #ccc}figcaption{max-width:480px;font-size:90%}</style></head><body>"
+        f"<h1>{html.escape(title)}</h1><p>{html.escape(summary)}</p>"
+        "<p>The worst images first (false boxes plus objects missed). True boxes: white, labelled \"true\"; "
+        "detections at the threshold: coloured by class, solid where the texture check confirmed them, dashed where not.</p>"
+        f"{body}</body></html>\n"
+    )
+    return page
 
 
 # --------------------------------------------------------------------------- detect
@@ -338,7 +464,13 @@ def detect(
         ),
     ],
     images: Annotated[list[Path], typer.Argument(help="Image files to run the detector on.")],
-    out_dir: Annotated[Path, typer.Option("--out-dir", help="Where the annotated copies go.")] = Path("detections"),
+    out_dir: Annotated[
+        Path,
+        typer.Option(
+            "--out", "--out-dir",
+            help="Folder for the drawn copies (one PNG per image, named after it); default: detections/ in the working directory.",
+        ),
+    ] = Path("detections"),
     score_threshold: Annotated[
         float, typer.Option("--threshold", min=0.0, max=1.0, help="Draw detections at or above this score.")
     ] = 0.8,
@@ -366,27 +498,34 @@ def detect(
         typer.Option(
             "--json",
             help="Also write the detections at or above --threshold as JSON: per image its path, size, "
-            "annotated copy and boxes (x0, y0, x1, y1 in its pixels) with class, score and texture confirmation.",
+            "annotated copy and boxes (x0, y0, x1, y1 in the pixels of the photo as displayed, EXIF orientation "
+            "applied, at full size) with class, score and texture confirmation.",
         ),
     ] = None,
 ) -> None:
     """Detect the object in images; write copies with boxes, class names and scores drawn."""
     import cv2
+    import numpy as np
 
     from foldwise.config import parse_test_sizes, parse_test_turns
-    from workers.train.data import DatasetError, read_image_rgb
+    from foldwise.images import ImageError, image_size, read_image
+    from workers.train.data import PHOTO_MAX_SIDE
 
     test_sizes = _parsed_option("--sizes", sizes, parse_test_sizes)
     test_turns = _parsed_option("--turns", turns, parse_test_turns)
     missing = [str(path) for path in images if not path.is_file()]
     if missing:
         _fail(f"image file(s) not found: {', '.join(missing)}")
-    pictures = []
+    # Photos as displayed (EXIF orientation applied), large ones shrunk: boxes are reported in
+    # the displayed photo's own pixels (scaled back), drawn on the shrunk copy.
+    pictures, scales = [], []
     for path in images:
         try:
-            pictures.append(read_image_rgb(path))
-        except DatasetError as error:
-            _fail(str(error))
+            picture, scale = read_image(path, max_side=PHOTO_MAX_SIDE)
+        except ImageError as error:
+            _fail(f"cannot read image {error}")
+        pictures.append(picture)
+        scales.append(scale)
     _set_threads(threads)
     detectors = [_load_model(path, device) for path in model]
     classes = [str(name) for name in detectors[0].meta.get("classes", [])]
@@ -400,7 +539,7 @@ def detect(
     out_dir.mkdir(parents=True, exist_ok=True)
     used: set[str] = set()
     records: list[dict[str, Any]] = []
-    for path, picture, found in zip(images, pictures, detections):
+    for path, picture, scale, found in zip(images, pictures, scales, detections):
         name = f"{path.stem}.png"
         counter = 1
         while name in used:  # same file name from two folders: keep both
@@ -411,6 +550,11 @@ def detect(
         target = out_dir / name
         if not cv2.imwrite(str(target), cv2.cvtColor(drawn, cv2.COLOR_RGB2BGR)):
             _fail(f"cannot write {target}")
+        full_size = (picture.shape[1], picture.shape[0])
+        if scale != 1.0:
+            full_size = image_size(path)
+            ratio = np.array([full_size[0] / picture.shape[1], full_size[1] / picture.shape[0]] * 2)
+            found = {**found, "boxes": np.asarray(found["boxes"]) * ratio}
         kept = detection_records(found, classes, score_threshold)
         said = [
             f"{record['class'] if record['class'] is not None else record['label']} {record['score']:.2f}"
@@ -421,8 +565,8 @@ def detect(
         records.append(
             {
                 "path": str(path),
-                "width": int(picture.shape[1]),
-                "height": int(picture.shape[0]),
+                "width": int(full_size[0]),
+                "height": int(full_size[1]),
                 "annotated": str(target),
                 "detections": kept,
             }
