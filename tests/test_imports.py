@@ -13,18 +13,13 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 HEAVY = ("torch", "torchvision", "bpy", "numba", "cv2")
 
+# Every module of the core package, so a new one is checked too.
+CORE_MODULES = sorted(f"foldwise.{path.stem}" for path in (ROOT / "foldwise").glob("*.py") if path.stem != "__init__")
+
 # role: (modules its process imports, a statement it runs, heavy modules it must not load)
 ROLES = {
     "foldwise core": (
-        [
-            "foldwise.assets",
-            "foldwise.config",
-            "foldwise.conditions",
-            "foldwise.sampling",
-            "foldwise.settings",
-            "foldwise.store",
-            "foldwise.theta",
-        ],
+        CORE_MODULES,
         # Sampling θ needs the asset names only, not the images behind them.
         "from foldwise.sampling import generate_parameters; generate_parameters('fb', 'easy', 4, seed=0); "
         "generate_parameters('mixed', 'hard', 4, seed=0)",
