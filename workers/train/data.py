@@ -104,7 +104,8 @@ def load_coco_dataset(directory: str | Path) -> tuple[list[Sample], list[str]]:
     boxes_by_image: dict = {image_id: [] for image_id in image_by_id}
     labels_by_image: dict = {image_id: [] for image_id in image_by_id}
 
-    sizes = {image_id: _declared_size(directory / image["file_name"], image.get("width"), image.get("height"), image["file_name"])
+    paths = {image_id: _coco_image_path(directory, str(image["file_name"])) for image_id, image in image_by_id.items()}
+    sizes = {image_id: _declared_size(paths[image_id], image.get("width"), image.get("height"), image["file_name"])
              for image_id, image in image_by_id.items()}  # fmt: skip
     for annotation in document["annotations"]:
         image = image_by_id.get(annotation["image_id"])
@@ -123,7 +124,7 @@ def load_coco_dataset(directory: str | Path) -> tuple[list[Sample], list[str]]:
 
     samples = []
     for image in images:
-        path = directory / image["file_name"]
+        path = paths[image["id"]]
         boxes = np.array(boxes_by_image[image["id"]], dtype=np.float32).reshape(-1, 4)
         samples.append(
             Sample(
@@ -140,7 +141,8 @@ def load_coco_dataset(directory: str | Path) -> tuple[list[Sample], list[str]]:
 def load_dataset(path: str | Path) -> tuple[list[Sample], list[str]]:
     """Samples and class names of a dataset in any form foldwise reads: a folder holding
     ``annotations.json`` (``foldwise render --out``), a COCO JSON file (its image file names
-    relative to its folder), or a Pascal VOC folder (``Annotations/*.xml`` beside ``JPEGImages/``)."""
+    relative to its folder; a CVAT export's ``annotations/*.json`` finds them in ``images/``
+    beside), or a Pascal VOC folder (``Annotations/*.xml`` beside ``JPEGImages/`` or ``images/``)."""
     path = Path(path)
     if not path.exists():
         raise DatasetError(f"{path}: no such file or folder")
@@ -170,7 +172,9 @@ def load_voc_dataset(folder: str | Path) -> tuple[list[Sample], list[str]]:
         filename = root.findtext("filename")
         if not filename:
             raise DatasetError(f"{xml_path}: no <filename>")
-        image_path = folder / "JPEGImages" / filename
+        # Label Studio's VOC export puts the photos in images/, the VOC layout in JPEGImages/.
+        image_path = next((folder / sub / filename for sub in ("JPEGImages", "images") if (folder / sub / filename).is_file()),
+                          folder / "JPEGImages" / filename)  # fmt: skip
         if not image_path.is_file():
             raise DatasetError(f"{xml_path}: image file {image_path} does not exist")
         try:
@@ -198,6 +202,17 @@ def load_voc_dataset(folder: str | Path) -> tuple[list[Sample], list[str]]:
         boxes = _shrunk_boxes(np.asarray(boxes, np.float32).reshape(-1, 4), width, height)
         samples.append(Sample(image_path, boxes, np.asarray(labels, np.int64)))
     return samples, classes
+
+
+def _coco_image_path(directory: Path, file_name: str) -> Path:
+    """Where a COCO image's file is: its ``file_name`` relative to the JSON file's folder, or,
+    for a CVAT export (``annotations/instances_<subset>.json`` beside ``images/<subset>/``),
+    under the ``images/`` folder beside that folder. The first place when it is in none."""
+    candidates = [directory / file_name, directory.parent / file_name, directory.parent / "images" / file_name]
+    subsets = directory.parent / "images"
+    if subsets.is_dir():
+        candidates += sorted(subset / file_name for subset in subsets.iterdir() if subset.is_dir())
+    return next((path for path in candidates if path.is_file()), candidates[0])
 
 
 def _declared_size(path: Path, width, height, where: str) -> tuple[float, float]:

@@ -192,3 +192,28 @@ def test_an_image_that_is_not_one_fails_on_load_naming_it(tmp_path):
     (tmp_path / "images" / "photo01.jpg").write_bytes(b"<html>not found</html>")
     with pytest.raises(DatasetError, match=r"photo01\.jpg.*not an image"):
         load_dataset(path)
+
+
+def test_labelling_tool_layouts_cvat_coco_and_label_studio_voc(tmp_path):
+    """CVAT's COCO export keeps the JSON in annotations/ and the photos in images/<subset>/ (file
+    names bare); Label Studio's VOC export keeps the photos in images/ instead of JPEGImages/."""
+    photos = photo_sets.photos(3)
+    coco = photo_sets.write_coco(tmp_path / "cvat", photos)
+    document = json.loads(coco.read_text())
+    (tmp_path / "cvat" / "images" / "default").mkdir()
+    for image in document["images"]:
+        name = image["file_name"].split("/")[-1]
+        (tmp_path / "cvat" / "images" / name).rename(tmp_path / "cvat" / "images" / "default" / name)
+        image["file_name"] = name
+    (tmp_path / "cvat" / "annotations").mkdir()
+    target = tmp_path / "cvat" / "annotations" / "instances_default.json"
+    target.write_text(json.dumps(document))
+    coco.unlink()
+    samples, _ = load_dataset(target)
+    assert [s.image_path.parent.name for s in samples] == ["default"] * 3
+    np.testing.assert_array_equal(samples[2].boxes, photos[2].boxes)
+
+    voc = photo_sets.write_voc(tmp_path / "ls", photos)
+    (voc / "JPEGImages").rename(voc / "images")
+    samples, _ = load_dataset(voc)
+    assert [s.image_path.parent.name for s in samples] == ["images"] * 3
