@@ -16,7 +16,7 @@ from __future__ import annotations
 import io
 import warnings
 from pathlib import Path
-from typing import BinaryIO, Union
+from typing import BinaryIO
 
 import numpy as np
 
@@ -28,7 +28,7 @@ MAX_PIXELS = 100_000_000
 _SWAPPING_ORIENTATIONS = {5, 6, 7, 8}
 _EXIF_ORIENTATION = 0x0112
 
-Source = Union[bytes, bytearray, memoryview, str, Path, BinaryIO]
+Source = bytes | bytearray | memoryview | str | Path | BinaryIO
 
 
 class ImageError(ValueError):
