@@ -38,8 +38,9 @@ MAX_GRAD_CLIP_NORM = 1e6
 # Conditions one mixed image draws at once (foldwise.sampling); more is a clutter of effects.
 MAX_CONDITIONS_PER_IMAGE = 9
 # Control characters (NUL above all) in a text field: PostgreSQL refuses NUL in text, and
-# no name or path needs any of them.
-CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f]")
+# no name or path needs any of them; nor the C1 controls, nor the bidirectional overrides and
+# isolates, which make a name display as another (U+202E turns "gpj.exe" around).
+CONTROL_CHARACTERS = re.compile(r"[\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]")
 # JSON's "\ud800" decodes to half a UTF-16 pair, which no file system or database can store.
 LONE_SURROGATES = re.compile(r"[\ud800-\udfff]")
 

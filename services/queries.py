@@ -37,7 +37,7 @@ log = logging.getLogger(__name__)
 MAX_ID = 2**31 - 1
 # A study name is printed in tables and stored in a text column (PostgreSQL refuses NUL): one
 # line of 1 to 200 printable characters.
-STUDY_NAME = re.compile(r"^[^\x00-\x1f\x7f]{1,200}$")
+STUDY_NAME = re.compile(r"^[^\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]{1,200}$")
 
 
 class NotFound(LookupError):

@@ -154,8 +154,8 @@ class Health(BaseModel):
     status: Literal["ok", "degraded", "error"] = Field(
         description="ok; degraded: the broker is down but the record can be read; error: the database is down"
     )
-    database: ComponentState
-    broker: ComponentState
+    database: ComponentState | None = Field(default=None, description="with the token only")
+    broker: ComponentState | None = Field(default=None, description="with the token only")
 
 
 class BrokerState(_Shape):

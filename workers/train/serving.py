@@ -16,7 +16,8 @@ from typing import Any
 from foldwise import store
 from workers.app import DETECT_TASK, app
 
-# A decoded image larger than this is refused (a small PNG can hold a huge, memory-eating one).
+# An image larger than this is refused from its header, before decoding (a 69-byte PNG can
+# claim 50000x50000 pixels; a 261 KB one holds 16384x16384 zeros, 1.5 GB decoded).
 MAX_PIXELS = 4096 * 4096
 
 
@@ -35,12 +36,21 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
 
     from workers.train.checkpoint import detect_object, detection_records
 
+    from foldwise.images import ImageError, image_size
+
     started = time.perf_counter()
-    pixels = cv2.imdecode(np.frombuffer(image, dtype=np.uint8), cv2.IMREAD_COLOR)
+    try:
+        image_size(image, max_pixels=MAX_PIXELS)  # the header alone, before a pixel is decoded
+    except ImageError as error:
+        return {"error": str(error)}
+    try:
+        pixels = cv2.imdecode(np.frombuffer(image, dtype=np.uint8), cv2.IMREAD_COLOR)
+    except cv2.error as error:  # OpenCV's own limits and corrupt data past the header
+        return {"error": f"the image does not decode: {' '.join(str(error).split())[:300]}"}
     if pixels is None:
         return {"error": "the body is not an image OpenCV can decode (send PNG or JPEG)"}
     height, width = pixels.shape[:2]
-    if height * width > MAX_PIXELS:
+    if height * width > MAX_PIXELS:  # a header that understated the size
         return {"error": f"image of {width}x{height} pixels is larger than {MAX_PIXELS} pixels"}
     path = store.resolve(checkpoint)
     if not path.is_file():

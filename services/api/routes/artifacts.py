@@ -2,15 +2,16 @@
 COCO documents, the report, checkpoints. Read-only and open, like the other reads."""
 
 from dataclasses import asdict
+from pathlib import Path as FilePath
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Query, status
 from fastapi.responses import FileResponse, JSONResponse
 
 from db.models import Split
-from foldwise import store
 from foldwise.config import ExperimentConfig
 from services import artifacts, baseline, learnability, queries
+from services.api import drawings
 from services.api.deps import MAX_ID, MAX_INT_COLUMN, ExperimentId, ModelId, SessionDep
 from services.api.schemas import NOT_FOUND
 
@@ -57,12 +58,21 @@ def experiment_coco(experiment_id: ExperimentId, session: SessionDep, split: Spl
     response_class=FileResponse,
     responses={**NOT_FOUND, 200: {"content": {"image/png": {}, "text/csv": {}}}},
 )
-def experiment_report(experiment_id: ExperimentId, extension: Annotated[str, Path(pattern="^(png|csv)$")]) -> FileResponse:
-    """The report of ``foldwise report`` (error against time), written afresh from the record."""
-    from services.report import write_report
+async def experiment_report(
+    experiment_id: ExperimentId, extension: Annotated[str, Path(pattern="^(png|csv)$")]
+) -> FileResponse:
+    """The report of ``foldwise report`` (error against time), drawn once per state of the record."""
 
-    files = write_report(experiment_id, store.resolve(store.report_dir(experiment_id)))
-    path = files.png if extension == "png" else files.csv
+    def draw(folder: FilePath) -> dict[str, FilePath]:
+        from services.report import write_report
+
+        files = write_report(experiment_id, folder)
+        return {"png": files.png, "csv": files.csv}
+
+    folder, files = await drawings.drawn(
+        experiment_id, "report", lambda: drawings.report_content(experiment_id), draw
+    )
+    path = folder / files[extension]
     media_type = "image/png" if extension == "png" else "text/csv"
     return FileResponse(path, media_type=media_type, filename=path.name)
 
@@ -86,16 +96,23 @@ FIGURE_MEDIA = {"png": "image/png", "svg": "image/svg+xml", "csv": "text/csv"}
     response_class=FileResponse,
     responses={**NOT_FOUND, 200: {"content": {media: {} for media in FIGURE_MEDIA.values()}}},
 )
-def experiment_figure(
+async def experiment_figure(
     experiment_id: ExperimentId,
     name: Annotated[str, Path(pattern="^fig(4|5|6|7|8)$", description="fig4 to fig8 (services/figures.py)")],
     extension: Annotated[str, Path(pattern="^(png|svg|csv)$")],
 ) -> FileResponse:
-    """One of the paper's figures for this experiment, drawn afresh from the record."""
-    from services.figures import write_figures
+    """One of the paper's figures for this experiment, drawn once per state of the record."""
 
-    paths = write_figures([experiment_id], store.resolve(store.report_dir(experiment_id)), names=(name,))[name]
-    path = next(p for p in paths if p.suffix == f".{extension}")
+    def draw(folder: FilePath) -> dict[str, FilePath]:
+        from services.figures import write_figures
+
+        paths = write_figures([experiment_id], folder, names=(name,))[name]
+        return {p.suffix.lstrip("."): p for p in paths}
+
+    folder, files = await drawings.drawn(
+        experiment_id, name, lambda: drawings.figure_content(experiment_id, name), draw
+    )
+    path = folder / files[extension]
     return FileResponse(path, media_type=FIGURE_MEDIA[extension], filename=path.name)
 
 

@@ -2,7 +2,10 @@
 
 A server refuses configs that name folders outside FOLDWISE_ASSET_ROOTS, so a token holder
 cannot make the workers read any folder of the server; uploading is the other way to bring
-one's own object in. The files of one upload land in one folder named by their content hash
+one's own object in. The token is checked before a byte of the body is read (the route declares no body parameter,
+which FastAPI would read and spool to disk before any dependency runs); the app's BodyLimit
+stops a body past MAX_UPLOAD_BYTES as it streams in. The files of one upload land in one folder
+named by their content hash
 (``<kind>-<sha256 of the names and bytes>``), checked by the same asset check as any folder
 before it is kept: an upload repeated gives the same folder, a refused one leaves nothing.
 """
@@ -16,9 +19,11 @@ import re
 import shutil
 import tempfile
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Any, Literal
 
-from fastapi import APIRouter, File, HTTPException, UploadFile, status
+from fastapi import APIRouter, HTTPException, Request, status
+from starlette.concurrency import run_in_threadpool
+from starlette.datastructures import UploadFile
 
 from foldwise import store
 from services.api.deps import TokenRequired
@@ -34,6 +39,28 @@ MAX_NAME_CHARS = 128
 SAFE_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 ._+-]*$")
 
 router = APIRouter(prefix="/assets", tags=["assets"])
+
+# The body is read by hand, after the token check, so its schema is documented by hand.
+UPLOAD_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "required": ["files"],
+                    "properties": {
+                        "files": {
+                            "type": "array",
+                            "items": {"type": "string", "format": "binary"},
+                            "description": "the images, each under its own name",
+                        }
+                    },
+                }
+            }
+        },
+    }
+}
 
 
 def _file_name(upload: UploadFile) -> str:
@@ -64,18 +91,31 @@ def _as_sent(error: Exception, staging: Path) -> HTTPException:
     "/{kind}",
     status_code=status.HTTP_201_CREATED,
     dependencies=[TokenRequired],
+    openapi_extra=UPLOAD_BODY,
     responses={
         **WRITE_ERRORS,
+        400: {"model": ErrorDetail, "description": "a multipart body that does not parse"},
         413: {"model": ErrorDetail, "description": f"a file over {MAX_FILE_BYTES >> 20} MiB or an upload over {MAX_UPLOAD_BYTES >> 20} MiB"},
-        422: {"model": ErrorDetail, "description": "a file that is not a usable image; the message names it"},
+        422: {"model": ErrorDetail, "description": "no files, or a file that is not a usable image; the message names it"},
     },
 )
-def upload_assets(
-    kind: Literal["objects", "backgrounds", "occluders"],
-    files: Annotated[list[UploadFile], File(description="the images, each under its own name")],
-) -> dict[str, Any]:
+async def upload_assets(kind: Literal["objects", "backgrounds", "occluders"], request: Request) -> dict[str, Any]:
     """Keep the uploaded images as one asset folder of the artifact store and answer its path,
     to put in a config as ``assets.<kind>``."""
+    async with request.form(max_files=MAX_FILES + 1, max_fields=MAX_FILES + 1) as form:
+        files = form.getlist("files")
+        if not files:
+            raise HTTPException(
+                status.HTTP_422_UNPROCESSABLE_CONTENT,
+                "no files: send the images as multipart/form-data, each in a part named 'files'",
+            )
+        if not all(isinstance(upload, UploadFile) for upload in files):
+            raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "a part named 'files' is text, not a file")
+        return await run_in_threadpool(_keep, kind, files)
+
+
+def _keep(kind: str, files: list[UploadFile]) -> dict[str, Any]:
+    """Check the files and keep them as one folder of the store (file work: run on a thread)."""
     from foldwise.asset_check import AssetError, check_class_names, check_image_file  # Pillow only
 
     if len(files) > MAX_FILES:

@@ -5,23 +5,44 @@ into ``studies/<study>/ensemble.pt`` of the artifact store), the same way.
 The API imports no torch: the image goes to a ``foldwise worker detect`` over the ``detect``
 queue (:mod:`workers.train.serving`) and this request waits for the reply. With eager Celery
 (embedded mode, tests) the task runs in this process instead.
+
+The image's header is read before anything else is done with it: a few bytes can claim
+50000x50000 pixels, which no decoder should be asked to allocate. The wait for the worker holds
+no thread: the reply is polled from the event loop, a thread borrowed for each short look at
+the result backend. At most MAX_IN_FLIGHT detects wait at once; past that the answer is a 503
+with ``Retry-After``, so a crowd of detects with no (or slow) workers neither exhausts the
+thread pool nor delays the other routes.
 """
 
+import asyncio
 import base64
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, status
 from pydantic import BaseModel, Field
+from starlette.concurrency import run_in_threadpool
 
 from db.models import Model, ModelStatus
 from foldwise import store
+from foldwise.images import ImageError, image_size
 from services.api.deps import ModelId, SessionDep, TokenRequired
 from services.api.schemas import NOT_FOUND, WRITE_ERRORS, ErrorDetail
 
 # A rendered or photographed picture of one sheet is well under this.
 MAX_IMAGE_BYTES = 8 << 20
-# How long a request waits for a detect worker before answering 504.
+# The pixels a detect worker decodes at most (workers.train.serving.MAX_PIXELS, checked there too).
+MAX_IMAGE_PIXELS = 4096 * 4096
+# How long a request waits for a detect worker before answering 504; the message expires then
+# too, so that a worker that comes later drops it instead of answering no one.
 REPLY_TIMEOUT_S = 30.0
+# Detects waiting for a worker at once, per API process; more are refused with a 503.
+MAX_IN_FLIGHT = 16
+RETRY_AFTER_S = 5
+# The reply is looked for after FIRST_POLL_S, then ever less often, up to every MAX_POLL_S.
+FIRST_POLL_S = 0.02
+MAX_POLL_S = 0.25
 IMAGE_TYPES = frozenset({"image/png", "image/jpeg", "application/octet-stream"})
 # What the first bytes of a PNG and a JPEG are; anything else is refused before a worker sees it.
 SIGNATURES = (b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff")
@@ -29,7 +50,7 @@ SIGNATURES = (b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff")
 router = APIRouter(prefix="/models", tags=["models"])
 study_router = APIRouter(prefix="/studies", tags=["studies"])
 # A study's name as it names a folder of the artifact store: printable, no path separator.
-STUDY_FOLDER = dict(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f/\\]+$")
+STUDY_FOLDER = dict(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069/\\]+$")
 
 
 class Detection(BaseModel):
@@ -56,6 +77,12 @@ IMAGE_BODY = {
 IMAGE_ERRORS = {
     413: {"model": ErrorDetail, "description": "the image is larger than 8 MiB"},
     415: {"model": ErrorDetail, "description": "not image/png, image/jpeg or application/octet-stream"},
+    502: {"model": ErrorDetail, "description": "the detect worker failed on the image"},
+    503: {
+        "model": ErrorDetail,
+        "description": f"{MAX_IN_FLIGHT} detects are already waiting for a worker (retry after `Retry-After` seconds), "
+        "or the broker is unreachable",
+    },
     504: {"model": ErrorDetail, "description": "no detect worker answered in time"},
 }
 
@@ -89,29 +116,6 @@ class StudyDetectResult(Detections):
     members: int = Field(description="the detectors of the ensemble, detecting as one")
 
 
-def _send(checkpoint: str, image: bytes, threshold: float) -> dict[str, Any]:
-    from celery.exceptions import TimeoutError as CeleryTimeout
-
-    from workers.app import DETECT_QUEUE, DETECT_TASK, app
-
-    args = [checkpoint, base64.b64encode(image).decode("ascii"), threshold]
-    if app.conf.task_always_eager:
-        # send_task ignores task_always_eager: run the registered task in this process.
-        import workers.train.serving  # noqa: F401  (registers the task)
-
-        return app.tasks[DETECT_TASK].apply(args=args, throw=True).get()
-    reply = app.send_task(DETECT_TASK, args=args, queue=DETECT_QUEUE, expires=REPLY_TIMEOUT_S)
-    try:
-        return reply.get(timeout=REPLY_TIMEOUT_S)
-    except CeleryTimeout:
-        raise HTTPException(
-            status.HTTP_504_GATEWAY_TIMEOUT,
-            f"no detect worker answered within {REPLY_TIMEOUT_S:g} s: start one with `foldwise worker detect`",
-        ) from None
-    finally:
-        reply.forget()
-
-
 @router.post(
     "/{model_id}/detect",
     response_model=DetectResult,
@@ -123,7 +127,11 @@ def _send(checkpoint: str, image: bytes, threshold: float) -> dict[str, Any]:
         **NOT_FOUND,
         **IMAGE_ERRORS,
         409: {"model": ErrorDetail, "description": "the model has no checkpoint (not trained, or failed)"},
-        422: {"model": ErrorDetail, "description": "the body is not a PNG or JPEG image that decodes"},
+        422: {
+            "model": ErrorDetail,
+            "description": f"the body is not a PNG or JPEG image that decodes, or its header claims more than "
+            f"{MAX_IMAGE_PIXELS:,} pixels (the message names its size)",
+        },
     },
 )
 async def detect(
@@ -133,8 +141,18 @@ async def detect(
     threshold: Annotated[float, Query(ge=0.0, le=1.0, description="keep detections scoring at least this")] = 0.5,
 ) -> dict[str, Any]:
     """Run ω ``model_id`` on the image in the body; boxes, classes and scores as JSON."""
-    image = await _read_image(request)
+    with _slot(request):
+        image = await _read_image(request)
+        checkpoint = await run_in_threadpool(_checkpoint_of, session, model_id)
+        reply = await _ask_worker(checkpoint, image, threshold)
+    if "error" in reply:
+        code = status.HTTP_409_CONFLICT if reply.get("missing") else status.HTTP_422_UNPROCESSABLE_CONTENT
+        raise HTTPException(code, reply["error"])
+    reply.pop("members", None)  # a recorded model is one detector
+    return {"model_id": model_id, "threshold": threshold, **reply}
 
+
+def _checkpoint_of(session, model_id: int) -> str:
     model = session.get(Model, model_id)
     if model is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"model {model_id} does not exist")
@@ -145,24 +163,84 @@ async def detect(
         )
     checkpoint = model.checkpoint_path
     session.close()  # the reply may take a while; hold no connection meanwhile
+    return checkpoint
 
-    reply = await _ask_worker(checkpoint, image, threshold)
-    if "error" in reply:
-        code = status.HTTP_409_CONFLICT if reply.get("missing") else status.HTTP_422_UNPROCESSABLE_CONTENT
-        raise HTTPException(code, reply["error"])
-    reply.pop("members", None)  # a recorded model is one detector
-    return {"model_id": model_id, "threshold": threshold, **reply}
+
+@contextmanager
+def _slot(request: Request) -> Iterator[None]:
+    """One of MAX_IN_FLIGHT places for a detect, or a 503 with Retry-After. The count lives on
+    the app and changes only on its event loop, between awaits: no lock is needed."""
+    state = request.app.state
+    waiting = getattr(state, "detects_in_flight", 0)
+    limit = getattr(state, "max_detects_in_flight", MAX_IN_FLIGHT)
+    if waiting >= limit:
+        raise HTTPException(
+            status.HTTP_503_SERVICE_UNAVAILABLE,
+            f"{waiting} detects are already waiting for a worker: retry in {RETRY_AFTER_S} s",
+            headers={"Retry-After": str(RETRY_AFTER_S)},
+        )
+    state.detects_in_flight = waiting + 1
+    try:
+        yield
+    finally:
+        state.detects_in_flight -= 1
 
 
 async def _ask_worker(checkpoint: str, image: bytes, threshold: float) -> dict[str, Any]:
-    """The detect worker's reply, waited for off the event loop."""
-    from starlette.concurrency import run_in_threadpool
+    """The detect worker's reply, waited for without holding a thread."""
+    from workers.app import app
 
-    return await run_in_threadpool(_send, checkpoint, image, threshold)
+    args = [checkpoint, base64.b64encode(image).decode("ascii"), threshold]
+    if app.conf.task_always_eager:
+        return await run_in_threadpool(_run_here, args)
+    reply = await run_in_threadpool(_publish, args)
+    try:
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + REPLY_TIMEOUT_S
+        pause = FIRST_POLL_S
+        while not await run_in_threadpool(reply.ready):
+            left = deadline - loop.time()
+            if left <= 0:
+                raise HTTPException(
+                    status.HTTP_504_GATEWAY_TIMEOUT,
+                    f"no detect worker answered within {REPLY_TIMEOUT_S:g} s: start one with `foldwise worker detect`",
+                )
+            await asyncio.sleep(min(pause, left))
+            pause = min(pause * 1.5, MAX_POLL_S)
+        try:
+            return await run_in_threadpool(reply.get, timeout=REPLY_TIMEOUT_S)
+        except Exception as error:  # the task raised in the worker: its failure, not the client's
+            raise HTTPException(
+                status.HTTP_502_BAD_GATEWAY, f"the detect worker failed: {type(error).__name__}: {error}"
+            ) from None
+    finally:
+        await run_in_threadpool(reply.forget)
+
+
+def _run_here(args: list) -> dict[str, Any]:
+    """The detect task in this process (eager Celery: embedded mode, tests)."""
+    import workers.train.serving  # noqa: F401  (registers the task)
+    from workers.app import DETECT_TASK, app
+
+    # send_task ignores task_always_eager: run the registered task here.
+    return app.tasks[DETECT_TASK].apply(args=args, throw=True).get()
+
+
+def _publish(args: list):
+    """Send the detect message; it expires when the request stops waiting for it."""
+    from workers.app import DETECT_QUEUE, DETECT_TASK, app
+
+    try:
+        return app.send_task(DETECT_TASK, args=args, queue=DETECT_QUEUE, expires=REPLY_TIMEOUT_S)
+    except Exception as error:  # kombu's OperationalError and the socket errors under it
+        raise HTTPException(
+            status.HTTP_503_SERVICE_UNAVAILABLE, f"the broker is unreachable: {' '.join(str(error).split())[:300]}"
+        ) from None
 
 
 async def _read_image(request: Request) -> bytes:
-    """The body as a PNG or JPEG of at most MAX_IMAGE_BYTES, or the HTTP error that says why not."""
+    """The body as a PNG or JPEG of at most MAX_IMAGE_BYTES and MAX_IMAGE_PIXELS (read from its
+    header, nothing decoded), or the HTTP error that says why not."""
     media_type = (request.headers.get("content-type") or "").split(";", 1)[0].strip().lower()
     if media_type not in IMAGE_TYPES:
         raise HTTPException(
@@ -181,7 +259,12 @@ async def _read_image(request: Request) -> bytes:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "empty body: send a PNG or JPEG image")
     if not bytes(image[:8]).startswith(SIGNATURES):
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, "the body is not a PNG or JPEG image")
-    return bytes(image)
+    image = bytes(image)
+    try:
+        image_size(image, max_pixels=MAX_IMAGE_PIXELS)  # the header only: microseconds
+    except ImageError as error:
+        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error)) from None
+    return image
 
 
 @study_router.post(
@@ -194,7 +277,11 @@ async def _read_image(request: Request) -> bytes:
         **WRITE_ERRORS,
         **IMAGE_ERRORS,
         404: {"model": ErrorDetail, "description": "the study has no ensemble file in the artifact store"},
-        422: {"model": ErrorDetail, "description": "a study name that is no folder name, or a body that is not an image"},
+        422: {
+            "model": ErrorDetail,
+            "description": f"a study name that is no folder name, a body that is not an image, or an image of more "
+            f"than {MAX_IMAGE_PIXELS:,} pixels",
+        },
     },
 )
 async def detect_with_study(
@@ -206,9 +293,9 @@ async def detect_with_study(
     detects and their detections merge, as ``foldwise detect --model ENSEMBLE`` does."""
     if study in (".", ".."):
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"study {study!r} names no folder")
-    image = await _read_image(request)
-
-    reply = await _ask_worker(store.ensemble_path(study), image, threshold)
+    with _slot(request):
+        image = await _read_image(request)
+        reply = await _ask_worker(store.ensemble_path(study), image, threshold)
     if "error" in reply:
         if reply.get("missing"):
             raise HTTPException(

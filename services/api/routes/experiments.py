@@ -34,8 +34,9 @@ ACCEPTED_TYPES = "application/json, application/yaml or text/yaml"
 
 LIVE_STATUSES = (ExperimentStatus.pending, ExperimentStatus.running)
 
-# queries.STUDY_NAME, with the length apart so that the error says which rule failed.
-STUDY_NAME = dict(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f]+$")
+# queries.STUDY_NAME, with the length apart so that the error says which rule failed: no C0 or
+# C1 control, no bidirectional override or isolate (U+202A-U+202E, U+2066-U+2069).
+STUDY_NAME = dict(min_length=1, max_length=200, pattern=r"^[^\x00-\x1f\x7f-\x9f\u202a-\u202e\u2066-\u2069]+$")
 
 router = APIRouter(prefix="/experiments", tags=["experiments"])
 

@@ -1,10 +1,15 @@
-"""GET /health: can the API serve the record (database), and can work be sent (broker)?"""
+"""GET /health: can the API serve the record (database), and can work be sent (broker)?
 
-from typing import Any
+Anyone may ask whether the service is up; only a caller with the token learns why not (the
+database's revision and the broker's address are no one else's business)."""
 
-from fastapi import APIRouter, Response, status
+import secrets
+from typing import Annotated, Any
 
-from services.api.deps import BrokerDep, SchemaCheckDep, SessionDep
+from fastapi import APIRouter, Depends, Response, status
+from fastapi.security import HTTPAuthorizationCredentials
+
+from services.api.deps import BrokerDep, SchemaCheckDep, SessionDep, SettingsDep, bearer
 from services.api.schemas import Health
 
 router = APIRouter(tags=["status"])
@@ -13,10 +18,19 @@ router = APIRouter(tags=["status"])
 @router.get(
     "/health",
     response_model=Health,
+    response_model_exclude_unset=True,
     responses={503: {"model": Health, "description": "the database is unreachable or not migrated"}},
 )
-def health(session: SessionDep, schema_check: SchemaCheckDep, broker: BrokerDep, response: Response) -> dict[str, Any]:
-    """Database and broker reachability: 200 while the database serves (the broker may be down), else 503."""
+def health(
+    session: SessionDep,
+    schema_check: SchemaCheckDep,
+    broker: BrokerDep,
+    response: Response,
+    settings: SettingsDep,
+    credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],
+) -> dict[str, Any]:
+    """Database and broker reachability: 200 while the database serves (the broker may be down), else 503.
+    The state of each is shown to callers with the token; anyone else gets the status alone."""
     database = schema_check.check(session)
     broker_state = broker.check()
     if database["status"] != "ok":
@@ -26,4 +40,7 @@ def health(session: SessionDep, schema_check: SchemaCheckDep, broker: BrokerDep,
         overall = "degraded"
     else:
         overall = "ok"
-    return {"status": overall, "database": database, "broker": broker_state}
+    token = settings.api_token
+    if token and credentials is not None and secrets.compare_digest(credentials.credentials.encode(), token.encode()):
+        return {"status": overall, "database": database, "broker": broker_state}
+    return {"status": overall}

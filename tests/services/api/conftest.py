@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import shutil
+import subprocess
+import time
 from datetime import timedelta
 
 import pytest
@@ -119,3 +121,34 @@ def seeded(database_url) -> dict:
             "models": [m.id for m in models],
             "stages": [easy.id, medium.id],
         }
+
+
+@pytest.fixture
+def redis_url():
+    """A Redis server of the test's own on a free port (never the shared one), empty."""
+    server = shutil.which("redis-server")
+    if server is None:
+        pytest.skip("redis-server is not installed: a live-broker test needs a Redis of its own")
+    import redis
+
+    port = closed_port()
+    process = subprocess.Popen(
+        [server, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    client = redis.Redis(port=port)
+    try:
+        for _ in range(200):
+            try:
+                client.ping()
+                break
+            except redis.ConnectionError:
+                time.sleep(0.025)
+        else:
+            pytest.skip("redis-server did not start")
+        yield f"redis://127.0.0.1:{port}/0"
+    finally:
+        client.close()
+        process.terminate()
+        process.wait(timeout=10)

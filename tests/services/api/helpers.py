@@ -100,3 +100,17 @@ async def call_asgi_async(app, method: str, path: str, headers: dict[str, str], 
 
     await app(scope, receive, send)
     return response
+
+
+def png_claiming(width: int, height: int, data: bytes | None = None) -> bytes:
+    """A well-formed PNG header (valid CRCs) that claims width x height over ``data`` (default:
+    one compressed row of zeros): tens of bytes, gigabytes if decoded."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, payload: bytes) -> bytes:
+        return struct.pack(">I", len(payload)) + kind + payload + struct.pack(">I", zlib.crc32(kind + payload))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    data = zlib.compress(b"\x00" * 64) if data is None else data
+    return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", data) + chunk(b"IEND", b"")

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import shutil
 import socket
 import subprocess
 import sys
@@ -175,7 +174,7 @@ def test_every_request_returns_its_session(client, seeded, database_url):
     client.post(f"/experiments/{seeded['finished']}/cancel", headers=AUTH)  # 409
     client.post("/experiments", json={"name": "x", "seed": -1}, headers=AUTH)  # 422
     client.post("/experiments", json={"name": "x"}, headers=AUTH)  # 201
-    client.get("/health")
+    client.get("/health", headers=AUTH)
     assert get_engine(database_url).pool.checkedout() == 0
 
 
@@ -421,7 +420,7 @@ def test_cancel_unknown_experiment_is_404(client, seeded):
 
 def test_health_with_the_broker_unreachable_answers_quickly(client):
     started = time.perf_counter()
-    response = client.get("/health")
+    response = client.get("/health", headers=AUTH)
     elapsed = time.perf_counter() - started
     assert response.status_code == 200  # the API still serves the record
     body = response.json()
@@ -444,7 +443,7 @@ def silent_broker_url():
 def test_a_silent_broker_is_an_error_after_the_timeout_not_a_hang(database_url, silent_broker_url):
     client = client_with(broker_url=silent_broker_url, broker_timeout_s=0.2)
     started = time.perf_counter()
-    health = client.get("/health")
+    health = client.get("/health", headers=AUTH)
     queues = client.get("/queues")
     elapsed = time.perf_counter() - started
     assert health.status_code == 200 and health.json()["broker"]["status"] == "error"
@@ -454,7 +453,7 @@ def test_a_silent_broker_is_an_error_after_the_timeout_not_a_hang(database_url, 
 
 
 def test_health_skips_the_broker_in_eager_mode(database_url):
-    response = client_with(eager=True).get("/health")
+    response = client_with(eager=True).get("/health", headers=AUTH)
     assert response.status_code == 200
     assert response.json()["status"] == "ok"
     assert response.json()["broker"]["status"] == "skipped"
@@ -463,7 +462,7 @@ def test_health_skips_the_broker_in_eager_mode(database_url):
 
 def test_health_reports_an_unmigrated_database(tmp_path, database_url):
     empty = f"sqlite:///{tmp_path / 'empty.db'}"
-    response = client_with(database_url=empty, eager=True).get("/health")
+    response = client_with(database_url=empty, eager=True).get("/health", headers=AUTH)
     assert response.status_code == 503
     body = response.json()
     assert body["status"] == "error" and body["database"]["status"] == "error"
@@ -474,7 +473,7 @@ def test_health_reports_an_unmigrated_database(tmp_path, database_url):
 def test_health_reports_an_unreachable_database_without_its_password(database_url):
     url = f"postgresql+psycopg://foldwise:hunter2@127.0.0.1:{closed_port()}/foldwise"
     started = time.perf_counter()
-    response = client_with(database_url=url, eager=True).get("/health")
+    response = client_with(database_url=url, eager=True).get("/health", headers=AUTH)
     assert time.perf_counter() - started < 10.0
     assert response.status_code == 503
     assert response.json()["database"]["status"] == "error"
@@ -498,7 +497,7 @@ def test_queues_never_show_the_broker_password(database_url):
     response = client_with(broker_url=f"redis://:hunter2@127.0.0.1:{closed_port()}/0").get("/queues")
     assert response.status_code == 503
     assert "hunter2" not in response.text
-    health = client_with(broker_url=f"redis://:hunter2@127.0.0.1:{closed_port()}/0").get("/health")
+    health = client_with(broker_url=f"redis://:hunter2@127.0.0.1:{closed_port()}/0").get("/health", headers=AUTH)
     assert "hunter2" not in health.text and health.json()["broker"]["status"] == "error"
 
 
@@ -508,38 +507,8 @@ def test_queues_in_eager_mode_and_with_a_non_redis_broker(database_url):
     amqp = client_with(broker_url=f"amqp://guest:guest@127.0.0.1:{closed_port()}//").get("/queues")
     assert amqp.status_code == 501 and "Redis" in amqp.json()["detail"]
     assert "guest:guest" not in amqp.text
-    health = client_with(broker_url=f"amqp://guest:guest@127.0.0.1:{closed_port()}//").get("/health")
+    health = client_with(broker_url=f"amqp://guest:guest@127.0.0.1:{closed_port()}//").get("/health", headers=AUTH)
     assert health.json()["broker"]["status"] == "error"
-
-
-@pytest.fixture
-def redis_url():
-    server = shutil.which("redis-server")
-    if server is None:
-        pytest.skip("redis-server is not installed: the live-broker test of /queues needs it")
-    import redis
-
-    port = closed_port()
-    process = subprocess.Popen(
-        [server, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    client = redis.Redis(port=port)
-    try:
-        for _ in range(200):
-            try:
-                client.ping()
-                break
-            except redis.ConnectionError:
-                time.sleep(0.025)
-        else:
-            pytest.skip("redis-server did not start")
-        yield f"redis://127.0.0.1:{port}/0"
-    finally:
-        client.close()
-        process.terminate()
-        process.wait(timeout=10)
 
 
 def test_queues_against_a_live_redis_with_a_worker(database_url, redis_url):
@@ -560,7 +529,7 @@ def test_queues_against_a_live_redis_with_a_worker(database_url, redis_url):
     assert idle.json()["queues"] == {"render": 3, "train": 1}
     assert idle.json()["unacked"] == 1
     assert idle.json()["workers"] == []
-    assert client.get("/health").json()["broker"]["status"] == "ok"
+    assert client.get("/health", headers=AUTH).json()["broker"]["status"] == "ok"
 
     # A worker listening on another queue, so it answers the ping without draining ours.
     worker_app = Celery("api-test-worker", broker=redis_url)
@@ -615,7 +584,7 @@ def test_queues_reads_the_broker_it_is_given(client):
     client.app.dependency_overrides[deps.get_broker] = lambda: FakeBroker(down=True)
     down = client.get("/queues")
     assert down.status_code == 503 and "fake outage" in down.json()["detail"]
-    assert client.get("/health").json()["status"] == "degraded"
+    assert client.get("/health", headers=AUTH).json()["status"] == "degraded"
 
 
 def test_health_is_503_when_the_schema_check_fails(client):
@@ -627,7 +596,7 @@ def test_health_is_503_when_the_schema_check_fails(client):
 
     client.app.dependency_overrides[deps.get_schema_check] = Unmigrated
     client.app.dependency_overrides[deps.get_broker] = FakeBroker
-    response = client.get("/health")
+    response = client.get("/health", headers=AUTH)
     assert response.status_code == 503
     assert response.json()["status"] == "error" and response.json()["broker"]["status"] == "ok"
 

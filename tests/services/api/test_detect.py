@@ -15,6 +15,7 @@ import pytest
 from db.models import Experiment, ExperimentStatus, Model, ModelStatus, Stage, StageStatus
 from db.session import session_scope
 from foldwise import store
+from tests.services.api.helpers import png_claiming
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -133,8 +134,13 @@ def test_bad_images_get_a_4xx_naming_the_problem(served, trained, monkeypatch):
     cases = [
         (b"", "image/png", 422, "empty body"),
         (b"hello, not an image", "image/png", 422, "not a PNG or JPEG"),
-        # the right signature, then garbage: only decoding (in the worker) can tell
-        (png[:8] + b"\x00" * 200, "image/png", 422, "not an image OpenCV can decode"),
+        # the right signature, then garbage: the header check refuses it
+        (png[:8] + b"\x00" * 200, "image/png", 422, "truncated or damaged image header"),
+        # a whole header over garbage: only decoding (in the worker) can tell
+        (png_claiming(64, 64, b"garbage"), "image/png", 422, "not an image OpenCV can decode"),
+        # a header claiming more pixels than a worker decodes: refused from the header
+        (png_claiming(50_000, 50_000), "image/png", 422, "pixels"),
+        (png_claiming(5000, 5000), "image/png", 422, "5000x5000 = 25,000,000 pixels"),
         (png, "text/plain", 415, "unsupported content type text/plain"),
     ]
     for body, media_type, code, message in cases:
@@ -181,40 +187,6 @@ def test_a_jpeg_works_too(served, trained):
     assert box_iou(best["box"], trained["samples"][1].boxes[0]) >= 0.7
 
 
-@pytest.fixture
-def redis_url():
-    import socket
-    import time
-
-    server = shutil.which("redis-server")
-    if server is None:
-        pytest.skip("redis-server is not installed: the no-worker test needs a broker of its own")
-    import redis
-
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        port = probe.getsockname()[1]
-    process = subprocess.Popen(
-        [server, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
-        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-    )  # fmt: skip
-    client = redis.Redis(port=port)
-    try:
-        for _ in range(200):
-            try:
-                client.ping()
-                break
-            except redis.ConnectionError:
-                time.sleep(0.025)
-        else:
-            pytest.skip("redis-server did not start")
-        yield f"redis://127.0.0.1:{port}/0"
-    finally:
-        client.close()
-        process.terminate()
-        process.wait(timeout=10)
-
-
 def test_no_detect_worker_is_a_504_that_says_what_to_start(served, trained, redis_url, monkeypatch):
     import workers.app
     from foldwise.settings import get_settings
@@ -239,10 +211,10 @@ def test_a_studys_ensemble_detects_as_its_members_merged(served, trained, tmp_pa
     import cv2
     import torch
 
+    from foldwise.config import DetectorConfig
     from workers.train.checkpoint import detect_object, load_detector, save_ensemble
     from workers.train.detectors import merge_detections
     from workers.train.training import train_detector
-    from foldwise.config import DetectorConfig
 
     other = tmp_path / "other.pt"  # a second member: the served model warm-started a few steps
     config = DetectorConfig(family="yolo", backbone="mobilenet_v3_large_fpn", input_size=64, batch_size=4, num_threads=1)
