@@ -123,3 +123,13 @@ def test_detect_reports_a_shrunk_photos_boxes_in_its_own_pixels(sets, model, tmp
     for a, b in zip(shrunk["detections"], reference["detections"]):
         assert a["score"] == b["score"]
         np.testing.assert_allclose(a["box"], [2 * v for v in b["box"]], atol=0.02)
+
+
+def test_finetune_gives_the_same_sweep_for_either_set(sets, model, tmp_path):
+    curves = []
+    for folder in sets:
+        out = tmp_path / folder.name
+        result = runner.invoke(app, ["finetune", "--model", str(model), "--data", str(folder), "--sweep", "0,3", "--iterations", "1", "--out", str(out)])
+        assert result.exit_code == 0, result.output
+        curves.append(json.loads((out / "fig11.json").read_text()))
+    assert curves[0] == curves[1] and [point["n"] for point in curves[0]] == [0, 3]
