@@ -80,8 +80,17 @@ class Detector:
                 self.classes,
                 search=self.config.texture_search,
                 cache_dir=None if cache is None else cache / "texture-check",
+                calibration=self.calibration,
             )
         return self._texture_check
+
+    @property
+    def calibration(self):
+        """The score calibration the checkpoint records (``write_calibration``), or None."""
+        from workers.train.calibration import Calibration
+
+        record = self.meta.get("calibration")
+        return Calibration.from_dict(record) if record else None
 
     @property
     def classes(self) -> list[str]:
@@ -209,6 +218,19 @@ def save_ensemble(checkpoints: Sequence[str | Path], path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     return _write_atomically({"format": ENSEMBLE_FORMAT, "format_version": ENSEMBLE_VERSION, "members": members}, path)
+
+
+def write_calibration(source: str | Path, calibration, path: str | Path) -> Path:
+    """The checkpoint or ensemble at ``source`` written to ``path`` (atomically; it may be
+    ``source``) with ``calibration`` (a :class:`~workers.train.calibration.Calibration`)
+    recorded in it: in its meta, or every member's, so that the detector it loads as scores by it."""
+    payload = _load_payload(source)
+    members = payload["members"] if payload["format"] == ENSEMBLE_FORMAT else [payload]
+    for member in members:
+        member["meta"] = {**member["meta"], "calibration": calibration.to_dict()}
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return _write_atomically(payload, path)
 
 
 def check_compatible(meta: dict[str, Any], config: DetectorConfig, classes: Sequence[str], path: str | Path) -> None:

@@ -137,6 +137,22 @@ FLANN_SEED = 0
 # out-of-domain set 7 false confirmations without it, 5 at 0.2, 1 at 0.3, for one true one
 # lost (bench/README.md, "Renaming on a map").
 MIN_AXIS_RATIO = 0.3
+# A bent sheet (a tube, a crease) is no affine image of its texture: after the first map, up to
+# LOCAL_MAPS - 1 more are fitted to the box's matches the maps so far leave out, each a piece of
+# the sheet where LOCAL_MIN_INLIERS matches agree on it; their inliers count as evidence, and the
+# box takes in where they lie.
+LOCAL_MAPS = 3
+LOCAL_MIN_INLIERS = 5
+# RANSAC's threshold for a box's maps, as a fraction of the box's diagonal: room for a sheet's
+# gentle curl within one map; sharper bends are the further maps' pieces.
+RANSAC_FRACTION = 0.05
+# Coverage: the texture cut into COVER_GRID x COVER_GRID cells; a map's coverage is the share of
+# the cells holding texture keypoints that hold one of its inliers. A lookalike sheet of the same
+# template matches its letterhead and footer; the sheet itself, all over.
+COVER_GRID = 8
+# A box at least this much inside a better-scored box the texture confirmed is a piece of that
+# sheet: one box per sheet is drawn.
+PIECE_INSIDE = 0.8
 # Raised when what a cached check holds changes meaning (its key covers the settings above).
 CACHE_VERSION = 1
 # Checks kept in a cache folder (about 30 MB each for the five default textures); the ones read or
@@ -382,12 +398,15 @@ class TextureCheck:
         exact: bool = False,
         cache_dir: str | Path | None = None,
         sharpen: float = SHARPEN_AMOUNT,
+        calibration=None,
     ) -> None:
         """``exact``: compare each image keypoint with every texture keypoint (brute force) instead of
         searching FLANN's KD-trees (bench/texture_matching.py measures the two side by side).
         ``cache_dir``: where the textures' keypoints and trees are kept between processes (None:
         made here each time). ``sharpen``: the image's unsharp mask before SIFT (0: none;
-        bench/texture_matching.py --sharpen measures others)."""
+        bench/texture_matching.py --sharpen measures others). ``calibration``: a
+        :class:`~workers.train.calibration.Calibration` that scores each checked detection from
+        the network's score and the texture's evidence (None: the fixed tiers described above)."""
         import cv2
 
         if not sharpen >= 0:
@@ -416,10 +435,20 @@ class TextureCheck:
             cache.store(self._features, self._index)
         # One search of the index at a time: a served detector may check from several threads.
         self._index_lock = threading.Lock()
+        self.calibration = calibration
+        # Which coverage cells of each texture hold keypoints (a blank margin is no evidence lost).
+        self._cells = []
+        for label, (texture_width, texture_height) in enumerate(self._features.sizes):
+            points = self._features.points[self._features.labels == label]
+            self._cells.append(np.unique(_cell_index(points, texture_width, texture_height)))
 
     def _matches(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(image points, class of the texture match, texture points) of the image's keypoints
         that pass the ratio test."""
+        return self._keypoints_and_matches(gray)[1:]
+
+    def _keypoints_and_matches(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(every keypoint's position in the image, then ``_matches``'s three arrays)."""
         import cv2
 
         gray = sharpen(gray, self.sharpen)
@@ -428,7 +457,8 @@ class TextureCheck:
         enlarged = cv2.resize(gray, None, fx=scale, fy=scale, interpolation=interpolation) if scale != 1 else gray
         # A SIFT per call (microseconds to make): a served detector may check from several threads.
         keypoints, descriptors = cv2.SIFT_create(contrastThreshold=CONTRAST_THRESHOLD).detectAndCompute(enlarged, None)
-        empty = (np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
+        every = np.array([k.pt for k in keypoints], dtype=np.float32).reshape(-1, 2) / scale
+        empty = (every, np.zeros((0, 2), np.float32), np.zeros(0, np.int64), np.zeros((0, 2), np.float32))
         features = self._features
         if descriptors is None or len(features.descriptors) < 2:
             return empty
@@ -447,8 +477,7 @@ class TextureCheck:
         if not good.any():
             return empty
         image_index, texture_index = np.flatnonzero(good), indices[good, 0]
-        image_points = np.array([keypoints[i].pt for i in image_index], dtype=np.float32) / scale
-        return image_points, features.labels[texture_index], features.points[texture_index]
+        return every, every[image_index], features.labels[texture_index], features.points[texture_index]
 
     def _neighbours(self, descriptors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(indices, distances), each (n, NEIGHBOURS) nearest first: the texture keypoints nearest to
@@ -470,28 +499,30 @@ class TextureCheck:
         distances = np.where(indices >= 0, np.sqrt(np.maximum(squared, 0)), np.inf).astype(np.float32)  # FLANN's L2 is squared
         return indices, distances
 
-    def apply(self, image: np.ndarray, detections: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:
+    def apply(self, image: np.ndarray, detections: Mapping[str, np.ndarray], with_evidence: bool = False) -> dict[str, np.ndarray]:
         """``detections`` (boxes, scores, labels as ``detect_object`` gives them, in ``image``'s
         pixels) checked: new arrays, best score first, with ``confirmed`` (n,) bool: whether the
-        texture confirmed each box (or the search found it)."""
+        texture confirmed each box (or the search found it). ``with_evidence``: also
+        ``evidence`` (n, len(calibration.FEATURES)), what the score was read from."""
+        from workers.train.calibration import FEATURES, network_logit
+
         boxes = np.array(detections["boxes"], dtype=np.float32, copy=True).reshape(-1, 4)
         scores = np.array(detections["scores"], dtype=np.float32, copy=True)
         labels = np.array(detections["labels"], dtype=np.int64, copy=True)
         checked = np.flatnonzero(scores >= MIN_SCORE)
         confirmed = np.zeros(len(scores), dtype=bool)
+        evidence = np.zeros((len(scores), len(FEATURES)), np.float32)
+        evidence[:, 0] = network_logit(scores)
         if len(checked) or self.search:
             gray = grayscale(image)
-            image_points, match_labels, texture_points = self._matches(gray)
+            every, image_points, match_labels, texture_points = self._keypoints_and_matches(gray)
             height, width = gray.shape
             if self.search:  # scored by the network's boxes as they came, before the check below moves them
-                found, found_labels = self._search(image_points, match_labels, texture_points, width, height)
+                found, found_labels, found_evidence = self._search(image_points, match_labels, texture_points, width, height)
                 found_network = _network_score(found, found_labels, boxes, scores, labels)
             for index in checked:
-                x0, y0, x1, y1 = boxes[index]
-                inside = (
-                    (image_points[:, 0] >= x0) & (image_points[:, 0] <= x1)
-                    & (image_points[:, 1] >= y0) & (image_points[:, 1] <= y1)
-                )
+                inside = _inside(image_points, boxes[index])
+                keypoints = int(_inside(every, boxes[index]).sum())
                 counts = np.bincount(match_labels[inside], minlength=len(self.classes))
                 label = int(labels[index])
                 best = int(np.argmax(counts))
@@ -500,50 +531,125 @@ class TextureCheck:
                 # matches the textures richest in keypoints most).
                 other = best != label and counts[best] >= MIN_INLIERS and counts[best] >= RENAME_FACTOR * max(counts[label], 1)
                 for candidate in [best, label] if other else [label]:
-                    outline = self._fit(image_points[inside], match_labels[inside], texture_points[inside], candidate, boxes[index], width, height)
+                    outline, inliers, coverage = self._fit(
+                        image_points[inside], match_labels[inside], texture_points[inside], candidate, boxes[index], width, height
+                    )
                     if outline is not None:
                         break
-                else:
+                evidence[index, 2:] = (np.log1p(inliers), coverage, np.log1p(keypoints), counts[label] / max(keypoints, 1))
+                if outline is None:
                     continue
                 labels[index] = candidate
                 boxes[index] = outline
                 confirmed[index] = True
-            scores = np.where(
-                confirmed,
-                CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * scores,
-                np.where(scores >= PAPER_CUT, PAPER_CUT + (scores - PAPER_CUT) * UNCONFIRMED_SPAN, scores),
-            ).astype(np.float32)
+                evidence[index, 1] = 1.0
+                evidence[index, 5] = counts[candidate] / max(keypoints, 1)
+            if self.calibration is not None:
+                scores = self.calibration.probability(evidence)
+            else:
+                scores = np.where(
+                    confirmed,
+                    CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * scores,
+                    np.where(scores >= PAPER_CUT, PAPER_CUT + (scores - PAPER_CUT) * UNCONFIRMED_SPAN, scores),
+                ).astype(np.float32)
             if self.search and len(found):
                 # Scored as a box the check confirmed, at the network's score for it, or at the
                 # check's floor where the network had none as high (so >= 0.93 in float32 too).
-                found_scores = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * np.maximum(found_network, MIN_SCORE)
+                network = np.maximum(found_network, MIN_SCORE)
+                found_evidence[:, 0] = network_logit(network)
+                for row, outline in enumerate(found):
+                    keypoints = int(_inside(every, outline).sum())
+                    found_evidence[row, 4] = np.log1p(keypoints)
+                    found_evidence[row, 5] = int((_inside(image_points, outline) & (match_labels == found_labels[row])).sum()) / max(keypoints, 1)
+                if self.calibration is not None:
+                    found_scores = self.calibration.probability(found_evidence)
+                else:
+                    found_scores = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * network
                 boxes = np.concatenate([boxes, found])
                 scores = np.concatenate([scores, found_scores.astype(np.float32)])
                 labels = np.concatenate([labels, found_labels])
                 confirmed = np.concatenate([confirmed, np.ones(len(found), dtype=bool)])
-            boxes, scores, labels, confirmed = _merge(boxes, scores, labels, confirmed)
+                evidence = np.concatenate([evidence, found_evidence])
+            keep = _merge(boxes, scores, labels)
+            keep = keep[_one_per_sheet(boxes[keep], scores[keep], confirmed[keep])]
+            boxes, scores, labels, confirmed, evidence = boxes[keep], scores[keep], labels[keep], confirmed[keep], evidence[keep]
         order = np.argsort(-scores, kind="stable")
-        return {"boxes": boxes[order], "scores": scores[order], "labels": labels[order], "confirmed": confirmed[order]}
+        checked_detections = {"boxes": boxes[order], "scores": scores[order], "labels": labels[order], "confirmed": confirmed[order]}
+        if with_evidence:
+            checked_detections["evidence"] = evidence[order]
+        return checked_detections
 
-    def _fit(self, image_points, match_labels, texture_points, label: int, box, width: int, height: int) -> np.ndarray | None:
-        """The outline of ``label``'s texture where at least ``MIN_INLIERS`` of its matches (among
-        those given: a box's) agree on one affine map that is no false fit (``_false_fit``); None
-        where they do not."""
+    def _fit(self, image_points, match_labels, texture_points, label: int, box, width: int, height: int) -> tuple[np.ndarray | None, int, float]:
+        """(outline, inliers, coverage) of ``label``'s texture among the matches given (a box's).
+
+        The first affine map needs ``MIN_INLIERS`` matches that agree on it and is no false fit
+        (``_false_fit``); further maps (``LOCAL_MAPS``) take the matches left over, each a piece
+        of a bent sheet. Each part of the texture (a ``COVER_GRID`` cell) goes where the map of
+        the piece nearest to it in the texture takes it, and the outline is where all of them
+        lie, clipped to the frame: a flat sheet's is its map's image of the whole texture, a
+        creased or rolled one's follows its pieces. None where no first map is found.
+        ``inliers`` and ``coverage`` measure the maps' evidence (0 where there is none)."""
         import cv2
 
-        own = match_labels == label
-        if own.sum() < MIN_INLIERS:
-            return None
+        own = np.flatnonzero(match_labels == label)
+        if len(own) < MIN_INLIERS:
+            return None, 0, 0.0
+        sources, targets = texture_points[own], image_points[own]
         x0, y0, x1, y1 = box
-        diagonal = float(np.hypot(x1 - x0, y1 - y0))
-        affine, mask = cv2.estimateAffine2D(
-            texture_points[own], image_points[own], method=cv2.RANSAC, ransacReprojThreshold=max(3.0, 0.08 * diagonal)
-        )
-        if affine is None or mask is None or int(mask.sum()) < MIN_INLIERS:
-            return None
-        if _false_fit(affine):
-            return None
-        return self._outline(affine, label, width, height)
+        threshold = max(3.0, RANSAC_FRACTION * float(np.hypot(x1 - x0, y1 - y0)))
+        remaining = np.ones(len(own), bool)
+        pieces: list[tuple[np.ndarray, np.ndarray]] = []  # (affine, its inliers' texture points)
+        for piece in range(LOCAL_MAPS):
+            candidates = np.flatnonzero(remaining)
+            needed = MIN_INLIERS if piece == 0 else LOCAL_MIN_INLIERS
+            if len(candidates) < needed:
+                break
+            affine, mask = cv2.estimateAffine2D(sources[candidates], targets[candidates], method=cv2.RANSAC, ransacReprojThreshold=threshold)
+            if affine is None or mask is None or int(mask.sum()) < needed or _false_fit(affine):
+                break
+            inliers = candidates[mask.ravel().astype(bool)]
+            pieces.append((affine, sources[inliers]))
+            remaining[inliers] = False
+        if not pieces:
+            return None, 0, 0.0
+        outline = self._pieces_outline(pieces, label, width, height)
+        if outline is None:
+            return None, 0, 0.0
+        agreeing = np.concatenate([points for _, points in pieces])
+        return outline, len(agreeing), self._coverage(agreeing, label)
+
+    def _pieces_outline(self, pieces, label: int, width: int, height: int) -> np.ndarray | None:
+        """Where the texture lies under its pieces' maps (see ``_fit``), xyxy clipped to the frame."""
+        if len(pieces) == 1:
+            return self._outline(pieces[0][0], label, width, height)
+        texture_width, texture_height = self._features.sizes[label]
+        steps_x = np.linspace(0, texture_width, COVER_GRID + 1)
+        steps_y = np.linspace(0, texture_height, COVER_GRID + 1)
+        centres = np.stack(np.meshgrid((steps_x[:-1] + steps_x[1:]) / 2, (steps_y[:-1] + steps_y[1:]) / 2), axis=-1).reshape(-1, 2)
+        nearest = np.stack([np.linalg.norm(centres[:, None] - points[None], axis=2).min(1) for _, points in pieces]).argmin(0)
+        half = np.array([texture_width, texture_height]) / COVER_GRID / 2
+        mapped = []
+        for index, (affine, _points) in enumerate(pieces):
+            cells = centres[nearest == index]
+            if not len(cells):
+                continue
+            corners = np.concatenate([cells + half * sign for sign in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+            mapped.append(corners @ affine[:, :2].T + affine[:, 2])
+        corners = np.concatenate(mapped)
+        outline = np.array([
+            max(corners[:, 0].min(), 0.0), max(corners[:, 1].min(), 0.0),
+            min(corners[:, 0].max(), float(width)), min(corners[:, 1].max(), float(height)),
+        ], np.float32)
+        return outline if outline[2] > outline[0] and outline[3] > outline[1] else None
+
+    def _coverage(self, texture_points: np.ndarray, label: int) -> float:
+        """The share of ``label``'s keypoint-bearing cells (``COVER_GRID``) that ``texture_points`` fall in."""
+        cells = self._cells[label]
+        if not len(cells):
+            return 0.0
+        texture_width, texture_height = self._features.sizes[label]
+        hit = np.intersect1d(_cell_index(texture_points, texture_width, texture_height), cells)
+        return float(len(hit)) / len(cells)
 
     def _outline(self, affine: np.ndarray, label: int, width: int, height: int) -> np.ndarray | None:
         """The class's texture outline mapped by ``affine`` into the image, clipped to the frame
@@ -558,11 +664,14 @@ class TextureCheck:
         ], np.float32)
         return outline if outline[2] > outline[0] and outline[3] > outline[1] else None
 
-    def _search(self, image_points, match_labels, texture_points, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-        """Sheets the texture alone finds over the whole image: (outlines (n, 4), class indices (n,))."""
+    def _search(self, image_points, match_labels, texture_points, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Sheets the texture alone finds over the whole image: (outlines (n, 4), class indices
+        (n,), evidence (n, len(FEATURES)) with the confirmation, inliers and coverage filled in)."""
         import cv2
 
-        found, found_labels = [], []
+        from workers.train.calibration import FEATURES
+
+        found, found_labels, found_evidence = [], [], []
         first_threshold = max(3.0, SEARCH_RANSAC_FRACTION * float(np.hypot(width, height)))
         for label in range(len(self.classes)):
             own = match_labels == label
@@ -591,10 +700,13 @@ class TextureCheck:
                     ):
                         found.append(outline)
                         found_labels.append(label)
+                        row = np.zeros(len(FEATURES), np.float32)
+                        row[1:4] = (1.0, np.log1p(int(inliers.sum())), self._coverage(sources[inliers], label))
+                        found_evidence.append(row)
                 points, sources = points[~inliers], sources[~inliers]
         if not found:
-            return np.zeros((0, 4), np.float32), np.zeros(0, np.int64)
-        return np.stack(found).astype(np.float32), np.array(found_labels, np.int64)
+            return np.zeros((0, 4), np.float32), np.zeros(0, np.int64), np.zeros((0, len(FEATURES)), np.float32)
+        return np.stack(found).astype(np.float32), np.array(found_labels, np.int64), np.stack(found_evidence)
 
 
 def _false_fit(affine: np.ndarray) -> bool:
@@ -620,12 +732,47 @@ def _network_score(found: np.ndarray, found_labels: np.ndarray, boxes, scores, l
     return np.where(overlap & same, scores[None, :], 0.0).max(1).astype(np.float32)
 
 
-def _merge(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray, confirmed: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Per-class NMS at ``NMS_IOU``: a corrected box and the box it now repeats are one (a
-    confirmed box outscores every unconfirmed one, so what is kept keeps its evidence)."""
+def _merge(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """The indices per-class NMS at ``NMS_IOU`` keeps, in order: a corrected box and the box it
+    now repeats are one (the better scored, which holds the evidence, is kept)."""
     import torch
     from torchvision.ops import batched_nms
 
     keep = batched_nms(torch.from_numpy(boxes), torch.from_numpy(scores), torch.from_numpy(labels), NMS_IOU).numpy()
     keep.sort()
-    return boxes[keep], scores[keep], labels[keep], confirmed[keep]
+    return keep
+
+
+def _one_per_sheet(boxes: np.ndarray, scores: np.ndarray, confirmed: np.ndarray) -> np.ndarray:
+    """The indices to keep so that each sheet is drawn once: a box is dropped where a better
+    scored box the texture confirmed covers ``PIECE_INSIDE`` of it (a piece of that sheet, or the
+    sheet named twice), whatever their classes."""
+    order = np.argsort(-scores, kind="stable")
+    areas = np.maximum(boxes[:, 2] - boxes[:, 0], 0) * np.maximum(boxes[:, 3] - boxes[:, 1], 0)
+    kept: list[int] = []
+    for index in order:
+        box = boxes[index]
+        inside = False
+        for other in kept:
+            if not confirmed[other]:
+                continue
+            width = min(box[2], boxes[other, 2]) - max(box[0], boxes[other, 0])
+            height = min(box[3], boxes[other, 3]) - max(box[1], boxes[other, 1])
+            if width > 0 and height > 0 and width * height >= PIECE_INSIDE * max(areas[index], 1e-6):
+                inside = True
+                break
+        if not inside:
+            kept.append(int(index))
+    return np.array(sorted(kept), np.int64)
+
+
+def _inside(points: np.ndarray, box) -> np.ndarray:
+    x0, y0, x1, y1 = box
+    return (points[:, 0] >= x0) & (points[:, 0] <= x1) & (points[:, 1] >= y0) & (points[:, 1] <= y1)
+
+
+def _cell_index(points: np.ndarray, width: int, height: int) -> np.ndarray:
+    """Each texture point's coverage cell (row-major over a ``COVER_GRID`` grid)."""
+    columns = np.clip((points[:, 0] / max(width, 1) * COVER_GRID).astype(np.int64), 0, COVER_GRID - 1)
+    rows = np.clip((points[:, 1] / max(height, 1) * COVER_GRID).astype(np.int64), 0, COVER_GRID - 1)
+    return rows * COVER_GRID + columns

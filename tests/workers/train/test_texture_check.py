@@ -187,7 +187,7 @@ def test_a_box_is_renamed_only_where_the_other_textures_matches_agree_on_a_map(c
     scattered = np.random.default_rng(1).permutation(agreeing)  # the same places, each matched to another texture point
     found = detections((box, 0.85, 0))  # called astronaut; every match inside is coffee's
     for points, renamed in ((scattered, False), (agreeing, True)):
-        monkeypatch.setattr(checker, "_matches", lambda gray, p=points: (p, np.ones(len(p), np.int64), texture_points))
+        monkeypatch.setattr(checker, "_keypoints_and_matches", lambda gray, p=points: (p, p, np.ones(len(p), np.int64), texture_points))
         checked = checker.apply(image, found)
         assert checked["labels"].tolist() == [1 if renamed else 0]
         assert checked["confirmed"].tolist() == [renamed]
@@ -239,7 +239,7 @@ def test_a_mirrored_or_squashed_fit_is_no_evidence(checker, scene, monkeypatch, 
     squashed = np.stack([upright[:, 0], y0 + texture_points[:, 1] * scale * flatness], axis=1)
     found = detections((box, 0.5, 0))
     for points, raised in ((upright, True), (mirrored, False), (squashed, flatness >= MIN_AXIS_RATIO)):
-        monkeypatch.setattr(checker, "_matches", lambda gray, p=points: (p, np.zeros(len(p), np.int64), texture_points))
+        monkeypatch.setattr(checker, "_keypoints_and_matches", lambda gray, p=points: (p, p, np.zeros(len(p), np.int64), texture_points))
         assert bool(checker.apply(image, found)["scores"][0] > 0.8) == raised
 
 
@@ -326,7 +326,7 @@ def test_the_search_refuses_a_mirrored_or_squashed_fit(searcher, scene, monkeypa
         (upright[:few], texture_points[:few], 0), (upright[: few + 1], texture_points[: few + 1], 1),
     ):
         matches = (points, np.zeros(len(points), np.int64), sources)
-        monkeypatch.setattr(searcher, "_matches", lambda gray, m=matches: m)
+        monkeypatch.setattr(searcher, "_keypoints_and_matches", lambda gray, m=matches: (m[0], *m))
         assert len(searcher.apply(image, detections())["scores"]) == sheets
 
 

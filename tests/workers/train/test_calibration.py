@@ -1,0 +1,129 @@
+"""Scores that mean something: the calibration learns how likely a detection is true from the
+network's score and the texture's evidence, travels in the checkpoint, and the texture check's
+evidence tells a sheet from a lookalike of its template and follows a creased sheet."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from workers.train import texture_check
+from workers.train.calibration import FEATURES, Calibration, fit
+from workers.train.texture_check import TextureCheck
+
+
+def test_fit_recovers_a_logistic_model_and_its_probabilities_are_calibrated():
+    rng = np.random.default_rng(0)
+    features = rng.normal(size=(4000, len(FEATURES)))
+    true_weights = np.array([1.5, 2.0, -1.0, 0.0, 0.5, 1.0])
+    probability = 1 / (1 + np.exp(-(0.3 + features @ true_weights)))
+    truths = rng.random(4000) < probability
+    fitted = fit(features, truths)
+    np.testing.assert_allclose(fitted.weights, true_weights, atol=0.25)
+    predicted = fitted.probability(features)
+    sure = predicted >= 0.8
+    # Of the detections scored 0.8 or more, at least as many are true as the scores promise.
+    assert truths[sure].mean() >= 0.8
+    assert abs(truths[sure].mean() - predicted[sure].mean()) < 0.03
+
+
+def test_a_calibration_round_trips_and_bad_records_are_named():
+    fitted = Calibration(weights=(1.0, 2.0, 0.5, 1.0, 0.1, 0.2), bias=-3.0, fitted_on="a set")
+    assert Calibration.from_dict(fitted.to_dict()) == fitted
+    with pytest.raises(ValueError, match="features"):
+        Calibration.from_dict({**fitted.to_dict(), "features": ["network"]})
+    with pytest.raises(ValueError, match="finite"):
+        Calibration(weights=(float("nan"),) * len(FEATURES), bias=0.0)
+    with pytest.raises(ValueError, match="malformed"):
+        Calibration.from_dict({"weights": [1.0]})
+    with pytest.raises(ValueError, match="both true and false"):
+        fit(np.zeros((3, len(FEATURES))), [True, True, True])
+
+
+def _page(seed: int, letterhead_seed: int = 0) -> np.ndarray:
+    """A 400x560 printed page: a letterhead and footer of ``letterhead_seed``'s template, and a
+    body of shapes of its own (``seed``)."""
+    page = np.full((560, 400, 3), 250, np.uint8)
+    template = np.random.default_rng(letterhead_seed)
+    for _ in range(25):  # letterhead and footer: the template's
+        y = int(template.choice([template.integers(10, 70), template.integers(500, 550)]))
+        x = int(template.integers(10, 380))
+        cv2.circle(page, (x, y), int(template.integers(3, 9)), tuple(int(v) for v in template.integers(0, 200, 3)), -1)
+    body = np.random.default_rng(100 + seed)
+    for _ in range(160):  # the body: the sheet's own
+        x, y = int(body.integers(10, 390)), int(body.integers(90, 480))
+        w, h = int(body.integers(3, 20)), int(body.integers(3, 12))
+        colour = tuple(int(v) for v in body.integers(0, 200, 3))
+        cv2.rectangle(page, (x, y), (x + w, y + h), colour, -1) if body.random() < 0.5 else cv2.circle(page, (x, y), w // 2 + 2, colour, -1)
+    return page
+
+
+def _placed(texture: np.ndarray, scale: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    image = np.full((360, 480, 3), 90, np.uint8)
+    affine = np.array([[scale, 0, 80], [0, scale, 30]], np.float64)
+    cv2.warpAffine(texture, affine, (480, 360), dst=image, borderMode=cv2.BORDER_TRANSPARENT)
+    h, w = texture.shape[:2]
+    return image, np.array([80, 30, 80 + w * scale, 30 + h * scale], np.float32)
+
+
+def test_a_lookalike_of_the_template_covers_less_of_the_texture_than_the_sheet():
+    sheet, lookalike = _page(seed=1), _page(seed=2)  # one template, other bodies
+    check = TextureCheck({"sheet": sheet}, ["sheet"])
+    coverages = []
+    for page in (sheet, lookalike):
+        image, box = _placed(page)
+        found = {"boxes": box[None], "scores": np.array([0.9], np.float32), "labels": np.array([0])}
+        evidence = check.apply(image, found, with_evidence=True)["evidence"][0]
+        coverages.append(evidence[FEATURES.index("coverage")])
+    assert coverages[0] > 0.5
+    assert coverages[1] < coverages[0] / 2
+
+
+def test_a_creased_sheet_is_followed_by_a_second_map(monkeypatch):
+    """A sheet folded across its middle (each half its own affine image, 40° apart): the box
+    takes both halves in, where the map of one half alone leaves the other out."""
+    texture = _page(seed=3)
+    image = np.full((360, 480, 3), 90, np.uint8)
+    top, bottom = texture[:280], texture[280:]
+    first = np.array([[0.45, 0.0, 40.0], [0.0, 0.45, 10.0]])
+    fold = cv2.getRotationMatrix2D((0, 0), 40, 0.45)
+    fold[:, 2] = (40.0, 10.0 + 126.0)
+    for half, affine in ((top, first), (bottom, fold)):
+        cv2.warpAffine(half, affine, (480, 360), dst=image, borderMode=cv2.BORDER_TRANSPARENT)
+    corners = np.array([[0, 0, 1], [400, 0, 1], [400, 280, 1], [0, 280, 1]], np.float64)
+    extent = np.vstack([corners @ first.T, corners @ fold.T])
+    truth = np.array([extent[:, 0].min(), extent[:, 1].min(), extent[:, 0].max(), extent[:, 1].max()], np.float32)
+    found = {"boxes": truth[None], "scores": np.array([0.9], np.float32), "labels": np.array([0])}
+
+    def reach(check) -> float:
+        checked = check.apply(image, found, with_evidence=True)
+        assert checked["confirmed"].tolist() == [True]
+        return _iou(checked["boxes"][0], truth)
+
+    followed = reach(TextureCheck({"sheet": texture}, ["sheet"]))
+    monkeypatch.setattr(texture_check, "LOCAL_MAPS", 1)
+    one_map = reach(TextureCheck({"sheet": texture}, ["sheet"]))
+    assert followed > one_map + 0.05, (followed, one_map)
+
+
+def _iou(a, b) -> float:
+    import torch
+    from torchvision.ops import box_iou
+
+    return float(box_iou(torch.as_tensor(np.asarray(a, np.float32))[None], torch.as_tensor(np.asarray(b, np.float32))[None]))
+
+
+def test_one_box_per_sheet_drops_a_piece_and_another_name_inside_a_confirmed_sheet():
+    texture = _page(seed=4)
+    check = TextureCheck({"sheet": texture, "other": _page(seed=5, letterhead_seed=9)}, ["sheet", "other"])
+    image, box = _placed(texture)
+    x0, y0, x1, y1 = box
+    piece = [x0 + 10, (y0 + y1) / 2, x1 - 10, y1 - 5]  # a piece the network boxed on its own
+    found = {
+        "boxes": np.array([box, piece, box + 2], np.float32),
+        "scores": np.array([0.9, 0.85, 0.8], np.float32),
+        "labels": np.array([0, 0, 1]),  # the third: the sheet named as the other class
+    }
+    checked = check.apply(image, found)
+    assert len(checked["boxes"]) == 1 and checked["labels"].tolist() == [0]
