@@ -414,3 +414,21 @@ def test_detect_names_a_json_file_it_cannot_write(trained, dataset, tmp_path):
     )
     assert result.exit_code == 1 and f"cannot write {blocked / 'd.json'}" in result.output
     assert (tmp_path / "d" / Path(image).with_suffix(".png").name).is_file()  # the drawn copies are kept
+
+
+def test_calibrate_refuses_a_model_without_textures_and_a_recorded_calibration_is_read_back(trained, dataset, tmp_path):
+    """foldwise calibrate needs the texture evidence it calibrates (a one-line error without it);
+    a calibration written into a checkpoint or an ensemble comes back with the detector it loads."""
+    from workers.train.calibration import FEATURES, Calibration
+    from workers.train.checkpoint import load_detector, save_ensemble, write_calibration
+
+    faster = trained["checkpoints"]["faster_rcnn"]
+    result = runner.invoke(make_app(), ["calibrate", "--model", str(faster), "--data", str(dataset), "--out", str(tmp_path / "c.pt")])
+    assert result.exit_code == 1 and "carries no textures" in result.output and "Traceback" not in result.output
+    assert not (tmp_path / "c.pt").exists()
+    calibration = Calibration(weights=tuple(float(i) for i in range(len(FEATURES))), bias=-1.0, fitted_on="labelled photographs")
+    single = write_calibration(faster, calibration, tmp_path / "single.pt")
+    assert load_detector(single).calibration == calibration
+    assert load_detector(faster).calibration is None  # the source is left as it was
+    pair = write_calibration(save_ensemble([faster, faster], tmp_path / "pair.pt"), calibration, tmp_path / "pair.pt")
+    assert load_detector(pair).calibration == calibration
