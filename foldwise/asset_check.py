@@ -57,9 +57,13 @@ def asset_path(folder: Path | str, what: str) -> Path:
             path = path.expanduser()
         except RuntimeError:  # pathlib's word for "no such user"
             user = text[1:].split(os.sep, 1)[0]
-            raise AssetError(f"assets.{what}: {_shown(text)}: there is no user {user!r} on this server to expand ~{user}") from None
+            raise AssetError(
+                f"assets.{what}: {_shown(text)}: there is no user {user!r} on this server to expand ~{user}"
+            ) from None
         if len(str(path)) > MAX_PATH_CHARS:
-            raise AssetError(f"assets.{what}: {_shown(text)} is {len(str(path)):,} characters once ~ is expanded; at most {MAX_PATH_CHARS}")
+            raise AssetError(
+                f"assets.{what}: {_shown(text)} is {len(str(path)):,} characters once ~ is expanded; at most {MAX_PATH_CHARS}"
+            )
     for part in path.parts:
         if len(os.fsencode(part)) > MAX_NAME_BYTES:
             raise AssetError(
@@ -104,12 +108,16 @@ def check_image_file(path: Path, what: str) -> tuple[int, int]:
         width = height = None
         content = None
     except Exception as error:  # UnidentifiedImageError, OSError, SyntaxError; a hostile file may raise anything
-        raise AssetError(f"assets.{what}: {str(path)!r} is not a readable image ({type(error).__name__}: {error})") from None
+        raise AssetError(
+            f"assets.{what}: {str(path)!r} is not a readable image ({type(error).__name__}: {error})"
+        ) from None
     expected = SUFFIX_FORMATS[path.suffix.lower()]
     if content is not None and content not in expected:
         # The renderer decodes with OpenCV, which reads no GIF and trusts no name: a file that is
         # not what its name says is a mistake to fix here, not a θ that fails later.
-        raise AssetError(f"assets.{what}: {str(path)!r} holds a {content} image, not {'/'.join(sorted(expected))} as its name says")
+        raise AssetError(
+            f"assets.{what}: {str(path)!r} holds a {content} image, not {'/'.join(sorted(expected))} as its name says"
+        )
     if width is None or width * height > MAX_PIXELS:
         raise AssetError(f"assets.{what}: {str(path)!r} is larger than {MAX_PIXELS:,} pixels")
     if min(width, height) < MIN_SIDE[what]:
@@ -146,7 +154,9 @@ def check_asset_roots(config, roots: list[Path], uploads: Path | None = None) ->
             )
         if not any(real == root or root in real.parents for root in roots):
             allowed = ", ".join(str(root) for root in roots)
-            raise AssetError(f"assets.{what}: {str(folder)!r} is outside the asset roots of this server ({allowed}){upload_hint}")
+            raise AssetError(
+                f"assets.{what}: {str(folder)!r} is outside the asset roots of this server ({allowed}){upload_hint}"
+            )
 
 
 def check_class_names(files: list[Path]) -> None:

@@ -73,7 +73,9 @@ class _StrictLoader(yaml.SafeLoader):
         # doubles the work, 23 lines took 21 s. A config has no use for it.
         for key_node, _ in node.value:
             if key_node.tag == MERGE_TAG:
-                raise DocumentError(f"YAML merge keys (<<) are not accepted: write the keys out {_at(key_node.start_mark)}")
+                raise DocumentError(
+                    f"YAML merge keys (<<) are not accepted: write the keys out {_at(key_node.start_mark)}"
+                )
         super().flatten_mapping(node)
 
     def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
@@ -109,7 +111,11 @@ for _name, _pattern, _first in (
     ("bool", r"true|True|TRUE|false|False|FALSE", "tTfF"),
     # Decimal (underscores between digits, as PyYAML read them), 0o octal, 0x hexadecimal.
     ("int", r"[-+]?[0-9]+(?:_[0-9]+)*|0o[0-7]+|0x[0-9a-fA-F]+", "-+0123456789"),
-    ("float", r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)", "-+0123456789."),
+    (
+        "float",
+        r"[-+]?(?:\.[0-9]+|[0-9]+(?:\.[0-9]*)?)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)",
+        "-+0123456789.",
+    ),
 ):
     _StrictLoader.add_implicit_resolver(f"tag:yaml.org,2002:{_name}", re.compile(f"^(?:{_pattern})$"), list(_first))
 _StrictLoader.add_constructor("tag:yaml.org,2002:int", _StrictLoader.construct_core_int)
@@ -151,7 +157,9 @@ def check_nesting(data: Any) -> None:
             continue
         if len(node) > MAX_NODES:
             raise DocumentError(TOO_LARGE)  # before listing a huge list's children
-        children = [c for c in (node.values() if isinstance(node, dict) else node) if isinstance(c, (dict, list, tuple))]
+        children = [
+            c for c in (node.values() if isinstance(node, dict) else node) if isinstance(c, (dict, list, tuple))
+        ]
         pending = [c for c in children if id(c) not in heights]
         if id(node) in in_progress or not pending:
             if any(id(c) in in_progress for c in pending):

@@ -21,6 +21,14 @@ class ErrorDetail(BaseModel):
     detail: str = Field(description="what was wrong, naming the id, key or header at fault")
 
 
+class InvalidInput(BaseModel):
+    """A 422: one line from the route (a bad body), or FastAPI's list of the parameters at fault."""
+
+    detail: str | list[dict[str, Any]] = Field(
+        description="what was wrong: a message naming the key or file, or one entry per bad parameter"
+    )
+
+
 class ExperimentListItem(_Shape):
     id: int
     name: str
@@ -166,7 +174,9 @@ class BrokerState(_Shape):
 class QueueStatus(BaseModel):
     broker: BrokerState
     queues: dict[str, int] = Field(description="messages waiting in the render and train queues")
-    unacked: int = Field(description="messages delivered to a worker and not yet acknowledged: running, or reserved by a worker")
+    unacked: int = Field(
+        description="messages delivered to a worker and not yet acknowledged: running, or reserved by a worker"
+    )
     workers: list[str] = Field(description="hostnames of the workers that answered a ping")
     ping_timeout_s: float
 

@@ -34,9 +34,8 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
     import cv2
     import numpy as np
 
-    from workers.train.checkpoint import detect_object, detection_records
-
     from foldwise.images import ImageError, image_size
+    from workers.train.checkpoint import detect_object, detection_records
 
     started = time.perf_counter()
     try:
@@ -67,6 +66,8 @@ def detect_image(checkpoint: str, image: bytes, score_threshold: float = 0.0) ->
         "members": len(detector.meta.get("members", ())) or 1,  # an ensemble file's detectors
         "texture_check": check is not None,
         "texture_search": check is not None and check.search,
+        # Whether the scores are calibrated (foldwise calibrate): the chance each box is true.
+        "calibrated": check is not None and check.calibration is not None,
     }
 
 

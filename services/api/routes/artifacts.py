@@ -69,9 +69,7 @@ async def experiment_report(
         files = write_report(experiment_id, folder)
         return {"png": files.png, "csv": files.csv}
 
-    folder, files = await drawings.drawn(
-        experiment_id, "report", lambda: drawings.report_content(experiment_id), draw
-    )
+    folder, files = await drawings.drawn(experiment_id, "report", lambda: drawings.report_content(experiment_id), draw)
     path = folder / files[extension]
     media_type = "image/png" if extension == "png" else "text/csv"
     return FileResponse(path, media_type=media_type, filename=path.name)
@@ -120,7 +118,9 @@ def _require_kind(session, experiment_id: int, kind: str) -> None:
     """409 unless the experiment is of ``kind`` (its route reads what only that kind records)."""
     config = ExperimentConfig.model_validate(queries.get_experiment(session, experiment_id).config)
     if config.kind != kind:
-        raise HTTPException(status.HTTP_409_CONFLICT, f"experiment {experiment_id} is of kind {config.kind}, not {kind}")
+        raise HTTPException(
+            status.HTTP_409_CONFLICT, f"experiment {experiment_id} is of kind {config.kind}, not {kind}"
+        )
 
 
 @router.get(

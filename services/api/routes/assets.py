@@ -27,7 +27,7 @@ from starlette.datastructures import UploadFile
 
 from foldwise import store
 from services.api.deps import TokenRequired
-from services.api.schemas import WRITE_ERRORS, ErrorDetail
+from services.api.schemas import WRITE_ERRORS, ErrorDetail, InvalidInput
 
 # Bounds on one upload: a print photographed at 24 Mpixel is ~10 MB as JPEG.
 MAX_FILES = 200
@@ -95,8 +95,14 @@ def _as_sent(error: Exception, staging: Path) -> HTTPException:
     responses={
         **WRITE_ERRORS,
         400: {"model": ErrorDetail, "description": "a multipart body that does not parse"},
-        413: {"model": ErrorDetail, "description": f"a file over {MAX_FILE_BYTES >> 20} MiB or an upload over {MAX_UPLOAD_BYTES >> 20} MiB"},
-        422: {"model": ErrorDetail, "description": "no files, or a file that is not a usable image; the message names it"},
+        413: {
+            "model": ErrorDetail,
+            "description": f"a file over {MAX_FILE_BYTES >> 20} MiB or an upload over {MAX_UPLOAD_BYTES >> 20} MiB",
+        },
+        422: {
+            "model": InvalidInput,
+            "description": "no files, or a file that is not a usable image; the message names it",
+        },
     },
 )
 async def upload_assets(kind: Literal["objects", "backgrounds", "occluders"], request: Request) -> dict[str, Any]:
@@ -119,7 +125,9 @@ def _keep(kind: str, files: list[UploadFile]) -> dict[str, Any]:
     from foldwise.asset_check import AssetError, check_class_names, check_image_file  # Pillow only
 
     if len(files) > MAX_FILES:
-        raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"{len(files)} files: at most {MAX_FILES} per upload")
+        raise HTTPException(
+            status.HTTP_422_UNPROCESSABLE_CONTENT, f"{len(files)} files: at most {MAX_FILES} per upload"
+        )
     names = [_file_name(upload) for upload in files]
     seen: set[str] = set()
     for name in names:
@@ -136,16 +144,22 @@ def _keep(kind: str, files: list[UploadFile]) -> dict[str, Any]:
             payload = upload.file.read(MAX_FILE_BYTES + 1)
             total += len(payload)
             if len(payload) > MAX_FILE_BYTES:
-                raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"file {name!r} is larger than {MAX_FILE_BYTES >> 20} MiB")
+                raise HTTPException(
+                    status.HTTP_413_CONTENT_TOO_LARGE, f"file {name!r} is larger than {MAX_FILE_BYTES >> 20} MiB"
+                )
             if total > MAX_UPLOAD_BYTES:
-                raise HTTPException(status.HTTP_413_CONTENT_TOO_LARGE, f"the upload is larger than {MAX_UPLOAD_BYTES >> 20} MiB")
+                raise HTTPException(
+                    status.HTTP_413_CONTENT_TOO_LARGE, f"the upload is larger than {MAX_UPLOAD_BYTES >> 20} MiB"
+                )
             path = staging / name
             path.write_bytes(payload)
             try:
                 width, height = check_image_file(path, kind)
             except AssetError as error:
                 raise _as_sent(error, staging) from None
-            described.append({"name": name, "sha256": hashlib.sha256(payload).hexdigest(), "width": width, "height": height})
+            described.append(
+                {"name": name, "sha256": hashlib.sha256(payload).hexdigest(), "width": width, "height": height}
+            )
         if kind == "objects":
             try:
                 check_class_names(sorted(staging.iterdir()))

@@ -28,7 +28,7 @@ from db.models import Model, ModelStatus
 from foldwise import store
 from foldwise.images import ImageError, image_size
 from services.api.deps import ModelId, SessionDep, TokenRequired
-from services.api.schemas import NOT_FOUND, WRITE_ERRORS, ErrorDetail
+from services.api.schemas import NOT_FOUND, WRITE_ERRORS, ErrorDetail, InvalidInput
 
 # A rendered or photographed picture of one sheet is well under this.
 MAX_IMAGE_BYTES = 8 << 20
@@ -99,11 +99,17 @@ class Detections(BaseModel):
     threshold: float
     seconds: float = Field(description="time the worker took (decoding included)")
     texture_check: bool = Field(
-        default=False, description="whether the detector's texture check ran on the network's detections (detector.texture_check)"
+        default=False,
+        description="whether the detector's texture check ran on the network's detections (detector.texture_check)",
     )
     texture_search: bool = Field(
         default=False,
         description="whether the texture also searched the whole image for sheets the network missed (detector.texture_search)",
+    )
+    calibrated: bool = Field(
+        default=False,
+        description="whether the scores are calibrated (`foldwise calibrate`, or the default calibration): "
+        "each is the chance its box is true",
     )
 
 
@@ -128,7 +134,7 @@ class StudyDetectResult(Detections):
         **IMAGE_ERRORS,
         409: {"model": ErrorDetail, "description": "the model has no checkpoint (not trained, or failed)"},
         422: {
-            "model": ErrorDetail,
+            "model": InvalidInput,
             "description": f"the body is not a PNG or JPEG image that decodes, or its header claims more than "
             f"{MAX_IMAGE_PIXELS:,} pixels (the message names its size)",
         },
@@ -278,7 +284,7 @@ async def _read_image(request: Request) -> bytes:
         **IMAGE_ERRORS,
         404: {"model": ErrorDetail, "description": "the study has no ensemble file in the artifact store"},
         422: {
-            "model": ErrorDetail,
+            "model": InvalidInput,
             "description": f"a study name that is no folder name, a body that is not an image, or an image of more "
             f"than {MAX_IMAGE_PIXELS:,} pixels",
         },

@@ -22,6 +22,7 @@ from services.api.schemas import (
     ExperimentListItem,
     ExperimentSummary,
     HistoryEntry,
+    InvalidInput,
     StageSummary,
 )
 
@@ -162,7 +163,7 @@ def list_experiments(
         **WRITE_ERRORS,
         413: {"model": ErrorDetail, "description": "the body is larger than 1 MiB"},
         415: {"model": ErrorDetail, "description": "not JSON or YAML"},
-        422: {"model": ErrorDetail, "description": "an invalid config; the message names the key"},
+        422: {"model": InvalidInput, "description": "an invalid config; the message names the key"},
     },
 )
 def create_experiment(
@@ -182,7 +183,9 @@ def create_experiment(
     try:
         from foldwise import store
 
-        check_asset_roots(config.assets, request.app.state.settings.asset_root_paths, uploads=store.uploaded_assets_root())
+        check_asset_roots(
+            config.assets, request.app.state.settings.asset_root_paths, uploads=store.uploaded_assets_root()
+        )
         validate_assets(config.assets)  # asset folders on this server, checked once before anything is recorded
     except AssetError as error:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error)) from None

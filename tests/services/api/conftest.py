@@ -66,15 +66,33 @@ def seeded(database_url) -> dict:
             started_at=T0,
         )
         finished = Experiment(
-            name="done", config=config.model_dump(mode="json"), seed=1, status=ExperimentStatus.finished,
-            started_at=T0, finished_at=T0 + timedelta(hours=1),
+            name="done",
+            config=config.model_dump(mode="json"),
+            seed=1,
+            status=ExperimentStatus.finished,
+            started_at=T0,
+            finished_at=T0 + timedelta(hours=1),
         )
         session.add_all([experiment, finished])
         session.flush()
-        easy = Stage(experiment_id=experiment.id, order=0, condition="fb", difficulty="easy", status=StageStatus.done,
-                     end_reason=StageEndReason.plateau, started_at=T0, finished_at=T0 + timedelta(seconds=35))
-        medium = Stage(experiment_id=experiment.id, order=1, condition="fb", difficulty="medium",
-                       status=StageStatus.running, started_at=T0 + timedelta(seconds=35))
+        easy = Stage(
+            experiment_id=experiment.id,
+            order=0,
+            condition="fb",
+            difficulty="easy",
+            status=StageStatus.done,
+            end_reason=StageEndReason.plateau,
+            started_at=T0,
+            finished_at=T0 + timedelta(seconds=35),
+        )
+        medium = Stage(
+            experiment_id=experiment.id,
+            order=1,
+            condition="fb",
+            difficulty="medium",
+            status=StageStatus.running,
+            started_at=T0 + timedelta(seconds=35),
+        )
         session.add_all([easy, medium])
         session.flush()
 
@@ -84,19 +102,30 @@ def seeded(database_url) -> dict:
         plan = [(easy, 1, 0.40), (easy, 2, 0.70), (easy, 3, 0.60), (medium, 1, 0.65), (medium, 2, None)]
         for arrival, (stage, k, score) in enumerate(plan, start=1):
             model = Model(
-                experiment_id=experiment.id, stage_id=stage.id, increment=k, parent_id=parent, detector="faster_rcnn",
-                status=ModelStatus.evaluated if score is not None else ModelStatus.training, iterations=100,
+                experiment_id=experiment.id,
+                stage_id=stage.id,
+                increment=k,
+                parent_id=parent,
+                detector="faster_rcnn",
+                status=ModelStatus.evaluated if score is not None else ModelStatus.training,
+                iterations=100,
                 checkpoint_path=f"checkpoints/{stage.order}/{k}.pt" if score is not None else None,
-                train_seconds=5.0 * k if score is not None else None, attempts=1,
+                train_seconds=5.0 * k if score is not None else None,
+                attempts=1,
             )
             session.add(model)
             session.flush()
             if score is not None:
-                session.add(Evaluation(
-                    model_id=model.id, map=score, map_unthresholded=score + 0.05,
-                    details={"fb": {"easy": score}}, eval_seconds=1.5,
-                    created_at=T0 + timedelta(seconds=10 * arrival),
-                ))
+                session.add(
+                    Evaluation(
+                        model_id=model.id,
+                        map=score,
+                        map_unthresholded=score + 0.05,
+                        details={"fb": {"easy": score}},
+                        eval_seconds=1.5,
+                        created_at=T0 + timedelta(seconds=10 * arrival),
+                    )
+                )
             models.append(model)
             parent = model.id
         easy.best_model_id = models[1].id
@@ -104,16 +133,38 @@ def seeded(database_url) -> dict:
 
         # Two rendered training θ for (stage 0, k = 1) and one test θ still queued.
         for index, seconds in enumerate([1.5, 2.5]):
-            session.add(ParameterSet(
-                experiment_id=experiment.id, key=f"train/0/1/{index}", split=Split.train, stage_id=easy.id,
-                increment=1, index=index, condition="fb", difficulty="easy", seed=index, theta={"fb": 0.5},
-                status=RenderStatus.rendered, render_seconds=seconds, image_path=f"images/{index}.png",
-                box=[1, 2, 30, 40], label=0,
-            ))
-        session.add(ParameterSet(
-            experiment_id=experiment.id, key="test/fb/easy/0", split=Split.test, index=0, condition="fb",
-            difficulty="easy", seed=99, theta={"fb": 0.6}, status=RenderStatus.queued,
-        ))
+            session.add(
+                ParameterSet(
+                    experiment_id=experiment.id,
+                    key=f"train/0/1/{index}",
+                    split=Split.train,
+                    stage_id=easy.id,
+                    increment=1,
+                    index=index,
+                    condition="fb",
+                    difficulty="easy",
+                    seed=index,
+                    theta={"fb": 0.5},
+                    status=RenderStatus.rendered,
+                    render_seconds=seconds,
+                    image_path=f"images/{index}.png",
+                    box=[1, 2, 30, 40],
+                    label=0,
+                )
+            )
+        session.add(
+            ParameterSet(
+                experiment_id=experiment.id,
+                key="test/fb/easy/0",
+                split=Split.test,
+                index=0,
+                condition="fb",
+                difficulty="easy",
+                seed=99,
+                theta={"fb": 0.6},
+                status=RenderStatus.queued,
+            )
+        )
         session.commit()
         return {
             "experiment": experiment.id,

@@ -173,7 +173,11 @@ def test_an_upload_without_length_is_413_once_past_its_limit(app, monkeypatch):
 
 def test_a_declared_length_over_the_limit_is_413_before_any_byte_is_read(app):
     response = call_asgi(
-        app, "POST", "/experiments", {**AUTH, "content-type": "application/yaml", "content-length": str(1 << 30)}, _endless()
+        app,
+        "POST",
+        "/experiments",
+        {**AUTH, "content-type": "application/yaml", "content-length": str(1 << 30)},
+        _endless(),
     )
     assert response.status == 413 and response.chunks_read == 0
 
@@ -206,7 +210,9 @@ def test_every_write_route_needs_the_token(app):
 @pytest.mark.parametrize("headers", [{}, {"authorization": "Bearer wrong"}, {"authorization": "Basic eDp5"}])
 def test_no_write_route_reads_a_byte_of_the_body_without_the_token(app, database_url, headers):
     for method, path in _write_routes(app):
-        response = call_asgi(app, method, path, {**headers, "content-type": "multipart/form-data; boundary=x"}, _endless())
+        response = call_asgi(
+            app, method, path, {**headers, "content-type": "multipart/form-data; boundary=x"}, _endless()
+        )
         assert response.status == 401, (method, path, response.status, response.body)
         assert response.body_bytes_read == 0, (method, path)
     assert _upload_root_entries() == [] and experiment_count(database_url) == 0
@@ -371,7 +377,11 @@ class HeldReply:
 
 @pytest.fixture
 def held_worker(monkeypatch):
+    import workers.app
     from services.api.routes import detect
+
+    previous = workers.app.app.conf.task_always_eager
+    workers.app.use_eager(False)  # whatever an earlier test left
 
     class Reply(HeldReply):
         made = 0
@@ -381,7 +391,8 @@ def held_worker(monkeypatch):
 
     monkeypatch.setattr(detect, "_publish", Reply)
     monkeypatch.setattr(detect, "REPLY_TIMEOUT_S", 3.0)
-    return Reply
+    yield Reply
+    workers.app.use_eager(previous)
 
 
 def _detect_crowd(app, replies, count: int = 45, answer: bool = False):
@@ -392,7 +403,10 @@ def _detect_crowd(app, replies, count: int = 45, answer: bool = False):
         async with httpx.AsyncClient(transport=transport, base_url="http://api", timeout=60) as client:
             headers = {**AUTH, "Content-Type": "image/png"}
             started = time.perf_counter()
-            crowd = [asyncio.create_task(client.post(f"/studies/s{i}/detect", content=png, headers=headers)) for i in range(count)]
+            crowd = [
+                asyncio.create_task(client.post(f"/studies/s{i}/detect", content=png, headers=headers))
+                for i in range(count)
+            ]
             assert await asyncio.to_thread(replies.all_sent.wait, 30)
             latencies = []
             for _ in range(5):
@@ -473,9 +487,14 @@ def test_detect_messages_expire_when_the_request_stops_waiting(database_url, red
     png = png_claiming(64, 64)
 
     async def scenario():
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://api", timeout=30) as client:
+        async with httpx.AsyncClient(
+            transport=httpx.ASGITransport(app=app), base_url="http://api", timeout=30
+        ) as client:
             headers = {**AUTH, "Content-Type": "image/png"}
-            crowd = [asyncio.create_task(client.post(f"/studies/s{i}/detect", content=png, headers=headers)) for i in range(20)]
+            crowd = [
+                asyncio.create_task(client.post(f"/studies/s{i}/detect", content=png, headers=headers))
+                for i in range(20)
+            ]
             began = time.perf_counter()
             health = await client.get("/health")
             latency = time.perf_counter() - began
