@@ -64,7 +64,11 @@ def figure_content(experiment_id: int, name: str) -> str:
     """What figure ``name`` draws for one experiment, hashed (queries.NotFound if it does not exist)."""
     from services.figures import load_runs
 
-    return _digest({"figure": name, "runs": [asdict(run) for run in load_runs([experiment_id])]})
+    runs = [asdict(run) for run in load_runs([experiment_id])]
+    for run in runs:
+        # A running stage's seconds grow with the clock; no figure draws them.
+        run["stages"] = [{key: value for key, value in stage.items() if key != "seconds"} for stage in run["stages"]]
+    return _digest({"figure": name, "runs": runs})
 
 
 def _drawn_folder(experiment_id: int, name: str, digest: str) -> Path:
