@@ -622,3 +622,24 @@ def test_names_refuse_c1_controls_and_bidi_overrides(client, database_url, chara
     detect = client.post(f"/studies/{name}/detect", content=b"x", headers={**AUTH, "Content-Type": "image/png"})
     assert detect.status_code == 422
     assert experiment_count(database_url) == 0
+
+
+def test_a_figure_of_a_running_stage_is_not_redrawn_as_the_clock_moves(client, seeded, monkeypatch):
+    import services.figures
+
+    drawn = []
+
+    def fake_figures(experiment_ids, out_dir, names):
+        drawn.append(names)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        paths = [out_dir / f"{names[0]}-experiments-{experiment_ids[0]}.{suffix}" for suffix in ("png", "svg", "csv")]
+        for path in paths:
+            path.write_bytes(b"drawn")
+        return {names[0]: paths}
+
+    monkeypatch.setattr(services.figures, "write_figures", fake_figures)
+    url = f"/experiments/{seeded['experiment']}/figures/fig4"
+    first = client.get(f"{url}.png")
+    later = [client.get(f"{url}.{suffix}") for suffix in ("png", "svg", "csv")]  # the stage's seconds have grown
+    assert first.status_code == 200 and all(r.status_code == 200 for r in later)
+    assert drawn == [("fig4",)]
