@@ -204,7 +204,7 @@ async def _ask_worker(checkpoint: str, image: bytes, threshold: float) -> dict[s
         loop = asyncio.get_running_loop()
         deadline = loop.time() + REPLY_TIMEOUT_S
         pause = FIRST_POLL_S
-        while not await run_in_threadpool(reply.ready):
+        while not await run_in_threadpool(_ready, reply):
             left = deadline - loop.time()
             if left <= 0:
                 raise HTTPException(
@@ -220,7 +220,21 @@ async def _ask_worker(checkpoint: str, image: bytes, threshold: float) -> dict[s
                 status.HTTP_502_BAD_GATEWAY, f"the detect worker failed: {type(error).__name__}: {error}"
             ) from None
     finally:
-        await run_in_threadpool(reply.forget)
+        try:
+            await run_in_threadpool(reply.forget)
+        except Exception:  # a lost broker keeps the reply until result_expires: nothing to answer for
+            pass
+
+
+def _ready(reply) -> bool:
+    """Whether the reply has come; a 503 when the result backend (the broker) stops answering."""
+    try:
+        return reply.ready()
+    except Exception as error:
+        raise HTTPException(
+            status.HTTP_503_SERVICE_UNAVAILABLE,
+            f"the broker stopped answering while the detect waited: {' '.join(str(error).split())[:300]}",
+        ) from None
 
 
 def _run_here(args: list) -> dict[str, Any]:

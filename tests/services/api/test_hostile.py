@@ -643,3 +643,19 @@ def test_a_figure_of_a_running_stage_is_not_redrawn_as_the_clock_moves(client, s
     later = [client.get(f"{url}.{suffix}") for suffix in ("png", "svg", "csv")]  # the stage's seconds have grown
     assert first.status_code == 200 and all(r.status_code == 200 for r in later)
     assert drawn == [("fig4",)]
+
+
+def test_a_broker_lost_while_a_detect_waits_is_a_503(app, held_worker, monkeypatch):
+    class Lost(held_worker):
+        def ready(self) -> bool:
+            raise ConnectionError("Connection refused")
+
+        def forget(self) -> None:
+            raise ConnectionError("Connection refused")
+
+    import services.api.routes.detect as detect
+
+    monkeypatch.setattr(detect, "_publish", Lost)
+    response = asyncio.run(_post_image(app, "/studies/s/detect", png_claiming(64, 64)))
+    assert response.status_code == 503 and "broker stopped answering" in response.json()["detail"], response.text
+    assert getattr(app.state, "detects_in_flight", 0) == 0
