@@ -62,6 +62,10 @@ def main(argv=None) -> dict:
     parser.add_argument("--iou", type=float, default=0.5)
     parser.add_argument("--out", type=Path)
     parser.add_argument("--write-model", type=Path, help="write the model with the fitted calibration recorded in it")
+    parser.add_argument(
+        "--ship", action="store_true",
+        help="write the fitted calibration as the one foldwise ships (workers/train/calibration.json, detector.calibration: shipped)",
+    )
     args = parser.parse_args(argv)
 
     from bench.keypoint_baseline import KeypointBaseline
@@ -115,6 +119,13 @@ def main(argv=None) -> dict:
             "keypoint_baseline": _scores(keypoints, pick(truth), classes, pick(groups), args.threshold, args.iou, baseline_seconds),
         }
     report["machine"] = machine()
+    if args.ship:
+        import json
+
+        from workers.train.calibration import SHIPPED
+
+        SHIPPED.write_text(json.dumps(calibration.to_dict(), indent=2) + "\n", encoding="utf-8")
+        report["shipped"] = str(SHIPPED.relative_to(ROOT))
     if args.write_model:
         from workers.train.checkpoint import save_ensemble, write_calibration
 

@@ -1204,10 +1204,19 @@ def main(argv=None) -> dict:
 
 
 def machine() -> dict:
-    """The CPU, its core count and Python's version, for a report's ``machine``."""
+    """The CPU, its core count, Python's version, the date and the commit, for a report's ``machine``."""
+    import datetime
+
     from bench.render import cpu_model
 
-    return {"cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version()}
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        commit = None
+    return {
+        "cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(),
+        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "commit": commit,
+    }
 
 
 def write_report(report: dict, out: Path | None) -> dict:

@@ -291,7 +291,9 @@ def _find(report: dict[str, Any], *keys: str) -> Any:
 
 
 def _headline(report: dict[str, Any]) -> str:
-    """The figures a result exists for, in one cell."""
+    """The figures a result exists for, in one cell (a report's own ``headline`` where it writes one)."""
+    if isinstance(report.get("headline"), str):
+        return report["headline"]
     if report.get("benchmark") == "faults":
         faults = report.get("faults", {})
         parts = [f"{name} {fault['seconds_to_recovery']:.1f} s" for name, fault in sorted(faults.items())]

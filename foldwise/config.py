@@ -408,6 +408,13 @@ class DetectorConfig(_Section):
     # sheet found is a detection confirmed as the check confirms one. Off: only the network's
     # boxes are checked.
     texture_search: bool = False
+    # How the texture check scores each detection. ``tiers``: boxes the texture confirmed score
+    # 0.9 or more, the others keep their side of the 0.8 cut. ``shipped``: the score is the chance
+    # the box is true, read from the network's score and the texture's evidence by the calibration
+    # foldwise ships (workers/train/calibration.json, fitted by bench/calibrate.py on one half of
+    # its out-of-domain sets), recorded in every checkpoint trained with it. `foldwise calibrate`
+    # fits one on your own labelled photographs instead.
+    calibration: Literal["tiers", "shipped"] = "tiers"
     augmentation: AugmentationConfig = AugmentationConfig()
 
     @model_validator(mode="after")
@@ -426,6 +433,8 @@ class DetectorConfig(_Section):
             raise ValueError("test_turns: only read by the R-CNN families")
         if self.texture_search and not self.texture_check:
             raise ValueError("texture_search: searches with the texture check's textures; set texture_check: true too")
+        if self.calibration != "tiers" and not self.texture_check:
+            raise ValueError("calibration: calibrates the texture check's scores; set texture_check: true too")
         if self.family == "yolo" and self.view_vote is not None:
             raise ValueError("view_vote: only read by the R-CNN families (yolo detects at one view)")
         return self

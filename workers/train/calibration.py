@@ -26,12 +26,16 @@ read back by ``detect_object``, the REST answer and the ONNX export's metadata.
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
 
 import numpy as np
 
+SHIPPED = Path(__file__).with_name("calibration.json")  # detector.calibration: shipped
 FEATURES = ("network", "confirmed", "inliers", "coverage", "keypoints", "match_share")
 SCORE_EPSILON = 1e-4  # network scores are clipped to [ε, 1 − ε] before their logit
 # A ridge on the weights (not the bias): where the true and false detections of a small set are
@@ -76,6 +80,12 @@ class Calibration:
             )
         except (KeyError, TypeError) as error:
             raise ValueError(f"calibration: malformed record ({error!r})") from None
+
+
+@lru_cache(maxsize=1)
+def shipped_calibration() -> Calibration:
+    """The calibration foldwise ships (``SHIPPED``; ``bench/calibrate.py --ship`` writes it)."""
+    return Calibration.from_dict(json.loads(SHIPPED.read_text(encoding="utf-8")))
 
 
 def network_logit(scores: np.ndarray) -> np.ndarray:

@@ -121,6 +121,8 @@ def export_onnx(detector: Any, out: str | Path, image_size: tuple[int, int] | No
         "foldwise.image_height": "0" if any_size else str(height),
         "foldwise.image_width": "0" if any_size else str(width),
     }
+    if detector.meta.get("calibration"):  # the texture check runs outside the graph; its calibration travels with it
+        metadata["foldwise.calibration"] = json.dumps(detector.meta["calibration"])
     onnx.helper.set_model_props(graph, metadata)
     onnx.save(graph, str(out))
     return out

@@ -303,6 +303,10 @@ def _train(
         "train_images": len(samples),
         "torch": str(torch.__version__),
     }
+    if config.calibration == "shipped":  # recorded, so the checkpoint keeps its meaning if the shipped file changes
+        from workers.train.calibration import shipped_calibration
+
+        meta["calibration"] = shipped_calibration().to_dict()
     model.eval()
     kept = {name: np.asarray(textures[name]) for name in classes} if config.texture_check and textures else None
     save_checkpoint(model, meta, out, textures=kept)
