@@ -34,7 +34,7 @@ run: $(STAMP)
 	$(BIN)/foldwise run $(CONFIG) --members $(MEMBERS)
 
 ## The test suite (tests/integration runs against local Redis + PostgreSQL, or skips saying why).
-test: $(STAMP)
+test: lint
 	$(BIN)/python -m pytest -n $(TEST_WORKERS)
 
 test-integration: $(STAMP)

@@ -55,7 +55,9 @@ def network_detections(detector, samples, classes, cache: Path | None) -> tuple[
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--model", type=Path, required=True, action="append", help="a checkpoint or ensemble; again: joined")
+    parser.add_argument(
+        "--model", type=Path, required=True, action="append", help="a checkpoint or ensemble; again: joined"
+    )
     parser.add_argument("--data", type=Path, required=True, action="append", help="a COCO folder (out-of-domain set)")
     parser.add_argument("--cache", type=Path, default=ROOT / "var/bench/calibration-cache")
     parser.add_argument("--threshold", type=float, default=0.8)
@@ -63,7 +65,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", type=Path)
     parser.add_argument("--write-model", type=Path, help="write the model with the fitted calibration recorded in it")
     parser.add_argument(
-        "--ship", action="store_true",
+        "--ship",
+        action="store_true",
         help="write the fitted calibration as the one foldwise ships (workers/train/calibration.json, detector.calibration: shipped)",
     )
     args = parser.parse_args(argv)
@@ -79,12 +82,17 @@ def main(argv=None) -> dict:
     classes = detector.classes
     check = TextureCheck(detector.textures, classes, search=config.texture_search)
     baseline = KeypointBaseline(detector.textures, classes)
-    key = "-".join(path.stem for path in args.model) + f"-{abs(hash(tuple(str(p.resolve()) for p in args.model))) % 10**8}"
+    key = (
+        "-".join(path.stem for path in args.model)
+        + f"-{abs(hash(tuple(str(p.resolve()) for p in args.model))) % 10**8}"
+    )
 
     sets = []
     for data in args.data:
         samples, set_classes = load_coco_dataset(data)
-        network, network_seconds = network_detections(detector, samples, set_classes, args.cache / f"{key}-{data.name}.pkl")
+        network, network_seconds = network_detections(
+            detector, samples, set_classes, args.cache / f"{key}-{data.name}.pkl"
+        )
         to_model = np.array([classes.index(name) for name in set_classes], np.int64)
         truth = [{"boxes": s.boxes, "labels": to_model[np.asarray(s.labels, np.int64)]} for s in samples]
         groups = [{"condition": s.condition, "difficulty": s.difficulty} for s in samples]
@@ -100,7 +108,11 @@ def main(argv=None) -> dict:
         for index in range(0, len(truth), 2):
             features.append(checked[index]["evidence"])
             labels.append(true_detections(checked[index], truth[index], args.iou))
-    calibration = fit(np.concatenate(features), np.concatenate(labels), fitted_on=", ".join(str(d) for d in args.data) + " (even images)")
+    calibration = fit(
+        np.concatenate(features),
+        np.concatenate(labels),
+        fitted_on=", ".join(str(d) for d in args.data) + " (even images)",
+    )
     calibrated_check = TextureCheck(detector.textures, classes, search=config.texture_search, calibration=calibration)
 
     report: dict = {"models": [str(p) for p in args.model], "calibration": calibration.to_dict(), "sets": {}}
@@ -114,9 +126,15 @@ def main(argv=None) -> dict:
         per_image = (network_seconds + check_seconds) / max(len(samples), 1)
         report["sets"][data.name] = {
             "report_images": len(odd),
-            "tiers": _scores(pick(checked), pick(truth), classes, pick(groups), args.threshold, args.iou, per_image * len(odd)),
-            "calibrated": _scores(calibrated, pick(truth), classes, pick(groups), args.threshold, args.iou, per_image * len(odd)),
-            "keypoint_baseline": _scores(keypoints, pick(truth), classes, pick(groups), args.threshold, args.iou, baseline_seconds),
+            "tiers": _scores(
+                pick(checked), pick(truth), classes, pick(groups), args.threshold, args.iou, per_image * len(odd)
+            ),
+            "calibrated": _scores(
+                calibrated, pick(truth), classes, pick(groups), args.threshold, args.iou, per_image * len(odd)
+            ),
+            "keypoint_baseline": _scores(
+                keypoints, pick(truth), classes, pick(groups), args.threshold, args.iou, baseline_seconds
+            ),
         }
     report["machine"] = machine()
     if args.ship:

@@ -64,7 +64,11 @@ def run_case(models: list[Path], image: Path, cache_dir: Path | None) -> dict:
     started = time.perf_counter()
     done = subprocess.run(
         [sys.executable, "-c", _CHILD, str(image), *map(str, models)],
-        env=environment, cwd=ROOT, capture_output=True, text=True, check=False,
+        env=environment,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        check=False,
     )
     wall = time.perf_counter() - started
     if done.returncode != 0:
@@ -120,7 +124,9 @@ def measure(models: list[Path], image: Path, repeats: int) -> dict:
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--model", type=Path, action="append", required=True, help="a checkpoint; given again, an ensemble")
+    parser.add_argument(
+        "--model", type=Path, action="append", required=True, help="a checkpoint; given again, an ensemble"
+    )
     parser.add_argument("--image", type=Path, required=True)
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--out", type=Path)

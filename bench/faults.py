@@ -85,7 +85,9 @@ def parse_faults(text: str) -> list[str]:
     names = [name.strip() for name in text.split(",") if name.strip()]
     unknown = [name for name in names if name not in FAULTS]
     if unknown or not names:
-        raise argparse.ArgumentTypeError(f"unknown fault {', '.join(unknown) or '(none given)'}; choose from {', '.join(FAULTS)}")
+        raise argparse.ArgumentTypeError(
+            f"unknown fault {', '.join(unknown) or '(none given)'}; choose from {', '.join(FAULTS)}"
+        )
     return [name for name in FAULTS if name in names]
 
 
@@ -123,7 +125,9 @@ def fault_result(
     }
 
 
-def report(results: Mapping[str, dict[str, Any]], settings: Mapping[str, str], machine: Mapping[str, Any]) -> dict[str, Any]:
+def report(
+    results: Mapping[str, dict[str, Any]], settings: Mapping[str, str], machine: Mapping[str, Any]
+) -> dict[str, Any]:
     """The whole report: every fault's entry, and whether each met the goal with a clean audit."""
     return {
         "benchmark": "faults",
@@ -191,8 +195,12 @@ def run_fault(name: str, root: Path, echo: Callable[[str], None]) -> dict[str, A
         except (AssertionError, pytest.fail.Exception) as error:
             engine.dispose()
             echo(f"{name}: no recovery: {error}\n{stack.logs(15)}")
-            return fault_result(None, recovered_when="", finished=False, resends=None, duplicates=None, problems=[str(error)])
-        echo(f"{name}: lost work running again {recovery.seconds:.1f} s after the fault; waiting for the experiment to end")
+            return fault_result(
+                None, recovered_when="", finished=False, resends=None, duplicates=None, problems=[str(error)]
+            )
+        echo(
+            f"{name}: lost work running again {recovery.seconds:.1f} s after the fault; waiting for the experiment to end"
+        )
         try:
             wait_until_finished(stack, api, recovery.experiment_id)
         except pytest.fail.Exception as error:
@@ -217,8 +225,15 @@ def run_fault(name: str, root: Path, echo: Callable[[str], None]) -> dict[str, A
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--faults", type=parse_faults, default=list(FAULTS), help=f"comma-separated, of {', '.join(FAULTS)} (default: all)")
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument(
+        "--faults",
+        type=parse_faults,
+        default=list(FAULTS),
+        help=f"comma-separated, of {', '.join(FAULTS)} (default: all)",
+    )
     parser.add_argument("--out", type=Path, help="also write the JSON here")
     args = parser.parse_args(argv)
 
@@ -246,7 +261,12 @@ def main(argv: list[str] | None = None) -> int:
             except (Exception, pytest.fail.Exception) as error:  # a stack that would not start: say so, go on
                 echo(traceback.format_exc())
                 results[name] = fault_result(
-                    None, recovered_when="", finished=False, resends=None, duplicates=None, problems=[f"{type(error).__name__}: {error}"]
+                    None,
+                    recovered_when="",
+                    finished=False,
+                    resends=None,
+                    duplicates=None,
+                    problems=[f"{type(error).__name__}: {error}"],
                 )
     machine = {**machine, "load_average_1min_after": os.getloadavg()[0]}
     document = report(results, compose_settings(), machine)

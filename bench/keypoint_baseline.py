@@ -59,12 +59,18 @@ class KeypointBaseline:
                 if matcher is None:
                     continue
                 pairs = matcher.knnMatch(descriptors, k=2)
-                good = [(m.queryIdx, m.trainIdx) for m, *rest in (p for p in pairs if p) if not rest or m.distance < RATIO * rest[0].distance]
+                good = [
+                    (m.queryIdx, m.trainIdx)
+                    for m, *rest in (p for p in pairs if p)
+                    if not rest or m.distance < RATIO * rest[0].distance
+                ]
                 if len(good) < MIN_INLIERS:
                     continue
                 source = texture_points[[t for _, t in good]]
                 target = image_points[[q for q, _ in good]]
-                corners = np.array([[0, 0], [texture_width, 0], [texture_width, texture_height], [0, texture_height]], np.float32)
+                corners = np.array(
+                    [[0, 0], [texture_width, 0], [texture_width, texture_height], [0, texture_height]], np.float32
+                )
                 for _ in range(COPIES_PER_CLASS):
                     if len(source) < MIN_INLIERS:
                         break

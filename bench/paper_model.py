@@ -80,7 +80,10 @@ def load_baseline(revision: str):
     """The paper model module as it was at a git revision, imported from a temporary file (a
     file, not a string, so that compiled code can cache as usual)."""
     source = subprocess.run(
-        ["git", "show", f"{revision}:workers/render/paper_model.py"], cwd=ROOT, capture_output=True, text=True,
+        ["git", "show", f"{revision}:workers/render/paper_model.py"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
         check=True,
     ).stdout
     path = Path(tempfile.mkdtemp(prefix="paper_model_baseline_")) / "paper_model_baseline.py"
@@ -152,8 +155,13 @@ def run(counts: list[int], seeds: int, width: float, height: float, profile: boo
             row[mode] = {
                 "wall_ms": summarise_ms(wall[mode]),
                 "cpu_ms": summarise_ms(cpu[mode]),
-                "triangles": {"mean": float(np.mean(triangles[mode])), "min": int(np.min(triangles[mode])),
-                              "max": int(np.max(triangles[mode]))} if triangles[mode] else None,
+                "triangles": {
+                    "mean": float(np.mean(triangles[mode])),
+                    "min": int(np.min(triangles[mode])),
+                    "max": int(np.max(triangles[mode])),
+                }
+                if triangles[mode]
+                else None,
                 "vertices_mean": float(np.mean(vertices[mode])) if vertices[mode] else None,
                 "rejected": rejected[mode],
             }
@@ -168,8 +176,11 @@ def run(counts: list[int], seeds: int, width: float, height: float, profile: boo
         results[str(n)] = row
 
     targets = {
-        str(n): {"limit_ms": limit, "cpu_median_ms": results[str(n)]["minimal"]["cpu_ms"]["median"],
-                 "met": results[str(n)]["minimal"]["cpu_ms"]["median"] <= limit}
+        str(n): {
+            "limit_ms": limit,
+            "cpu_median_ms": results[str(n)]["minimal"]["cpu_ms"]["median"],
+            "met": results[str(n)]["minimal"]["cpu_ms"]["median"] <= limit,
+        }
         for n, limit in TARGETS_MS.items()
         if str(n) in results
     }
@@ -211,8 +222,12 @@ def profile_minimal(n: int, seeds: int, width: float, height: float, sample_shee
     return {
         "rulings": n,
         "top_own_time": [
-            {"function": f"{Path(file).name}:{line}({name})", "calls_per_sheet": calls / seeds,
-             "own_ms_per_sheet": own * 1e3 / seeds, "cumulative_ms_per_sheet": cumulative * 1e3 / seeds}
+            {
+                "function": f"{Path(file).name}:{line}({name})",
+                "calls_per_sheet": calls / seeds,
+                "own_ms_per_sheet": own * 1e3 / seeds,
+                "cumulative_ms_per_sheet": cumulative * 1e3 / seeds,
+            }
             for (file, line, name), (_, calls, own, cumulative, _) in rows
         ],
     }

@@ -26,9 +26,43 @@ from pathlib import Path
 import numpy as np
 
 WIDTH, HEIGHT = 620, 877  # A4 at about 75 dpi
-SYLLABLES = ("ka", "lo", "mi", "ter", "an", "sol", "vi", "dor", "pe", "ru", "sen", "ta", "bel", "mo", "ri", "gan", "el", "cor")
-COLUMN_NAMES = (("Item", "Pos.", "No.", "Ref"), ("Description", "Article", "Service", "Product"), ("Qty", "Units", "Amount"), ("Price", "Rate", "Unit price"), ("Total", "Sum", "Net"))
-TITLES = ("INVOICE", "DELIVERY NOTE", "PURCHASE ORDER", "QUOTATION", "STATEMENT", "RECEIPT", "CREDIT NOTE", "REMITTANCE")
+SYLLABLES = (
+    "ka",
+    "lo",
+    "mi",
+    "ter",
+    "an",
+    "sol",
+    "vi",
+    "dor",
+    "pe",
+    "ru",
+    "sen",
+    "ta",
+    "bel",
+    "mo",
+    "ri",
+    "gan",
+    "el",
+    "cor",
+)
+COLUMN_NAMES = (
+    ("Item", "Pos.", "No.", "Ref"),
+    ("Description", "Article", "Service", "Product"),
+    ("Qty", "Units", "Amount"),
+    ("Price", "Rate", "Unit price"),
+    ("Total", "Sum", "Net"),
+)
+TITLES = (
+    "INVOICE",
+    "DELIVERY NOTE",
+    "PURCHASE ORDER",
+    "QUOTATION",
+    "STATEMENT",
+    "RECEIPT",
+    "CREDIT NOTE",
+    "REMITTANCE",
+)
 
 
 def _font(size: int, bold: bool = False, serif: bool = False):
@@ -98,7 +132,12 @@ class Template:
             for line in range(4):
                 text = _sentence(rng, int(rng.integers(2, 4)))
                 y = rule + 60 + self.title_size + 20 * line
-                pen.text((column, y), text, font=_font(self.text_size + 1, bold=line == 0, serif=self.serif), fill=(30, 30, 30))
+                pen.text(
+                    (column, y),
+                    text,
+                    font=_font(self.text_size + 1, bold=line == 0, serif=self.serif),
+                    fill=(30, 30, 30),
+                )
         # The table: a header in the company's colour, rows of items.
         top, edges = max(self.table_top, rule + 160 + self.title_size), (40, 100, 330, 400, 480, WIDTH - 40)
         pen.rectangle((40, top, WIDTH - 40, top + 26), fill=self.colour)
@@ -110,20 +149,38 @@ class Template:
             if row % 2:
                 pen.rectangle((40, y - 2, WIDTH - 40, y + self.row_height - 4), fill=(236, 236, 232))
             quantity, price = int(rng.integers(1, 50)), float(rng.integers(100, 99999)) / 100
-            cells = (str(int(rng.integers(100, 999))), _sentence(rng, int(rng.integers(2, 4))), str(quantity), f"{price:.2f}", f"{quantity * price:.2f}")
+            cells = (
+                str(int(rng.integers(100, 999))),
+                _sentence(rng, int(rng.integers(2, 4))),
+                str(quantity),
+                f"{price:.2f}",
+                f"{quantity * price:.2f}",
+            )
             for left, text in zip(edges, cells):
                 pen.text((left + 6, y), text, font=_font(self.text_size, serif=self.serif), fill=(20, 20, 20))
         bottom = top + 34 + self.row_height * rows
         pen.line((40, bottom, WIDTH - 40, bottom), fill=(60, 60, 60), width=2)
-        pen.text((400, bottom + 8), f"Total  {float(rng.integers(1000, 999999)) / 100:.2f}", font=_font(18, bold=True), fill=(20, 20, 20))
+        pen.text(
+            (400, bottom + 8),
+            f"Total  {float(rng.integers(1000, 999999)) / 100:.2f}",
+            font=_font(18, bold=True),
+            fill=(20, 20, 20),
+        )
         # Body text, to the footer.
         y = bottom + 50
         while y < HEIGHT - 110:
-            pen.text((40, y), _sentence(rng, int(rng.integers(5, 9))), font=_font(self.text_size, serif=self.serif), fill=(45, 45, 45))
+            pen.text(
+                (40, y),
+                _sentence(rng, int(rng.integers(5, 9))),
+                font=_font(self.text_size, serif=self.serif),
+                fill=(45, 45, 45),
+            )
             y += self.text_size + 6
         # Footer: shared by the template.
         pen.rectangle((40, HEIGHT - 70, WIDTH - 40, HEIGHT - 68), fill=self.colour)
-        pen.text((40, HEIGHT - 60), f"{self.name} · {self.address}", font=_font(12, serif=self.serif), fill=(90, 90, 90))
+        pen.text(
+            (40, HEIGHT - 60), f"{self.name} · {self.address}", font=_font(12, serif=self.serif), fill=(90, 90, 90)
+        )
         return np.asarray(page)
 
 
@@ -144,7 +201,9 @@ def text_page(rng: np.random.Generator) -> np.ndarray:
     return np.asarray(page)
 
 
-def make_documents(out: Path, n_targets: int = 5, n_same_template: int = 2, n_other_template: int = 4, n_text: int = 3, seed: int = 0) -> dict:
+def make_documents(
+    out: Path, n_targets: int = 5, n_same_template: int = 2, n_other_template: int = 4, n_text: int = 3, seed: int = 0
+) -> dict:
     """Write ``out/targets/*.png`` (the classes: one sheet of each of ``n_targets`` companies)
     and ``out/lookalikes/*.png`` (``n_same_template`` more sheets of each target's company, one
     sheet each of ``n_other_template`` other companies, ``n_text`` text pages); return their paths."""
@@ -154,13 +213,18 @@ def make_documents(out: Path, n_targets: int = 5, n_same_template: int = 2, n_ot
     companies = [Template(seed * 1000 + index) for index in range(n_targets)]
     others = [Template(seed * 1000 + n_targets + index) for index in range(n_other_template)]
     written: dict[str, list[str]] = {"targets": [], "lookalikes": []}
-    sheets = [("targets", f"doc{index + 1}", company, TITLES[index % len(TITLES)]) for index, company in enumerate(companies)]
+    sheets = [
+        ("targets", f"doc{index + 1}", company, TITLES[index % len(TITLES)]) for index, company in enumerate(companies)
+    ]
     sheets += [
         ("lookalikes", f"same{index + 1}-{copy + 1}", company, TITLES[(index + copy + 1) % len(TITLES)])
         for index, company in enumerate(companies)
         for copy in range(n_same_template)
     ]
-    sheets += [("lookalikes", f"other{index + 1}", company, TITLES[index % len(TITLES)]) for index, company in enumerate(others)]
+    sheets += [
+        ("lookalikes", f"other{index + 1}", company, TITLES[index % len(TITLES)])
+        for index, company in enumerate(others)
+    ]
     for kind, name, template, title in sheets:
         (out / kind).mkdir(parents=True, exist_ok=True)
         path = out / kind / f"{name}.png"
@@ -179,7 +243,9 @@ def main(argv=None) -> None:
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     written = make_documents(args.out, seed=args.seed)
-    print(f"{len(written['targets'])} targets in {args.out / 'targets'}, {len(written['lookalikes'])} lookalikes in {args.out / 'lookalikes'}")
+    print(
+        f"{len(written['targets'])} targets in {args.out / 'targets'}, {len(written['lookalikes'])} lookalikes in {args.out / 'lookalikes'}"
+    )
 
 
 if __name__ == "__main__":

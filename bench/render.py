@@ -153,7 +153,11 @@ def raster_in_processes(thetas: list[dict], processes: int, repeats: int, opencv
     barrier = context.Barrier(processes + 1)
     results = context.Queue()
     workers = [
-        context.Process(target=_raster_worker, args=(thetas[index::processes], repeats, barrier, results, opencv_threads), daemon=True)
+        context.Process(
+            target=_raster_worker,
+            args=(thetas[index::processes], repeats, barrier, results, opencv_threads),
+            daemon=True,
+        )
         for index in range(processes)
     ]
     for worker in workers:
@@ -252,8 +256,11 @@ def run(
             row[backend] = (
                 None
                 if result is None
-                else {"box": [float(v) for v in result.box], "visible_fraction": float(result.visible_fraction),
-                      "amodal_box": None if result.amodal_box is None else [float(v) for v in result.amodal_box]}
+                else {
+                    "box": [float(v) for v in result.box],
+                    "visible_fraction": float(result.visible_fraction),
+                    "amodal_box": None if result.amodal_box is None else [float(v) for v in result.amodal_box],
+                }
             )
         if len(backends) == 2 and all(results[b] is not None for b in backends):
             first, second = (results[b] for b in backends)
@@ -364,9 +371,7 @@ def run(
             "per_condition": {k: summarise(v) for k, v in sorted(by_condition.items())},
             "per_difficulty": {k: summarise(v) for k, v in sorted(by_difficulty.items())},
             "worst": worst,
-            "rejected_by_one_backend_only": int(
-                sum((row[fast] is None) != (row[slow] is None) for row in per_theta)
-            ),
+            "rejected_by_one_backend_only": int(sum((row[fast] is None) != (row[slow] is None) for row in per_theta)),
         }
         mask_ious = [row["mask_iou"] for row in compared if "mask_iou" in row]
         report["mask_iou"] = {
@@ -376,7 +381,8 @@ def run(
         report["targets"] = {
             "mean_box_iou_at_least_0.98": bool(ious) and float(np.mean(ious)) >= 0.98,
             f"{fast}_at_least_100x_{slow}_whole_pipeline": report["speed_ratio"]["value"] >= 100.0,
-            f"{fast}_interleaved_at_least_100x_{slow}_whole_pipeline": report["speed_ratio"]["interleaved"]["value"] >= 100.0,
+            f"{fast}_interleaved_at_least_100x_{slow}_whole_pipeline": report["speed_ratio"]["interleaved"]["value"]
+            >= 100.0,
             f"{fast}_at_least_100x_{slow}_render_stage": report["speed_ratio"]["render_stage"] >= 100.0,
         }
         if "all_cores" in report["speed_ratio"]:
@@ -396,16 +402,21 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=2018)
     parser.add_argument("--out", type=Path, help="also write the JSON here")
     parser.add_argument(
-        "--processes", type=int, default=len(os.sched_getaffinity(0)),
+        "--processes",
+        type=int,
+        default=len(os.sched_getaffinity(0)),
         help="raster worker processes for the all-cores figure (default: the CPUs allowed; 0: skip it)",
     )
     parser.add_argument("--parallel-repeats", type=int, default=5, help="times each all-cores worker renders its θ")
     parser.add_argument(
-        "--own-pass-repeats", type=int, default=3,
+        "--own-pass-repeats",
+        type=int,
+        default=3,
         help="raster's own passes over the θ set before, and again after, the interleaved loop",
     )
     parser.add_argument(
-        "--conditions", default="table3",
+        "--conditions",
+        default="table3",
         help="table3 (the paper's 7, the default), all (every condition of the table) or codes, comma-separated",
     )
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -421,7 +432,9 @@ def main(argv: list[str] | None = None) -> int:
         conditions = tuple(c.strip() for c in args.conditions.split(",") if c.strip())
         strangers = [c for c in conditions if c not in table.conditions]
         if strangers or not conditions:
-            parser.error(f"--conditions: unknown {strangers or args.conditions!r}; known: table3, all, {', '.join(table.codes)}")
+            parser.error(
+                f"--conditions: unknown {strangers or args.conditions!r}; known: table3, all, {', '.join(table.codes)}"
+            )
     backends = [b.strip() for b in args.backends.split(",") if b.strip()]
     unknown = [b for b in backends if b not in BACKENDS]
     if unknown or not backends or len(set(backends)) != len(backends):
@@ -431,8 +444,15 @@ def main(argv: list[str] | None = None) -> int:
     if args.processes < 0 or args.parallel_repeats < 1 or args.own_pass_repeats < 1:
         parser.error("--processes must be >= 0, --parallel-repeats and --own-pass-repeats >= 1")
     report = run(
-        args.n_per_stage, args.samples, args.size, backends, args.seed, progress=not args.quiet,
-        processes=args.processes, parallel_repeats=args.parallel_repeats, own_pass_repeats=args.own_pass_repeats,
+        args.n_per_stage,
+        args.samples,
+        args.size,
+        backends,
+        args.seed,
+        progress=not args.quiet,
+        processes=args.processes,
+        parallel_repeats=args.parallel_repeats,
+        own_pass_repeats=args.own_pass_repeats,
         conditions=conditions,
     )
     text = json.dumps(report, indent=2, default=float)

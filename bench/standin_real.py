@@ -59,7 +59,10 @@ def make_standin_set(out: Path, n: int, classes: list[str], size: tuple[int, int
             corners = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * half
             angle = rng.uniform(-0.6, 0.6)
             rotation = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
-            quad = corners @ rotation.T * (1 + rng.uniform(-0.15, 0.15, (4, 1))) + [cx, cy]  # perspective: corners apart
+            quad = corners @ rotation.T * (1 + rng.uniform(-0.15, 0.15, (4, 1))) + [
+                cx,
+                cy,
+            ]  # perspective: corners apart
             quad = np.clip(quad, 0, [width - 1, height - 1]).astype(np.float32)
             source = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], dtype=np.float32)
             matrix = cv2.getPerspectiveTransform(source, quad)
@@ -83,7 +86,9 @@ def make_standin_set(out: Path, n: int, classes: list[str], size: tuple[int, int
             f"<annotation><filename>{filename}</filename><size><width>{width}</width><height>{height}</height>"
             f"<depth>3</depth></size>{xml_objects}</annotation>"
         )
-        coco["images"].append({"id": index + 1, "file_name": f"voc/JPEGImages/{filename}", "width": width, "height": height})
+        coco["images"].append(
+            {"id": index + 1, "file_name": f"voc/JPEGImages/{filename}", "width": width, "height": height}
+        )
         for name, box in objects:
             coco["annotations"].append({
                 "id": len(coco["annotations"]) + 1, "image_id": index + 1, "category_id": classes.index(name) + 1,

@@ -88,23 +88,37 @@ def compare_on_set(
             "confirmed": int(sum(int(output["confirmed"].sum()) for output in outputs)),
         }
     result["speedup"] = result["brute_force"]["seconds_per_image"] / max(result["flann"]["seconds_per_image"], 1e-12)
-    result["images_same"] = float(np.mean([same_detections(a, b) for a, b in zip(checked["brute_force"], checked["flann"])])) if samples else 1.0
+    result["images_same"] = (
+        float(np.mean([same_detections(a, b) for a, b in zip(checked["brute_force"], checked["flann"])]))
+        if samples
+        else 1.0
+    )
     return result
 
 
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument(
-        "--model", type=Path, action="append", required=True,
+        "--model",
+        type=Path,
+        action="append",
+        required=True,
         help="a texture-checked checkpoint; given again, the checkpoints detect as one ensemble",
     )
     parser.add_argument(
-        "--set", type=Path, action="append", dest="sets",
+        "--set",
+        type=Path,
+        action="append",
+        dest="sets",
         help=f"a COCO folder to score on, again for more (default: var/bench/{{{','.join(DEFAULT_SETS)}}})",
     )
     parser.add_argument("--every", type=int, default=1, help="score every N-th image of each set (default: all)")
     parser.add_argument(
-        "--sharpen", type=float, action="append", default=[], metavar="AMOUNT",
+        "--sharpen",
+        type=float,
+        action="append",
+        default=[],
+        metavar="AMOUNT",
         help="also check with FLANN and the image's unsharp mask at AMOUNT (0: none); again for more",
     )
     parser.add_argument("--threshold", type=float, default=0.8)
@@ -119,7 +133,9 @@ def main(argv=None) -> dict:
     sets = args.sets or [ROOT / "var" / "bench" / name for name in DEFAULT_SETS]
     missing = [str(path) for path in sets if not (path / "annotations.json").is_file()]
     if missing:
-        parser.error(f"no COCO set (annotations.json) at {', '.join(missing)}; render bench/wild.py's with: python bench/wild.py --sets-only")
+        parser.error(
+            f"no COCO set (annotations.json) at {', '.join(missing)}; render bench/wild.py's with: python bench/wild.py --sets-only"
+        )
 
     from workers.train.checkpoint import combine_detectors, load_detector
     from workers.train.texture_check import SHARPEN_AMOUNT
@@ -133,7 +149,8 @@ def main(argv=None) -> dict:
         "every": args.every,
         "sharpen_built": SHARPEN_AMOUNT,
         "sets": {
-            path.name: compare_on_set(detector, path, args.every, args.threshold, args.iou, tuple(args.sharpen)) for path in sets
+            path.name: compare_on_set(detector, path, args.every, args.threshold, args.iou, tuple(args.sharpen))
+            for path in sets
         },
     }
     report["machine"] = machine()

@@ -65,10 +65,20 @@ def quick_settings() -> dict[str, Any]:
         # turns; bench/README.md), and yolo reads neither. The networks alone: the texture check
         # (which also needs the textures, not rendered here) is timed by texture_matching.py.
         detector = config.detector.model_copy(
-            update={"test_sizes": (), "test_turns": (), "view_vote": None, "texture_check": False, "texture_search": False}
+            update={
+                "test_sizes": (),
+                "test_turns": (),
+                "view_vote": None,
+                "texture_check": False,
+                "texture_search": False,
+            }
         )
         return {"detector": detector, "image_size": config.render.image_size, "source": str(path.relative_to(REPO))}
-    return {"detector": DetectorConfig(), "image_size": 128, "source": "DetectorConfig defaults (no configs/quick.yaml)"}
+    return {
+        "detector": DetectorConfig(),
+        "image_size": 128,
+        "source": "DetectorConfig defaults (no configs/quick.yaml)",
+    }
 
 
 def render_canonical_set(name: str, n: int, seed: int, image_size: int) -> Path:
@@ -209,7 +219,11 @@ def fixed_budget(args, base, input_size: int, train_samples, test_samples, class
             warmup = train_detector(train_samples, None, 1, config, classes, checkpoint, seed=args.seed)
             stats = train_detector(train_samples, None, args.iterations, config, classes, checkpoint, seed=args.seed)
         step_seconds = stats.seconds - warmup.seconds
-        per_s = (stats.images_seen - warmup.images_seen) / step_seconds if step_seconds > 0 and args.iterations > 1 else None
+        per_s = (
+            (stats.images_seen - warmup.images_seen) / step_seconds
+            if step_seconds > 0 and args.iterations > 1
+            else None
+        )
         scores = score(checkpoint, test_samples, classes, args.eval_batch_size)
         families[entry] = {
             "config": config.model_dump(mode="json"),
@@ -224,7 +238,11 @@ def fixed_budget(args, base, input_size: int, train_samples, test_samples, class
         summary = {
             k: families[entry].get(k)
             for k in (
-                "train_images_per_s", "first_pass_images_per_s", "inference_images_per_s", "map", "map_unthresholded",
+                "train_images_per_s",
+                "first_pass_images_per_s",
+                "inference_images_per_s",
+                "map",
+                "map_unthresholded",
                 "pyramid_roi_align_train_speedup",
             )
         }
@@ -283,8 +301,10 @@ def to_target(args, base, input_size: int, train_samples, test_samples, classes,
         while True:
             # Later chunks continue a warmed-up model: a short warm-up only re-builds momentum
             # (each chunk is one cosine cycle, so every evaluation sees an annealed snapshot).
-            chunk_config = config if not iterations else config.model_copy(
-                update={"warmup_iterations": min(config.warmup_iterations, RESTART_WARMUP)}
+            chunk_config = (
+                config
+                if not iterations
+                else config.model_copy(update={"warmup_iterations": min(config.warmup_iterations, RESTART_WARMUP)})
             )
             stats = train_detector(
                 train_samples,
@@ -307,12 +327,25 @@ def to_target(args, base, input_size: int, train_samples, test_samples, classes,
                 "train_seconds": train_seconds,
                 "final_loss": stats.final_loss,
                 "nonfinite_steps": len(stats.nonfinite_steps),
-                **{k: scores[k] for k in ("map", "map_unthresholded", "coco_ap50", "per_class", "detections_kept", "true_positives", "eval_seconds")},
+                **{
+                    k: scores[k]
+                    for k in (
+                        "map",
+                        "map_unthresholded",
+                        "coco_ap50",
+                        "per_class",
+                        "detections_kept",
+                        "true_positives",
+                        "eval_seconds",
+                    )
+                },
             }
             history.append(point)
             summary = {k: point[k] for k in ("iterations", "seconds", "map", "map_unthresholded", "final_loss")}
             print(f"[{family}] {json.dumps(json_safe(summary))}", file=sys.stderr)
-            families[family] = target_summary(config, reached, iterations, time.perf_counter() - started, train_seconds, images_seen, history)
+            families[family] = target_summary(
+                config, reached, iterations, time.perf_counter() - started, train_seconds, images_seen, history
+            )
             publish(families)  # a run cut short still leaves every evaluation so far in --out
             current = scores["map"]
             if current is not None and not math.isnan(current) and current >= args.target_map:
@@ -332,7 +365,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser.add_argument("--train-size", type=int, default=300, help="canonical training images")
     parser.add_argument("--test-size", type=int, default=150, help="canonical test images")
     parser.add_argument("--input-size", type=int, default=None, help="default: configs/quick.yaml's (128 px)")
-    parser.add_argument("--batch-size", type=int, default=None, help="training images per iteration (default: config's)")
+    parser.add_argument(
+        "--batch-size", type=int, default=None, help="training images per iteration (default: config's)"
+    )
     parser.add_argument("--eval-batch-size", type=int, default=16)
     parser.add_argument("--threads", type=int, default=2, help="torch threads (the machine is shared)")
     parser.add_argument("--seed", type=int, default=0)

@@ -192,7 +192,12 @@ def creased_sheet(width: float, height: float, rng: np.random.Generator, cells: 
     xy = points + np.outer(new_along - along, direction)
     vertices = np.column_stack([xy, z])
     faces = [
-        (row * (cells + 1) + col, row * (cells + 1) + col + 1, (row + 1) * (cells + 1) + col + 1, (row + 1) * (cells + 1) + col)
+        (
+            row * (cells + 1) + col,
+            row * (cells + 1) + col + 1,
+            (row + 1) * (cells + 1) + col + 1,
+            (row + 1) * (cells + 1) + col,
+        )
         for row in range(cells)
         for col in range(cells)
     ]
@@ -221,7 +226,12 @@ def rolled_sheet(width: float, height: float, rng: np.random.Generator, cells: i
     xy = points + np.outer(new_along - along, direction)
     vertices = np.column_stack([xy, z])
     faces = [
-        (row * (cells + 1) + col, row * (cells + 1) + col + 1, (row + 1) * (cells + 1) + col + 1, (row + 1) * (cells + 1) + col)
+        (
+            row * (cells + 1) + col,
+            row * (cells + 1) + col + 1,
+            (row + 1) * (cells + 1) + col + 1,
+            (row + 1) * (cells + 1) + col,
+        )
         for row in range(cells)
         for col in range(cells)
     ]
@@ -369,7 +379,14 @@ class OodScene:
         bpy = self.bpy
         if self.scene is not None:
             bpy.data.scenes.remove(self.scene)
-        for collection in (bpy.data.objects, bpy.data.meshes, bpy.data.materials, bpy.data.lights, bpy.data.cameras, bpy.data.worlds):
+        for collection in (
+            bpy.data.objects,
+            bpy.data.meshes,
+            bpy.data.materials,
+            bpy.data.lights,
+            bpy.data.cameras,
+            bpy.data.worlds,
+        ):
             for block in list(collection):
                 if block.name.startswith("wild") and block.users == 0:
                     collection.remove(block)
@@ -424,7 +441,9 @@ class OodScene:
         ground_photos, clutter_photos = PHOTO_POOLS[recipe.photos]
         if rng.random() < 0.4 or "ground" not in wild:
             name = str(rng.choice(ground_photos))
-            ground_material = self._material("wild-ground", rng, image=self._image(name, self.textures[name]), gloss=False)
+            ground_material = self._material(
+                "wild-ground", rng, image=self._image(name, self.textures[name]), gloss=False
+            )
         else:
             kind = str(rng.choice(["noise", "voronoi", "wave", "checker", "brick", "magic"]))
             ground_material = self._material("wild-ground", rng, procedural=kind, gloss=rng.random() < 0.3)
@@ -450,13 +469,19 @@ class OodScene:
             width = 1.0 if aspect >= 1 else aspect
             height = width / aspect
             vertices, faces, uvs = bent_sheet(width, height, rng, recipe.hard, flat="curl" not in wild)
-            material = self._material(f"wild-target-{index}", rng, image=self._image(name, texture), gloss="material" in wild)
+            material = self._material(
+                f"wild-target-{index}", rng, image=self._image(name, texture), gloss="material" in wild
+            )
             obj = self._mesh_object(f"wild-target-{index}", vertices, faces, uvs, material)
             offset = (0.0, 0.0) if index == 0 else tuple(rng.uniform(-1.4, 1.4, 2))
             obj.location = (*offset, 0.0)
             obj.rotation_euler = (0.0, 0.0, float(rng.uniform(0, 2 * math.pi)) if "camera" in wild else 0.0)
             if rng.random() < 0.25 and "curl" in wild:  # leaning on something: tilted out of the ground plane
-                obj.rotation_euler = (float(rng.uniform(-0.9, 0.9)), float(rng.uniform(-0.9, 0.9)), obj.rotation_euler[2])
+                obj.rotation_euler = (
+                    float(rng.uniform(-0.9, 0.9)),
+                    float(rng.uniform(-0.9, 0.9)),
+                    obj.rotation_euler[2],
+                )
                 obj.location = (*offset, 0.35)
             obj.pass_index = index + 1
             targets.append((obj, name))
@@ -482,7 +507,9 @@ class OodScene:
             aspect = texture.shape[1] / texture.shape[0]
             width = 1.0 if aspect >= 1 else aspect
             vertices, faces, uvs = bent_sheet(width, width / aspect, rng, recipe.hard)
-            material = self._material(f"wild-lookalike-{index}", rng, image=self._image(name, texture), gloss="material" in wild)
+            material = self._material(
+                f"wild-lookalike-{index}", rng, image=self._image(name, texture), gloss="material" in wild
+            )
             obj = self._mesh_object(f"wild-lookalike-{index}", vertices, faces, uvs, material)
             heading, distance = rng.uniform(0, 2 * math.pi), rng.uniform(1.1, 2.2)
             obj.location = (distance * math.cos(heading), distance * math.sin(heading), 0.0)
@@ -490,16 +517,24 @@ class OodScene:
         # Uneven ground: rocks and mounds that cast shadows and hide parts of the scene.
         for index in range(int(rng.integers(2, 7)) if recipe.hard else 0):
             size = float(rng.uniform(0.3, 1.2))
-            material = self._material(f"wild-rock-{index}", rng, procedural=str(rng.choice(["noise", "voronoi", "magic"])), gloss=False)
+            material = self._material(
+                f"wild-rock-{index}", rng, procedural=str(rng.choice(["noise", "voronoi", "magic"])), gloss=False
+            )
             obj = self._primitive(f"wild-rock-{index}", str(rng.choice(["sphere", "cube"])), size, material)
             heading, distance = rng.uniform(0, 2 * math.pi), rng.uniform(1.6, 4.0)
-            obj.location = (distance * math.cos(heading), distance * math.sin(heading), float(rng.uniform(-0.4, 0.1)) * size)
+            obj.location = (
+                distance * math.cos(heading),
+                distance * math.sin(heading),
+                float(rng.uniform(-0.4, 0.1)) * size,
+            )
             obj.rotation_euler = tuple(float(v) for v in rng.uniform(0, math.pi, 3))
             obj.scale = tuple(float(v) for v in rng.uniform(0.5, 1.5, 3))
         for index in range(int(rng.integers(0, 7)) if "clutter" in wild else 0):
             size = float(rng.uniform(0.08, 0.45))
             material = self._material(f"wild-clutter-{index}", rng)
-            obj = self._primitive(f"wild-clutter-{index}", str(rng.choice(["cube", "sphere", "cylinder", "cone"])), size, material)
+            obj = self._primitive(
+                f"wild-clutter-{index}", str(rng.choice(["cube", "sphere", "cylinder", "cone"])), size, material
+            )
             over_target = rng.random() < 0.3 and placed
             x, y = rng.uniform(-0.45, 0.45, 2) if over_target else rng.uniform(-2.2, 2.2, 2)
             obj.location = (float(x), float(y), size / 2 + (rng.uniform(0.05, 0.6) if over_target else 0.0))
@@ -551,7 +586,9 @@ class OodScene:
         scene.camera = camera
         post = {
             "noise_sigma": float(rng.uniform(0, 8)) if rng.random() < 0.5 and "post" in wild else 0.0,
-            "jpeg_quality": int(rng.integers(35 if recipe.hard else 25, 95)) if rng.random() < 0.7 and "post" in wild else None,
+            "jpeg_quality": int(rng.integers(35 if recipe.hard else 25, 95))
+            if rng.random() < 0.7 and "post" in wild
+            else None,
         }
         return targets, {"fill": fill, "fov_deg": math.degrees(fov), "elevation_deg": math.degrees(elevation), **post}
 
@@ -578,7 +615,12 @@ class OodScene:
         scene = self.scene
         material = bpy.data.materials.get("wild-index") or _index_material(bpy)
         layer = scene.view_layers[0]
-        saved = (scene.cycles.filter_width, scene.render.film_transparent, scene.view_settings.view_transform, scene.view_settings.exposure)
+        saved = (
+            scene.cycles.filter_width,
+            scene.render.film_transparent,
+            scene.view_settings.view_transform,
+            scene.view_settings.exposure,
+        )
         layer.material_override = material
         scene.cycles.filter_width = 0.01
         scene.render.film_transparent = True
@@ -587,7 +629,12 @@ class OodScene:
         path = self.tmp / "index.exr"
         self._render_to(path, "OPEN_EXR", 1)
         layer.material_override = None
-        scene.cycles.filter_width, scene.render.film_transparent, scene.view_settings.view_transform, scene.view_settings.exposure = saved
+        (
+            scene.cycles.filter_width,
+            scene.render.film_transparent,
+            scene.view_settings.view_transform,
+            scene.view_settings.exposure,
+        ) = saved
         image = bpy.data.images.load(str(path), check_existing=False)
         try:
             width, height = image.size
@@ -621,7 +668,9 @@ class OodScene:
             if fraction < 0.3:
                 return None  # too little left to be a fair target: redraw
             ys, xs = np.nonzero(mask)
-            objects.append((name, [float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)], fraction))
+            objects.append(
+                (name, [float(xs.min()), float(ys.min()), float(xs.max() + 1), float(ys.max() + 1)], fraction)
+            )
         path = self.tmp / "image.png"
         self._render_to(path, "PNG", self.recipe.samples)
         image = cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
@@ -629,7 +678,9 @@ class OodScene:
         if info["noise_sigma"] > 0:
             image = np.clip(image + rng.normal(0, info["noise_sigma"], image.shape), 0, 255).astype(np.uint8)
         if info["jpeg_quality"] is not None:
-            ok, encoded = cv2.imencode(".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, info["jpeg_quality"]])
+            ok, encoded = cv2.imencode(
+                ".jpg", cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, info["jpeg_quality"]]
+            )
             image = cv2.cvtColor(cv2.imdecode(encoded, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
         return image, objects, info
 
@@ -681,7 +732,9 @@ def lookalike_names(folder: Path | None) -> tuple[str, ...]:
     return tuple(LOOKALIKE_PREFIX + path.stem for path in image_files(Path(folder), "lookalikes"))
 
 
-def load_textures(classes, photos: str = "training", assets=None, lookalikes: Path | None = None) -> dict[str, np.ndarray]:
+def load_textures(
+    classes, photos: str = "training", assets=None, lookalikes: Path | None = None
+) -> dict[str, np.ndarray]:
     """The object textures foldwise uses (same files; ``assets``: a config's ``assets`` section, None
     for the built-in ones), the ground/clutter photographs of pool ``photos``, and each sheet of
     the ``lookalikes`` folder (as ``lookalike_names`` names them)."""
@@ -701,7 +754,9 @@ def load_textures(classes, photos: str = "training", assets=None, lookalikes: Pa
         elif name in MATPLOTLIB_PHOTOS:
             import matplotlib.cbook
 
-            textures[name] = _file_image(str(matplotlib.cbook.get_sample_data(MATPLOTLIB_PHOTOS[name], asfileobj=False)), False)
+            textures[name] = _file_image(
+                str(matplotlib.cbook.get_sample_data(MATPLOTLIB_PHOTOS[name], asfileobj=False)), False
+            )
         else:
             textures[name] = _to_uint8_rgb(np.asarray(getattr(skimage.data, name)()), f"skimage.data.{name}")
     return textures
@@ -718,7 +773,9 @@ def make_ood_set(out: Path, recipe: OodRecipe, echo=print, assets=None, lookalik
         echo(f"out-of-domain set: reusing {out} (recipe {recipe.key()})")
         return out
     (out / "images").mkdir(parents=True, exist_ok=True)
-    scene = OodScene(load_textures(recipe.classes, recipe.photos, assets, lookalikes if recipe.lookalikes else None), recipe)
+    scene = OodScene(
+        load_textures(recipe.classes, recipe.photos, assets, lookalikes if recipe.lookalikes else None), recipe
+    )
     rng = np.random.default_rng(recipe.seed)
     images, annotations = [], []
     started = time.perf_counter()
@@ -738,27 +795,47 @@ def make_ood_set(out: Path, recipe: OodRecipe, echo=print, assets=None, lookalik
         cv2.imwrite(str(out / file_name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 97])
         kind = _scene_kind(objects, info["fill"], negative)
         images.append(
-            {"id": index + 1, "file_name": file_name, "width": recipe.width, "height": recipe.height,
-             "condition": "wild", "difficulty": kind, "scene": info}
+            {
+                "id": index + 1,
+                "file_name": file_name,
+                "width": recipe.width,
+                "height": recipe.height,
+                "condition": "wild",
+                "difficulty": kind,
+                "scene": info,
+            }
         )
         for name, box, fraction in objects:
             x0, y0, x1, y1 = box
             annotations.append(
-                {"id": len(annotations) + 1, "image_id": index + 1, "category_id": recipe.classes.index(name) + 1,
-                 "bbox": [x0, y0, x1 - x0, y1 - y0], "area": (x1 - x0) * (y1 - y0), "iscrowd": 0,
-                 "visible_fraction": fraction}
+                {
+                    "id": len(annotations) + 1,
+                    "image_id": index + 1,
+                    "category_id": recipe.classes.index(name) + 1,
+                    "bbox": [x0, y0, x1 - x0, y1 - y0],
+                    "area": (x1 - x0) * (y1 - y0),
+                    "iscrowd": 0,
+                    "visible_fraction": fraction,
+                }
             )
         if (index + 1) % 25 == 0:
             echo(f"out-of-domain: {index + 1}/{recipe.n} images, {time.perf_counter() - started:.0f} s")
     coco = {
-        "info": {"description": "foldwise out-of-domain benchmark set (bench/wild.py)", "recipe": recipe.key(),
-                 "recipe_fields": asdict(recipe), "redraws": redraws, "seconds": time.perf_counter() - started},
+        "info": {
+            "description": "foldwise out-of-domain benchmark set (bench/wild.py)",
+            "recipe": recipe.key(),
+            "recipe_fields": asdict(recipe),
+            "redraws": redraws,
+            "seconds": time.perf_counter() - started,
+        },
         "images": images,
         "annotations": annotations,
         "categories": [{"id": i + 1, "name": name} for i, name in enumerate(recipe.classes)],
     }
     manifest.write_text(json.dumps(coco, indent=1))
-    echo(f"out-of-domain: wrote {recipe.n} images to {out} in {time.perf_counter() - started:.0f} s ({redraws} redraws)")
+    echo(
+        f"out-of-domain: wrote {recipe.n} images to {out} in {time.perf_counter() - started:.0f} s ({redraws} redraws)"
+    )
     return out
 
 
@@ -777,7 +854,9 @@ def train_with_config(config_path: Path, data_dir: Path, echo=print, members: in
     )  # fmt: skip
     seconds = time.perf_counter() - started
     if completed.returncode != 0:
-        raise RuntimeError(f"foldwise run {config_path} failed ({completed.returncode}):\n{completed.stdout[-3000:]}{completed.stderr[-3000:]}")
+        raise RuntimeError(
+            f"foldwise run {config_path} failed ({completed.returncode}):\n{completed.stdout[-3000:]}{completed.stderr[-3000:]}"
+        )
     echo(f"trained {config_path} in {seconds:.0f} s")
     training = {"config": str(config_path), "members": members, "seconds": seconds}
     if members > 1:
@@ -814,18 +893,36 @@ def make_in_domain_set(config, out: Path, n_per_pair: int, seed: int, echo=print
     from workers.render.cli import render_dataset
 
     stages = config.stage_order()
-    conditions = sorted({condition for condition, _ in stages if condition != "canonical"}, key=[c for c, _ in stages].index)
+    conditions = sorted(
+        {condition for condition, _ in stages if condition != "canonical"}, key=[c for c, _ in stages].index
+    )
     difficulties = list(config.curriculum.difficulties)
-    recipe = [conditions, difficulties, config.render.image_size, config.render.backend,
-              config.assets.model_dump(mode="json"), n_per_pair, seed]
+    recipe = [
+        conditions,
+        difficulties,
+        config.render.image_size,
+        config.render.backend,
+        config.assets.model_dump(mode="json"),
+        n_per_pair,
+        seed,
+    ]
     key = hashlib.sha256(json.dumps(recipe, sort_keys=True).encode()).hexdigest()[:16]
     manifest = out / "annotations.json"
     if manifest.is_file() and json.loads(manifest.read_text()).get("info", {}).get("recipe") == key:
         echo(f"in-domain set: reusing {out}")
         return out
     assets = load_assets(config.assets)
-    coco = render_dataset(out, conditions, difficulties, n_per_pair, seed, config.render.image_size, config.render.backend,
-                          assets, echo=lambda *_: None)
+    coco = render_dataset(
+        out,
+        conditions,
+        difficulties,
+        n_per_pair,
+        seed,
+        config.render.image_size,
+        config.render.backend,
+        assets,
+        echo=lambda *_: None,
+    )
     coco["info"]["recipe"] = key
     manifest.write_text(json.dumps(coco, indent=1))
     echo(f"in-domain set: {len(coco['images'])} images ({', '.join(conditions)} × {', '.join(difficulties)})")
@@ -906,12 +1003,20 @@ def class_agnostic(predictions: list[dict], ground_truth: list[dict]) -> tuple[l
     for prediction in predictions:
         boxes, scores = torch.as_tensor(prediction["boxes"]), torch.as_tensor(prediction["scores"])
         keep = nms(boxes, scores, 0.5).numpy() if len(boxes) else np.zeros(0, np.int64)
-        merged.append({"boxes": prediction["boxes"][keep], "scores": prediction["scores"][keep], "labels": np.zeros(len(keep), np.int64)})
+        merged.append(
+            {
+                "boxes": prediction["boxes"][keep],
+                "scores": prediction["scores"][keep],
+                "labels": np.zeros(len(keep), np.int64),
+            }
+        )
     truth = [{"boxes": item["boxes"], "labels": np.zeros(len(item["labels"]), np.int64)} for item in ground_truth]
     return merged, truth
 
 
-def at_threshold(predictions: list[dict], ground_truth: list[dict], score_threshold: float, iou_threshold: float) -> dict:
+def at_threshold(
+    predictions: list[dict], ground_truth: list[dict], score_threshold: float, iou_threshold: float
+) -> dict:
     """What a user who draws every box scoring at least ``score_threshold`` sees: precision (the
     drawn boxes that are true), recall (the targets a drawn box found), and the counts. A drawn
     box is true where it has a target's class and IoU ≥ ``iou_threshold`` with a target no
@@ -946,7 +1051,9 @@ def at_threshold(predictions: list[dict], ground_truth: list[dict], score_thresh
     }
 
 
-def _scores(predictions, truth, model_classes, groups, score_threshold: float, iou_threshold: float, seconds: float) -> dict:
+def _scores(
+    predictions, truth, model_classes, groups, score_threshold: float, iou_threshold: float, seconds: float
+) -> dict:
     """One detector's report on one set: the paper's mAP (and unthresholded), class-agnostic mAP,
     per class and per scene kind, what a user drawing boxes at the threshold sees, and time."""
     from workers.train.evaluation import evaluate_predictions
@@ -955,7 +1062,11 @@ def _scores(predictions, truth, model_classes, groups, score_threshold: float, i
     payload = evaluate_predictions(predictions, truth, model_classes, groups=groups, **protocol).to_dict()
     agnostic = evaluate_predictions(*class_agnostic(predictions, truth), ["object"], **protocol).to_dict()
     by_kind = {
-        name: {"map": group.get("map"), "map_unthresholded": group.get("map_unthresholded"), "images": group.get("num_images")}
+        name: {
+            "map": group.get("map"),
+            "map_unthresholded": group.get("map_unthresholded"),
+            "images": group.get("num_images"),
+        }
         for name, group in payload.get("breakdown", {}).get("difficulty", {}).items()
     }
     return {
@@ -986,12 +1097,14 @@ def score_keypoint_baseline(textures: dict, data: Path, score_threshold: float, 
     return _scores(predictions, truth, classes, groups, score_threshold, iou_threshold, seconds)
 
 
-def score(checkpoint, data: Path, score_threshold: float, iou_threshold: float, test_sizes=None, test_turns=None) -> dict:
+def score(
+    checkpoint, data: Path, score_threshold: float, iou_threshold: float, test_sizes=None, test_turns=None
+) -> dict:
     """The detector's scores on a COCO folder. ``checkpoint``: one path, or a list of paths whose
     detectors are scored as one (``workers.train.checkpoint.detect_ensemble``)."""
     from workers.train.checkpoint import load_detector
     from workers.train.data import load_coco_dataset
-    from workers.train.evaluation import detector_predictions, evaluate_predictions
+    from workers.train.evaluation import detector_predictions
 
     samples, classes = load_coco_dataset(data)
     checkpoints = [checkpoint] if isinstance(checkpoint, (str, Path)) else list(checkpoint)
@@ -1000,7 +1113,9 @@ def score(checkpoint, data: Path, score_threshold: float, iou_threshold: float, 
     predictions, truth, groups, model_classes = detector_predictions(
         detectors, samples, classes, test_sizes=test_sizes, test_turns=test_turns
     )
-    return _scores(predictions, truth, model_classes, groups, score_threshold, iou_threshold, time.perf_counter() - started)
+    return _scores(
+        predictions, truth, model_classes, groups, score_threshold, iou_threshold, time.perf_counter() - started
+    )
 
 
 def _config_argument(parser_name: str):
@@ -1048,55 +1163,77 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--config", type=Path, default=ROOT / "configs/quick.yaml")
     parser.add_argument(
-        "--model", type=Path, action="append",
+        "--model",
+        type=Path,
+        action="append",
         help="score this checkpoint instead of training; given again, the checkpoints are scored as one ensemble",
     )
     parser.add_argument(
-        "--members", type=_positive_count, default=None,
+        "--members",
+        type=_positive_count,
+        default=None,
         help="when training: curricula side by side, handed over as one ensemble (default: make run's, "
         "2 for configs/quick.yaml, else 1)",
     )
     parser.add_argument("--n-ood", type=_positive_count, default=200, help="out-of-domain images (at least 1)")
-    parser.add_argument("--ood-size", type=_frame_argument, default="320x240", help="WIDTHxHEIGHT of out-of-domain images")
+    parser.add_argument(
+        "--ood-size", type=_frame_argument, default="320x240", help="WIDTHxHEIGHT of out-of-domain images"
+    )
     parser.add_argument("--ood-samples", type=int, default=24, help="Cycles samples per out-of-domain image")
     parser.add_argument("--ood-seed", type=int, default=2026)
     parser.add_argument("--ood-dir", type=Path, default=None, help="default: var/bench/wild-ood[-FACTORS]")
     # A second out-of-domain set, drawn apart (its own seed, larger frames), so that no lever is
     # chosen on one set of draws alone: the goal is met only when both ratios reach it.
-    parser.add_argument("--n-ood-second", type=int, default=100, help="images of the second out-of-domain set (0: none)")
-    parser.add_argument("--ood-second-size", type=_frame_argument, default="480x360", help="WIDTHxHEIGHT of the second set's images")
+    parser.add_argument(
+        "--n-ood-second", type=int, default=100, help="images of the second out-of-domain set (0: none)"
+    )
+    parser.add_argument(
+        "--ood-second-size", type=_frame_argument, default="480x360", help="WIDTHxHEIGHT of the second set's images"
+    )
     parser.add_argument("--ood-second-seed", type=int, default=7)
     parser.add_argument("--ood-second-dir", type=Path, default=None, help="default: var/bench/wild-ood-b[-FACTORS]")
     # A third set whose ground and clutter photographs no training path uses (PHOTO_POOLS): the
     # first two reuse foldwise's own background and occluder photographs.
-    parser.add_argument("--n-ood-apart", type=int, default=100, help="images of the held-apart-photographs set (0: none)")
-    parser.add_argument("--ood-apart-size", type=_frame_argument, default="320x240", help="WIDTHxHEIGHT of that set's images")
+    parser.add_argument(
+        "--n-ood-apart", type=int, default=100, help="images of the held-apart-photographs set (0: none)"
+    )
+    parser.add_argument(
+        "--ood-apart-size", type=_frame_argument, default="320x240", help="WIDTHxHEIGHT of that set's images"
+    )
     parser.add_argument("--ood-apart-seed", type=int, default=11)
     parser.add_argument("--ood-apart-dir", type=Path, default=None, help="default: var/bench/wild-ood-apart[-FACTORS]")
     # A fourth, on request: larger frames (photographs are rarely as small as 320x240; a sheet then
     # holds more pixels for the network's larger views and for SIFT). Off by default: Cycles takes
     # about 10 min for 100 images at 640x480 on 2 cores.
     parser.add_argument("--n-ood-large", type=int, default=0, help="images of the large-frame set (0: none; e.g. 100)")
-    parser.add_argument("--ood-large-size", type=_frame_argument, default="640x480", help="WIDTHxHEIGHT of that set's images")
+    parser.add_argument(
+        "--ood-large-size", type=_frame_argument, default="640x480", help="WIDTHxHEIGHT of that set's images"
+    )
     parser.add_argument("--ood-large-seed", type=int, default=13)
     parser.add_argument("--ood-large-dir", type=Path, default=None, help="default: var/bench/wild-ood-large[-FACTORS]")
     # The hard set: small sheets, tubes and creases, lookalikes (with --lookalikes), extremes of
     # exposure and light colour, uneven ground, JPEG down to 35 (OodRecipe.hard).
     parser.add_argument("--n-ood-hard", type=int, default=100, help="images of the hard set (0: none)")
-    parser.add_argument("--ood-hard-size", type=_frame_argument, default="480x360", help="WIDTHxHEIGHT of that set's images")
+    parser.add_argument(
+        "--ood-hard-size", type=_frame_argument, default="480x360", help="WIDTHxHEIGHT of that set's images"
+    )
     parser.add_argument("--ood-hard-seed", type=int, default=17)
     parser.add_argument("--ood-hard-dir", type=Path, default=None, help="default: var/bench/wild-ood-hard[-FACTORS]")
     parser.add_argument(
-        "--lookalikes", type=Path, default=None,
+        "--lookalikes",
+        type=Path,
+        default=None,
         help="a folder of printed sheets of the targets' kind that are none of them (bench/printed_documents.py "
         "writes one): one to three lie beside the targets in every out-of-domain image",
     )
     parser.add_argument(
-        "--no-baseline", action="store_true",
+        "--no-baseline",
+        action="store_true",
         help="skip the keypoint recipe (bench/keypoint_baseline.py) scored beside foldwise on every set",
     )
     parser.add_argument(
-        "--factors", default="all",
+        "--factors",
+        default="all",
         help=f"which parts of the scene are wild: all, none, or a comma list of {','.join(FACTORS)} (the rest plain)",
     )
     parser.add_argument("--n-in-domain", type=int, default=6, help="in-domain images per (condition, difficulty)")
@@ -1105,16 +1242,19 @@ def main(argv=None) -> dict:
     parser.add_argument("--threshold", type=float, default=0.8)
     parser.add_argument("--iou", type=float, default=0.5)
     parser.add_argument(
-        "--test-sizes", type=_test_sizes_argument,
+        "--test-sizes",
+        type=_test_sizes_argument,
         help="comma list of inference sizes to score at (default: the model's detector.test_sizes)",
     )
     parser.add_argument(
-        "--test-turns", type=_test_turns_argument,
+        "--test-turns",
+        type=_test_turns_argument,
         help="comma list of quarter turns to detect on too, e.g. 0 for upright only (default: the model's detector.test_turns)",
     )
     parser.add_argument("--out", type=Path)
     parser.add_argument(
-        "--sets-only", action="store_true",
+        "--sets-only",
+        action="store_true",
         help="render (or find) the benchmark's sets, report where they are, and stop: no training, no scoring",
     )
     args = parser.parse_args(argv)
@@ -1132,8 +1272,14 @@ def main(argv=None) -> dict:
     width, height = args.ood_size
     factors = FACTORS if args.factors == "all" else () if args.factors == "none" else tuple(args.factors.split(","))
     recipe = OodRecipe(
-        n=args.n_ood, width=width, height=height, samples=args.ood_samples, seed=args.ood_seed, classes=classes,
-        factors=factors, lookalikes=lookalikes,
+        n=args.n_ood,
+        width=width,
+        height=height,
+        samples=args.ood_samples,
+        seed=args.ood_seed,
+        classes=classes,
+        factors=factors,
+        lookalikes=lookalikes,
     )
     suffix = "" if factors == FACTORS else "-" + ("-".join(factors) or "plain")
     if args.ood_dir is None:
@@ -1148,25 +1294,44 @@ def main(argv=None) -> dict:
     ):
         if n:
             extra = OodRecipe(
-                n=n, width=frame_width, height=frame_height, samples=args.ood_samples, seed=seed, classes=classes,
-                factors=factors, photos=photos, lookalikes=lookalikes, hard=name == "hard",
+                n=n,
+                width=frame_width,
+                height=frame_height,
+                samples=args.ood_samples,
+                seed=seed,
+                classes=classes,
+                factors=factors,
+                photos=photos,
+                lookalikes=lookalikes,
+                hard=name == "hard",
             )
             default_folder = ROOT / f"var/bench/wild-ood-{'b' if name == 'second' else name}{suffix}"
             ood_sets.append((f"_{name}", extra, folder or default_folder))
 
-    report: dict = {"config": str(args.config), "protocol": {"score_threshold": args.threshold, "iou_threshold": args.iou}}
+    report: dict = {
+        "config": str(args.config),
+        "protocol": {"score_threshold": args.threshold, "iou_threshold": args.iou},
+    }
     ood_dirs = []
     for key, set_recipe, folder in ood_sets:
         started = time.perf_counter()
         ood_dirs.append(make_ood_set(folder, set_recipe, echo, assets=config.assets, lookalikes=args.lookalikes))
-        report[f"ood_set{key}"] = {"dir": str(ood_dirs[-1]), "recipe": asdict(set_recipe), "seconds": time.perf_counter() - started}
+        report[f"ood_set{key}"] = {
+            "dir": str(ood_dirs[-1]),
+            "recipe": asdict(set_recipe),
+            "seconds": time.perf_counter() - started,
+        }
 
     in_domain_dir = args.in_domain_dir or ROOT / f"var/bench/wild-in-domain-{config.name}"
     make_in_domain_set(config, in_domain_dir, args.n_in_domain, seed=config.seed + 7919, echo=echo)
     reframed_dir = make_reframed_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-reframed"))
     rotated_dir = make_rotated_set(in_domain_dir, in_domain_dir.with_name(in_domain_dir.name + "-rotated"))
     if args.sets_only:
-        report["in_domain_set"] = {"dir": str(in_domain_dir), "reframed": str(reframed_dir), "rotated": str(rotated_dir)}
+        report["in_domain_set"] = {
+            "dir": str(in_domain_dir),
+            "reframed": str(reframed_dir),
+            "rotated": str(rotated_dir),
+        }
         return write_report(report, args.out)
 
     checkpoint = args.model  # several: scored as one ensemble
@@ -1210,12 +1375,17 @@ def machine() -> dict:
     from bench.render import cpu_model
 
     try:
-        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True).stdout.strip()
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+        ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
         commit = None
     return {
-        "cpu": cpu_model(), "cores": os.cpu_count(), "python": platform.python_version(),
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"), "commit": commit,
+        "cpu": cpu_model(),
+        "cores": os.cpu_count(),
+        "python": platform.python_version(),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "commit": commit,
     }
 
 

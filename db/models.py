@@ -8,7 +8,7 @@ parents (ω_in), and their scores P. Paths are relative to the artifact store.
 from __future__ import annotations
 
 import enum
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import Any
 
 from sqlalchemy import JSON, DateTime, Enum, Float, ForeignKey, String, Text, TypeDecorator, UniqueConstraint
@@ -16,7 +16,7 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, mapped_column, relationship
 
 
 def utcnow() -> datetime:
-    return datetime.now(timezone.utc)
+    return datetime.now(UTC)
 
 
 class UTCDateTime(TypeDecorator):
@@ -28,7 +28,7 @@ class UTCDateTime(TypeDecorator):
 
     def process_result_value(self, value: datetime | None, dialect) -> datetime | None:
         if value is not None and value.tzinfo is None:
-            return value.replace(tzinfo=timezone.utc)
+            return value.replace(tzinfo=UTC)
         return value
 
 
@@ -123,8 +123,12 @@ class Stage(Base):
     difficulty: Mapped[str] = mapped_column(String(20))
     status: Mapped[StageStatus] = mapped_column(_enum(StageStatus), default=StageStatus.pending)
     end_reason: Mapped[StageEndReason | None] = mapped_column(_enum(StageEndReason))
-    init_model_id: Mapped[int | None] = mapped_column(ForeignKey("models.id", use_alter=True, name="fk_stages_init_model"))
-    best_model_id: Mapped[int | None] = mapped_column(ForeignKey("models.id", use_alter=True, name="fk_stages_best_model"))
+    init_model_id: Mapped[int | None] = mapped_column(
+        ForeignKey("models.id", use_alter=True, name="fk_stages_init_model")
+    )
+    best_model_id: Mapped[int | None] = mapped_column(
+        ForeignKey("models.id", use_alter=True, name="fk_stages_best_model")
+    )
     started_at: Mapped[datetime | None]
     finished_at: Mapped[datetime | None]
 

@@ -124,7 +124,9 @@ def parse_condition_table(data: dict) -> ConditionTable:
                 for name, params in spec["variants"].items()
             }
         else:
-            variants = {"default": _parse_parameters(spec["parameters"], canonical, f"{where}.parameters", difficulties)}
+            variants = {
+                "default": _parse_parameters(spec["parameters"], canonical, f"{where}.parameters", difficulties)
+            }
         conditions[code] = Condition(code=code, name=spec.get("name", code), variants=variants)
     table3 = tuple(data.get("table3", conditions))
     strangers = [code for code in table3 if code not in conditions]

@@ -155,7 +155,7 @@ class MixedStageConfig(_Section):
     active_learning: StageOverrides = StageOverrides()
 
     @model_validator(mode="after")
-    def _known(self) -> "MixedStageConfig":
+    def _known(self) -> MixedStageConfig:
         table = load_condition_table()
         low, high = self.conditions_per_image
         if not 1 <= low <= high:
@@ -205,7 +205,7 @@ class CurriculumConfig(_Section):
     mixed: MixedStageConfig | None = None
 
     @model_validator(mode="after")
-    def _known(self) -> "CurriculumConfig":
+    def _known(self) -> CurriculumConfig:
         table = load_condition_table()
         for i, code in enumerate(self.conditions):
             if code not in table.conditions:
@@ -418,7 +418,7 @@ class DetectorConfig(_Section):
     augmentation: AugmentationConfig = AugmentationConfig()
 
     @model_validator(mode="after")
-    def _buildable(self) -> "DetectorConfig":
+    def _buildable(self) -> DetectorConfig:
         from foldwise.weights import backbone_problem, pretrained_problem
 
         if problem := backbone_problem(self.family, self.backbone) or pretrained_problem(
@@ -426,7 +426,9 @@ class DetectorConfig(_Section):
         ):
             raise ValueError(problem.removeprefix("detector."))
         if self.family == "yolo" and self.trainable_backbone_stages is not None:
-            raise ValueError("trainable_backbone_stages: only read by the R-CNN families (yolo trains its whole backbone)")
+            raise ValueError(
+                "trainable_backbone_stages: only read by the R-CNN families (yolo trains its whole backbone)"
+            )
         if self.family == "yolo" and self.test_sizes:
             raise ValueError("test_sizes: only read by the R-CNN families (yolo letterboxes into input_size)")
         if self.family == "yolo" and self.test_turns:
@@ -507,7 +509,9 @@ class TaskLimitsConfig(_Section):
     # Soft limits (the task stops and records why); the hard limit, HARD_LIMIT_GRACE_S later,
     # kills a task that ignores the soft one. Render: per θ (a batch gets its θ count times it).
     render_time_limit_s: float = Field(default=600.0, gt=0, le=86_400)
-    train_time_limit_s: float = Field(default=86_400.0, gt=0, le=30 * 86_400, description="per increment: train + evaluate")
+    train_time_limit_s: float = Field(
+        default=86_400.0, gt=0, le=30 * 86_400, description="per increment: train + evaluate"
+    )
     max_deliveries: int = Field(default=3, ge=1, le=100, description="times a θ or model may start before it fails")
 
 
@@ -537,10 +541,13 @@ class ExperimentConfig(_Section):
         return value
 
     @model_validator(mode="after")
-    def _kind_fits(self) -> "ExperimentConfig":
+    def _kind_fits(self) -> ExperimentConfig:
         """Keys the chosen kind would silently ignore are errors (each message starts with its
         key). A value equal to its default is let through: a stored config holds every key."""
-        for section, default in (("learnability", LearnabilityConfig()), ("canonical_baseline", CanonicalBaselineConfig())):
+        for section, default in (
+            ("learnability", LearnabilityConfig()),
+            ("canonical_baseline", CanonicalBaselineConfig()),
+        ):
             if self.kind != section and getattr(self, section) != default:
                 raise ValueError(f"{section}: only read by kind: {section} (this config's kind is {self.kind})")
         if self.kind == "active_learning":

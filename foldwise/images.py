@@ -121,7 +121,9 @@ def image_size(source: Source, *, max_pixels: int = MAX_PIXELS) -> tuple[int, in
     return width, height
 
 
-def read_image(source: Source, *, max_side: int | None = None, max_pixels: int = MAX_PIXELS) -> tuple[np.ndarray, float]:
+def read_image(
+    source: Source, *, max_side: int | None = None, max_pixels: int = MAX_PIXELS
+) -> tuple[np.ndarray, float]:
     """The image as displayed, as (H, W, 3) uint8 RGB, and the scale it was read at.
 
     The EXIF orientation is applied (boxes labelled on the displayed photo fit it). With

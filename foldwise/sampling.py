@@ -100,7 +100,9 @@ def canonical_values(table: ConditionTable | None = None) -> dict[str, float | i
 
 def _check_variant(condition: str, spec: Condition, variant: str | None) -> None:
     if variant is not None and variant not in spec.variants:
-        raise ValueError(f"condition {condition!r} has no variant {variant!r}; known: {', '.join(sorted(spec.variants))}")
+        raise ValueError(
+            f"condition {condition!r} has no variant {variant!r}; known: {', '.join(sorted(spec.variants))}"
+        )
 
 
 def _draw_condition(
@@ -177,7 +179,9 @@ def draw_theta(
     elif condition == MIXED:
         values["components"] = _draw_components(difficulty, rng, table, mixed or MixedDraw(), values)
     else:
-        values["variant"] = _draw_condition(values, condition, difficulty, table.check(condition, difficulty), rng, variant)
+        values["variant"] = _draw_condition(
+            values, condition, difficulty, table.check(condition, difficulty), rng, variant
+        )
     for direction, parameter in DIRECTION_OF.items():
         if values[parameter] != 0.0:
             values[direction] = float(rng.uniform(0.0, 2.0 * math.pi))
@@ -243,7 +247,9 @@ def generate_parameters(
     code = resolve_condition(condition, table)
     if difficulty == CANONICAL:
         if variant is not None:
-            raise ValueError(f"canonical θ have no variant (asked for {variant!r}): every condition keeps its canonical value")
+            raise ValueError(
+                f"canonical θ have no variant (asked for {variant!r}): every condition keeps its canonical value"
+            )
     elif code == MIXED:
         if variant is not None:
             raise ValueError(f"mixed θ have no variant of their own (asked for {variant!r})")
@@ -256,7 +262,11 @@ def generate_parameters(
         _check_variant(code, table.check(code, difficulty), variant)
     if n < 0:
         raise ValueError(f"n must be >= 0, got {n}")
-    if not isinstance(image_size, (int, np.integer)) or isinstance(image_size, bool) or not 16 <= image_size <= MAX_IMAGE_SIZE:
+    if (
+        not isinstance(image_size, (int, np.integer))
+        or isinstance(image_size, bool)
+        or not 16 <= image_size <= MAX_IMAGE_SIZE
+    ):
         raise ValueError(f"image_size must be an integer in [16, {MAX_IMAGE_SIZE}], got {image_size!r}")
     names = asset_names(assets)
     rng = np.random.default_rng(seed)

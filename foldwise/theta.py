@@ -179,7 +179,9 @@ class Theta(BaseModel):
     instances: int = Field(ge=0, le=MAX_INSTANCES)
     smooth_steps: int = Field(ge=1, le=16)
 
-    @field_validator("rulings", "clutter", "wrinkles", "light_count", "instances", "smooth_steps", "jpeg_quality", mode="before")
+    @field_validator(
+        "rulings", "clutter", "wrinkles", "light_count", "instances", "smooth_steps", "jpeg_quality", mode="before"
+    )
     @classmethod
     def _whole(cls, value: Any) -> Any:
         # JSON round trips and YAML may turn 3 into 3.0; a bool is never a count.

@@ -58,7 +58,9 @@ def backbone_problem(family: str, backbone: str) -> str | None:
         )
     if backbone in RCNN_BACKBONES:
         return None
-    return f"detector.backbone {backbone!r} is not supported by the {family} detector; known: {', '.join(RCNN_BACKBONES)}"
+    return (
+        f"detector.backbone {backbone!r} is not supported by the {family} detector; known: {', '.join(RCNN_BACKBONES)}"
+    )
 
 
 def pretrained_problem(family: str, backbone: str, pretrained: str) -> str | None:

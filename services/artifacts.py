@@ -74,7 +74,9 @@ def images(
         if stage is None or k is None:
             newest = latest_increment(session, experiment_id)
             stage, k = (stage, k) if newest is None else (stage if stage is not None else newest[0], k or newest[1])
-        query = query.join(Stage, Stage.id == ParameterSet.stage_id).where(Stage.order == stage, ParameterSet.increment == k)
+        query = query.join(Stage, Stage.id == ParameterSet.stage_id).where(
+            Stage.order == stage, ParameterSet.increment == k
+        )
     rows = session.scalars(query.order_by(ParameterSet.id).limit(limit)).all()
     return {
         "split": split.value,
@@ -163,4 +165,3 @@ def checkpoint_file(session: Session, model_id: int) -> Path:
     if not path.is_file():
         raise NotFound(f"model {model_id}'s checkpoint is recorded but missing from the store")
     return path
-

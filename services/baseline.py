@@ -18,10 +18,10 @@ Both turn an evaluation's per-(condition, difficulty) breakdown into rows with
 from __future__ import annotations
 
 import csv
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 from foldwise.config import ExperimentConfig
 
@@ -31,7 +31,9 @@ PAPER_TABLE2 = {
     "li": 0.6681, "sh": 0.5887, "sp": 0.8110, "wr": 0.9434, "sn": 0.8349,
 }  # fmt: skip
 
-PAPER_SETUP = "Fast R-CNN from ImageNet weights, 2,500 canonical images, 20,000 iterations, 990 test images per condition"
+PAPER_SETUP = (
+    "Fast R-CNN from ImageNet weights, 2,500 canonical images, 20,000 iterations, 990 test images per condition"
+)
 
 
 @dataclass(frozen=True)
@@ -90,7 +92,13 @@ def write_table2_csv(rows: Sequence[Table2Row], difficulties: Sequence[str], pat
         writer.writerow(["condition", "name", "map", *difficulties, "paper_fast_rcnn"])
         for row in rows:
             writer.writerow(
-                [row.condition, row.name, cell(row.map), *(cell(row.by_difficulty[d]) for d in difficulties), cell(row.paper)]
+                [
+                    row.condition,
+                    row.name,
+                    cell(row.map),
+                    *(cell(row.by_difficulty[d]) for d in difficulties),
+                    cell(row.paper),
+                ]
             )
     return path
 

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+from datetime import UTC
 from pathlib import Path
 
 import typer
@@ -44,15 +45,17 @@ def _fail(message: str, code: int = 2) -> None:
 def _load(config_path: Path, preflight: bool = False):
     """The config, or a one-line error (exit 2); with ``preflight`` its asset folders and
     ImageNet weights (when it asks for them) are checked too, before any work starts."""
+    from foldwise.asset_check import AssetError, validate_assets
     from foldwise.config import ConfigError, load_config
     from foldwise.weights import missing_imagenet_weights
-    from foldwise.asset_check import AssetError, validate_assets
 
     try:
         config = load_config(config_path)
         if preflight:
             validate_assets(config.assets)
-            if config.detector.pretrained == "imagenet" and (problem := missing_imagenet_weights(config.detector.backbone)):
+            if config.detector.pretrained == "imagenet" and (
+                problem := missing_imagenet_weights(config.detector.backbone)
+            ):
                 raise ConfigError(problem)
         return config
     except (ConfigError, AssetError) as error:
@@ -74,7 +77,11 @@ def run(
 ) -> None:
     """Run an experiment end to end in this process (SQLite by default, eager Celery)."""
     config = _load(config_path, preflight=True)
-    handed_over = _run_members(config, members, report_dir) if members > 1 else _run_experiment(config, report_dir)[1] == "finished"
+    handed_over = (
+        _run_members(config, members, report_dir)
+        if members > 1
+        else _run_experiment(config, report_dir)[1] == "finished"
+    )
     if not handed_over:
         raise typer.Exit(1)
 
@@ -119,7 +126,9 @@ def _texture_words(detector) -> str:
     """What the detector's texture check adds to its views, for ``_print_views``."""
     if not detector.texture_check:
         return ""
-    return "; its texture checks the boxes" + (" and searches the image for sheets they miss" if detector.texture_search else "")
+    return "; its texture checks the boxes" + (
+        " and searches the image for sheets they miss" if detector.texture_search else ""
+    )
 
 
 def _run_experiment(config, report_dir: Path | None, study: str | None = None) -> tuple[int, str]:
@@ -223,7 +232,7 @@ def _run_members(config, members: int, report_dir: Path | None) -> bool:
     curricula"). Returns whether every curriculum finished and the ensemble was written."""
     import multiprocessing
     import time
-    from datetime import datetime, timezone
+    from datetime import datetime
 
     from db.session import session_scope
     from foldwise.settings import get_settings
@@ -235,12 +244,14 @@ def _run_members(config, members: int, report_dir: Path | None) -> bool:
     from services.scheduler.service import experiment_status
 
     if config.kind != "active_learning":
-        _fail(f"--members: only kind active_learning hands over a final model to join (this config's kind is {config.kind})")
+        _fail(
+            f"--members: only kind active_learning hands over a final model to join (this config's kind is {config.kind})"
+        )
     settings = get_settings()
     variants = member_configs(config, members)
     share = config.detector.num_threads or os.cpu_count() or 1
     threads = max(1, share // members)
-    study_id = f"{config.name}-members-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}"
+    study_id = f"{config.name}-members-{datetime.now(UTC):%Y%m%dT%H%M%S}"
     console.print(
         f"foldwise: experiment [bold]{config.name}[/] — {members} curricula side by side (seeds "
         f"{', '.join(str(v.seed) for v in variants)}; {threads} thread{'s' if threads > 1 else ''} each), "
@@ -260,7 +271,11 @@ def _run_members(config, members: int, report_dir: Path | None) -> bool:
                 info = queries.summary(session, experiment_id)
                 done += training_progress(variant, queries.stages(session, experiment_id))[0]
                 current = info["current_stage"]
-                part = f"{current['condition']}/{current['difficulty']} k={current['k'] or 0}" if current else info["status"]
+                part = (
+                    f"{current['condition']}/{current['difficulty']} k={current['k'] or 0}"
+                    if current
+                    else info["status"]
+                )
                 if info["best"]:
                     part += f" best {info['best']['map']:.3f}"
                 parts.append(f"seed {variant.seed}: {part}")
@@ -289,7 +304,11 @@ def _run_members(config, members: int, report_dir: Path | None) -> bool:
                 queries.fail_experiment(session, experiment_id, f"its process ended with exit code {process.exitcode}")
             status = "failed"
         info = _print_stages(experiment_id, variant.name, status)
-        out = report_dir / f"experiment-{experiment_id}" if report_dir else settings.data_dir / f"experiments/{experiment_id}/report"
+        out = (
+            report_dir / f"experiment-{experiment_id}"
+            if report_dir
+            else settings.data_dir / f"experiments/{experiment_id}/report"
+        )
         files = write_report(experiment_id, out)
         console.print(f"report: {files.png}  {files.csv}", highlight=False)
         statuses.append(status)
@@ -306,7 +325,9 @@ def _run_members(config, members: int, report_dir: Path | None) -> bool:
             return False
         models = ", ".join(f"model {m} (experiment {e})" for m, e in zip(finals, ids))
         shown = escape(str(path))
-        console.print(f"final model: {shown}, an ensemble of {models}; foldwise detect --model {shown} IMAGE...", highlight=False)
+        console.print(
+            f"final model: {shown}, an ensemble of {models}; foldwise detect --model {shown} IMAGE...", highlight=False
+        )
         _print_views(config, shown)
         return True
     console.print("no ensemble written: not every curriculum finished", highlight=False)
@@ -340,7 +361,9 @@ def _print_learnability(experiment_id: int, files) -> None:
     order = files.learnability
     if order is None:
         return
-    table = Table(title=f"experiment {experiment_id}: learnability (mean mAP over every increment), most learnable first")
+    table = Table(
+        title=f"experiment {experiment_id}: learnability (mean mAP over every increment), most learnable first"
+    )
     for column in ("rank", "condition", "score", "best mAP", "increments", "paper rank"):
         table.add_column(column, justify="left" if column == "condition" else "right")
     for row in order.rows:
@@ -412,7 +435,9 @@ def _choices(option: str, text: str, known: tuple[str, ...]) -> list[str]:
 @app.command()
 def study(
     config_path: Path = typer.Argument(..., metavar="CONFIG", help="experiment YAML, e.g. configs/quick.yaml"),
-    detectors: str = typer.Option("", "--detectors", help="comma list of faster_rcnn, fast_rcnn, yolo (default: the config's)"),
+    detectors: str = typer.Option(
+        "", "--detectors", help="comma list of faster_rcnn, fast_rcnn, yolo (default: the config's)"
+    ),
     training_set: str = typer.Option("", "--training-set", help="comma list of reset, grow (default: the config's)"),
     name: str | None = typer.Option(None, "--name", help="the study id (default: the config's name and the time)"),
     out: Path | None = typer.Option(None, "--out", help="where the figures go (default: DATA_DIR/studies/NAME)"),
@@ -422,14 +447,12 @@ def study(
 
     In the distributed stack, POST the variants with ?study=NAME and the workers run them
     side by side; `foldwise report E1 E2 ... --figures` draws them."""
-    from datetime import datetime, timezone
-
+    from datetime import datetime
     from typing import get_args
 
     from foldwise.config import ActiveLearningConfig, ConfigError, DetectorConfig, parse_config
     from foldwise.settings import get_settings
     from services.figures import write_figures
-
     from services.queries import STUDY_NAME
 
     if name is not None and not STUDY_NAME.match(name):
@@ -439,7 +462,7 @@ def study(
     known_sets = get_args(ActiveLearningConfig.model_fields["training_set"].annotation)
     families = _choices("--detectors", detectors, known_families) or [config.detector.family]
     choices = _choices("--training-set", training_set, known_sets) or [config.active_learning.training_set]
-    study_id = name or f"{config.name}-{datetime.now(timezone.utc):%Y%m%dT%H%M%S}"
+    study_id = name or f"{config.name}-{datetime.now(UTC):%Y%m%dT%H%M%S}"
     variants = []
     for family in families:
         for choice in choices:
@@ -470,8 +493,12 @@ def baseline(
     out: Path = typer.Option(..., "--out", help="folder for the images, the model and table2.csv"),
     train_images: int = typer.Option(500, "--train-images", min=1, max=100_000, help="canonical training images"),
     iterations: int = typer.Option(2000, "--iterations", min=1, max=1_000_000),
-    test_per_pair: int = typer.Option(30, "--test-per-pair", min=1, max=100_000, help="test images per (condition, difficulty)"),
-    conditions: str = typer.Option("", "--conditions", help="comma list of condition codes (default: every one of the table)"),
+    test_per_pair: int = typer.Option(
+        30, "--test-per-pair", min=1, max=100_000, help="test images per (condition, difficulty)"
+    ),
+    conditions: str = typer.Option(
+        "", "--conditions", help="comma list of condition codes (default: every one of the table)"
+    ),
 ) -> None:
     """The paper's Table 2: train on canonical images only, score every condition (each
     difficulty and all together) beside the paper's Fast R-CNN figures."""
@@ -493,8 +520,12 @@ def baseline(
 @app.command()
 def report(
     experiment_ids: list[int] = typer.Argument(..., metavar="EXPERIMENT...", help="one or more experiment ids"),
-    out: Path | None = typer.Option(None, "--out", help="output directory (default: the first experiment's report dir)"),
-    figures: bool = typer.Option(False, "--figures", help="also the paper's Fig. 4 to 8 (PNG, SVG, CSV), a line per experiment"),
+    out: Path | None = typer.Option(
+        None, "--out", help="output directory (default: the first experiment's report dir)"
+    ),
+    figures: bool = typer.Option(
+        False, "--figures", help="also the paper's Fig. 4 to 8 (PNG, SVG, CSV), a line per experiment"
+    ),
 ) -> None:
     """Plot error (1 − mAP) against cumulative wall time, render/train/eval apart; write PNG and CSV.
 

@@ -151,7 +151,11 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
                     continue
                 ax.xaxis.set_major_locator(MaxNLocator(integer=True))
                 for r, run in enumerate(runs):
-                    points = [(e["k"], e["map"]) for e in run.history if (e["condition"], e["difficulty"]) == (condition, difficulty)]
+                    points = [
+                        (e["k"], e["map"])
+                        for e in run.history
+                        if (e["condition"], e["difficulty"]) == (condition, difficulty)
+                    ]
                     rows += [{"experiment": run.experiment_id, "condition": condition, "difficulty": difficulty, "k": k, "map": m}
                              for k, m in points]  # fmt: skip
                     finite = [(k, m) for k, m in points if m is not None]
@@ -171,7 +175,9 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
             for handle, label in zip(*ax.get_legend_handles_labels()):
                 handles.setdefault(label, handle)
         # Below the panels, where it hides no curve.
-        figure.legend(handles.values(), handles.keys(), fontsize=7, loc="outside lower center", ncol=min(3, len(handles) or 1))
+        figure.legend(
+            handles.values(), handles.keys(), fontsize=7, loc="outside lower center", ncol=min(3, len(handles) or 1)
+        )
         figure.suptitle(f"Fig. 4: mAP on {_test_set(runs)} after each increment; {protocol}", fontsize=9)
         save("fig4", figure, ["experiment", "condition", "difficulty", "k", "map"], rows)
 
@@ -198,7 +204,9 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
                 ax.bar([conditions.index(CANONICAL) + width * (len(difficulties) - 1) / 2], [value], 0.8, color="0.7",
                        edgecolor="black", linewidth=0.4, label="canonical images")  # fmt: skip
             for d, difficulty in enumerate(difficulties):
-                heights = [None if condition == CANONICAL else best.get((condition, difficulty)) for condition in conditions]
+                heights = [
+                    None if condition == CANONICAL else best.get((condition, difficulty)) for condition in conditions
+                ]
                 for condition, value in zip(conditions, heights):
                     if condition == CANONICAL:
                         continue
@@ -213,7 +221,13 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
             ax.set_title(run.label, fontsize=8)
             # Beside the panel: inside, it would cover the tallest bars.
             if ax.get_legend_handles_labels()[0]:  # an experiment with no stage yet has no bar to name
-                ax.legend(title="difficulty trained", fontsize=7, title_fontsize=7, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+                ax.legend(
+                    title="difficulty trained",
+                    fontsize=7,
+                    title_fontsize=7,
+                    loc="upper left",
+                    bbox_to_anchor=(1.0, 1.0),
+                )
             ax.grid(axis="y", alpha=0.3)
         figure.suptitle(f"Fig. 5: the best mAP per condition and difficulty (any increment); {protocol}", fontsize=9)
         save("fig5", figure, ["experiment", "condition", "name", "difficulty", "best_map"], rows)
@@ -248,7 +262,9 @@ def write_figures(experiment_ids: list[int], out_dir: Path, names: tuple[str, ..
             ys = [e["map"] for e in run.history]
             rows += [{"experiment": run.experiment_id, "increment": x, "condition": e["condition"], "difficulty": e["difficulty"],
                       "k": e["k"], "map": e["map"]} for x, e in zip(xs, run.history)]  # fmt: skip
-            ax.plot(xs, [y if y is not None else float("nan") for y in ys], ".-", color=colours(r % 10), label=run.label)
+            ax.plot(
+                xs, [y if y is not None else float("nan") for y in ys], ".-", color=colours(r % 10), label=run.label
+            )
         if runs:  # stage bands of the first run
             start = 1
             for n, (condition, difficulty) in enumerate(_bands(runs[0].history)):

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import re
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from typing import Any
 
 from sqlalchemy import func, select, update
@@ -28,7 +28,6 @@ from db.models import (
 )
 from foldwise.config import ExperimentConfig
 from services.api.schemas import EvaluationDetail, ExperimentListItem, ModelDetail, StageRef
-
 
 log = logging.getLogger(__name__)
 
@@ -61,8 +60,10 @@ def cancel_experiment(session: Session, experiment_id: int) -> Experiment:
     get_experiment(session, experiment_id)
     cancelled = session.execute(
         update(Experiment)
-        .where(Experiment.id == experiment_id, Experiment.status.in_((ExperimentStatus.pending, ExperimentStatus.running)))
-        .values(status=ExperimentStatus.cancelled, finished_at=datetime.now(timezone.utc))
+        .where(
+            Experiment.id == experiment_id, Experiment.status.in_((ExperimentStatus.pending, ExperimentStatus.running))
+        )
+        .values(status=ExperimentStatus.cancelled, finished_at=datetime.now(UTC))
         .execution_options(synchronize_session=False)
     ).rowcount
     if cancelled:
@@ -78,8 +79,10 @@ def fail_experiment(session: Session, experiment_id: int, reason: str) -> bool:
     Returns whether it was marked."""
     failed = session.execute(
         update(Experiment)
-        .where(Experiment.id == experiment_id, Experiment.status.in_((ExperimentStatus.pending, ExperimentStatus.running)))
-        .values(status=ExperimentStatus.failed, error=reason, finished_at=datetime.now(timezone.utc))
+        .where(
+            Experiment.id == experiment_id, Experiment.status.in_((ExperimentStatus.pending, ExperimentStatus.running))
+        )
+        .values(status=ExperimentStatus.failed, error=reason, finished_at=datetime.now(UTC))
         .execution_options(synchronize_session=False)
     ).rowcount
     if failed:
@@ -93,7 +96,10 @@ def discard_open_work(session: Session, experiment_id: int) -> dict[str, int]:
     messages of models already sent are revoked where a broker is reachable."""
     thetas = session.execute(
         update(ParameterSet)
-        .where(ParameterSet.experiment_id == experiment_id, ParameterSet.status.in_((RenderStatus.pending, RenderStatus.queued)))
+        .where(
+            ParameterSet.experiment_id == experiment_id,
+            ParameterSet.status.in_((RenderStatus.pending, RenderStatus.queued)),
+        )
         .values(status=RenderStatus.discarded)
         .execution_options(synchronize_session=False)
     ).rowcount
@@ -141,7 +147,7 @@ def _iso(when: datetime | None) -> str | None:
 def _seconds_between(start: datetime | None, end: datetime | None) -> float | None:
     if start is None:
         return None
-    end = end or datetime.now(timezone.utc)
+    end = end or datetime.now(UTC)
     return (end - start).total_seconds()
 
 
@@ -311,7 +317,9 @@ def summary(session: Session, experiment_id: int) -> dict[str, Any]:
                 .join(Model, Model.id == Evaluation.model_id)
                 .where(Model.experiment_id == experiment_id)
             ),
-            "stages": session.scalar(select(func.count()).select_from(Stage).where(Stage.experiment_id == experiment_id)),
+            "stages": session.scalar(
+                select(func.count()).select_from(Stage).where(Stage.experiment_id == experiment_id)
+            ),
         },
         "failed_by_reason": failed_by_reason(session, experiment_id),
         "best": {"map": best[0], "model_id": best[1]} if best else None,

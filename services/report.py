@@ -67,7 +67,9 @@ def report_rows(experiment_id: int) -> list[dict]:
         score = entry["map"]
         rows.append(
             {
-                **{key: entry[key] for key in ("stage", "condition", "difficulty", "k", "model_id", "parent_id", "map")},
+                **{
+                    key: entry[key] for key in ("stage", "condition", "difficulty", "k", "model_id", "parent_id", "map")
+                },
                 "error": None if score is None else 1.0 - score,
                 "wall_seconds": entry["wall_seconds"],
                 "render_seconds": entry["render_seconds"],

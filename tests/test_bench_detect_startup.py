@@ -27,9 +27,20 @@ def test_each_case_runs_in_its_own_process_and_the_cache_changes_the_time_not_th
     textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}
     samples = _sheet_set(tmp_path / "sheets", 2, textures)
     model = tmp_path / "checked.pt"
-    train_detector(samples, None, 1, config(family="faster_rcnn", texture_check=True, texture_search=True), CLASSES, model, seed=0, textures=textures)
+    train_detector(
+        samples,
+        None,
+        1,
+        config(family="faster_rcnn", texture_check=True, texture_search=True),
+        CLASSES,
+        model,
+        seed=0,
+        textures=textures,
+    )
     out = tmp_path / "startup.json"
-    report = detect_startup.main(["--model", str(model), "--image", str(samples[0].image_path), "--repeats", "1", "--out", str(out)])
+    report = detect_startup.main(
+        ["--model", str(model), "--image", str(samples[0].image_path), "--repeats", "1", "--out", str(out)]
+    )
     assert json.loads(out.read_text()) == json.loads(json.dumps(report, default=float))
     for case in detect_startup.CASES:
         result = report[case]
@@ -38,10 +49,13 @@ def test_each_case_runs_in_its_own_process_and_the_cache_changes_the_time_not_th
         assert all(value > 0 for value in result["median_seconds"].values())
         assert result["median_wall_seconds"] >= sum(result["median_seconds"].values())
     # The search finds the plain sheet whatever the network says: the same box in every case.
-    assert report["same_detections"] and report["cache_warm"]["detections"] == [report["without_cache"]["detections"][0]] != [0]
+    assert report["same_detections"] and report["cache_warm"]["detections"] == [
+        report["without_cache"]["detections"][0]
+    ] != [0]
     assert report["cache_files_written"] == [2] and report["warm_run_wrote"] is False
     assert report["texture_check_speedup"] == pytest.approx(
-        report["without_cache"]["median_seconds"]["texture_check"] / report["cache_warm"]["median_seconds"]["texture_check"]
+        report["without_cache"]["median_seconds"]["texture_check"]
+        / report["cache_warm"]["median_seconds"]["texture_check"]
     )
 
     with pytest.raises(SystemExit):

@@ -16,8 +16,22 @@ ROOT = Path(__file__).resolve().parents[1]
 
 def _run_bench(tmp_path: Path, *args: str) -> dict:
     out = tmp_path / "render.json"
-    command = [sys.executable, str(ROOT / "bench" / "render.py"), "--n-per-stage", "1", "--size", "32",
-               "--own-pass-repeats", "1", "--parallel-repeats", "1", "--quiet", "--out", str(out), *args]
+    command = [
+        sys.executable,
+        str(ROOT / "bench" / "render.py"),
+        "--n-per-stage",
+        "1",
+        "--size",
+        "32",
+        "--own-pass-repeats",
+        "1",
+        "--parallel-repeats",
+        "1",
+        "--quiet",
+        "--out",
+        str(out),
+        *args,
+    ]
     finished = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert finished.returncode == 0, finished.stderr[-3000:]
     assert json.loads(finished.stdout) == json.loads(out.read_text())
@@ -36,7 +50,12 @@ def test_both_backends_give_rates_ratios_and_box_agreement(tmp_path):
     own = report["speed"]["raster"]["own_passes"]
     assert len(own["passes"]) == 2 and all(p["errors"] == 0 for p in own["passes"])
     ratios = report["speed_ratio"]
-    for value in (ratios["value"], ratios["interleaved"]["value"], ratios["render_stage"], ratios["all_cores"]["value"]):
+    for value in (
+        ratios["value"],
+        ratios["interleaved"]["value"],
+        ratios["render_stage"],
+        ratios["all_cores"]["value"],
+    ):
         assert math.isfinite(value) and value > 0
     assert ratios["value"] == pytest.approx(own["images_per_second"] / report["speed"]["blender"]["images_per_second"])
     assert report["box_iou"]["n"] > 0 and 0.0 <= report["box_iou"]["min"] <= report["box_iou"]["mean"] <= 1.0
@@ -50,6 +69,11 @@ def test_raster_alone_needs_no_blender(tmp_path):
 
 
 def test_bad_arguments_are_named(tmp_path):
-    finished = subprocess.run([sys.executable, str(ROOT / "bench" / "render.py"), "--backends", "raster,povray"],
-                              cwd=ROOT, capture_output=True, text=True, timeout=120)
+    finished = subprocess.run(
+        [sys.executable, str(ROOT / "bench" / "render.py"), "--backends", "raster,povray"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert finished.returncode == 2 and "--backends" in finished.stderr and "povray" in finished.stderr

@@ -45,9 +45,13 @@ def _sheet_set(folder: Path, n: int, textures: dict) -> list:
         samples.append(Sample(path, np.array([box], np.float32), np.array([label]), condition="fb", difficulty="easy"))
         images.append({"id": index + 1, "file_name": f"images/{index}.png", "width": 200, "height": 150})
         x0, y0, x1, y1 = box
-        annotations.append({"id": index + 1, "image_id": index + 1, "category_id": label + 1, "bbox": [x0, y0, x1 - x0, y1 - y0]})
+        annotations.append(
+            {"id": index + 1, "image_id": index + 1, "category_id": label + 1, "bbox": [x0, y0, x1 - x0, y1 - y0]}
+        )
     categories = [{"id": i + 1, "name": name} for i, name in enumerate(CLASSES)]
-    (folder / "annotations.json").write_text(json.dumps({"images": images, "annotations": annotations, "categories": categories}))
+    (folder / "annotations.json").write_text(
+        json.dumps({"images": images, "annotations": annotations, "categories": categories})
+    )
     return samples
 
 
@@ -62,7 +66,18 @@ def test_both_matchers_check_the_same_detections_and_the_report_compares_them(tm
     train_detector(samples, None, 1, searching, CLASSES, model, seed=0, textures=textures)
     out = tmp_path / "matching.json"
     report = texture_matching.main(
-        ["--model", str(model), "--set", str(tmp_path / "sheets"), "--out", str(out), "--sharpen", "1", "--sharpen", "2"]
+        [
+            "--model",
+            str(model),
+            "--set",
+            str(tmp_path / "sheets"),
+            "--out",
+            str(out),
+            "--sharpen",
+            "1",
+            "--sharpen",
+            "2",
+        ]
     )
     assert json.loads(out.read_text()) == json.loads(json.dumps(report, default=float))
     result = report["sets"]["sheets"]

@@ -8,9 +8,9 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench import train  # noqa: E402
 import pytest  # noqa: E402
 
+from bench import train  # noqa: E402
 from foldwise.config import load_config  # noqa: E402
 
 
@@ -40,7 +40,15 @@ def test_score_times_a_second_pass_and_reports_the_first_beside_it(tmp_path, mon
 
     samples = synthetic_samples(tmp_path / "images", n=5)
     weights = tmp_path / "yolo.pt"
-    train_detector(samples, None, 1, config(family="yolo", backbone="mobilenet_v3_small", pretrained="none"), CLASSES, weights, seed=0)
+    train_detector(
+        samples,
+        None,
+        1,
+        config(family="yolo", backbone="mobilenet_v3_small", pretrained="none"),
+        CLASSES,
+        weights,
+        seed=0,
+    )
     passes = []
     real_detect = checkpoint_module.detect_object
 

@@ -5,7 +5,6 @@ read from (both mAPs and their ratio)."""
 from __future__ import annotations
 
 import json
-import math
 import subprocess
 import sys
 from pathlib import Path
@@ -38,8 +37,12 @@ def test_the_curl_is_isometric():
 
 def test_the_ood_set_is_deterministic_and_cached(tmp_path):
     recipe = wild.OodRecipe(n=4, width=64, height=48, samples=1, seed=11, negatives=0.5, classes=CLASSES)
-    first = json.loads((wild.make_ood_set(tmp_path / "a", recipe, echo=lambda *_: None) / "annotations.json").read_text())
-    second = json.loads((wild.make_ood_set(tmp_path / "b", recipe, echo=lambda *_: None) / "annotations.json").read_text())
+    first = json.loads(
+        (wild.make_ood_set(tmp_path / "a", recipe, echo=lambda *_: None) / "annotations.json").read_text()
+    )
+    second = json.loads(
+        (wild.make_ood_set(tmp_path / "b", recipe, echo=lambda *_: None) / "annotations.json").read_text()
+    )
     assert first["annotations"] == second["annotations"]
     assert [i["difficulty"] for i in first["images"]] == [i["difficulty"] for i in second["images"]]
     lines = []
@@ -67,7 +70,10 @@ def test_a_fully_visible_target_is_boxed_at_its_projected_outline():
             continue
         _, objects, _ = result
         target = next(o for o in scene.scene.objects if o.pass_index == 1)
-        corners = [world_to_camera_view(scene.scene, scene.scene.camera, target.matrix_basis @ v.co) for v in target.data.vertices]
+        corners = [
+            world_to_camera_view(scene.scene, scene.scene.camera, target.matrix_basis @ v.co)
+            for v in target.data.vertices
+        ]
         xs = np.array([c.x for c in corners]) * recipe.width
         ys = (1 - np.array([c.y for c in corners])) * recipe.height
         inside = xs.min() > 2 and ys.min() > 2 and xs.max() < recipe.width - 2 and ys.max() < recipe.height - 2
@@ -84,14 +90,48 @@ def test_a_fully_visible_target_is_boxed_at_its_projected_outline():
 def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
     out = tmp_path / "wild.json"
     command = [
-        sys.executable, str(ROOT / "bench" / "wild.py"), "--config", str(ROOT / "configs" / "smoke.yaml"),
-        "--n-ood", "4", "--ood-size", "64x48", "--ood-samples", "1", "--n-in-domain", "1",
-        "--ood-dir", str(tmp_path / "ood"), "--in-domain-dir", str(tmp_path / "in"),
-        "--n-ood-second", "3", "--ood-second-size", "48x64", "--ood-second-seed", "11",
-        "--ood-second-dir", str(tmp_path / "ood-second"),
-        "--n-ood-apart", "2", "--ood-apart-size", "64x48", "--ood-apart-dir", str(tmp_path / "ood-apart"),
-        "--n-ood-large", "1", "--ood-large-size", "96x72", "--ood-large-dir", str(tmp_path / "ood-large"),
-        "--train-dir", str(tmp_path / "train"), "--members", "2", "--out", str(out),
+        sys.executable,
+        str(ROOT / "bench" / "wild.py"),
+        "--config",
+        str(ROOT / "configs" / "smoke.yaml"),
+        "--n-ood",
+        "4",
+        "--ood-size",
+        "64x48",
+        "--ood-samples",
+        "1",
+        "--n-in-domain",
+        "1",
+        "--ood-dir",
+        str(tmp_path / "ood"),
+        "--in-domain-dir",
+        str(tmp_path / "in"),
+        "--n-ood-second",
+        "3",
+        "--ood-second-size",
+        "48x64",
+        "--ood-second-seed",
+        "11",
+        "--ood-second-dir",
+        str(tmp_path / "ood-second"),
+        "--n-ood-apart",
+        "2",
+        "--ood-apart-size",
+        "64x48",
+        "--ood-apart-dir",
+        str(tmp_path / "ood-apart"),
+        "--n-ood-large",
+        "1",
+        "--ood-large-size",
+        "96x72",
+        "--ood-large-dir",
+        str(tmp_path / "ood-large"),
+        "--train-dir",
+        str(tmp_path / "train"),
+        "--members",
+        "2",
+        "--out",
+        str(out),
     ]
     # --sets-only renders the sets and stops: no training, no scores; the full run then reuses them.
     rendered = subprocess.run([*command, "--sets-only"], cwd=ROOT, capture_output=True, text=True, timeout=600)
@@ -99,7 +139,9 @@ def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
     sets = json.loads(out.read_text())
     assert "model" not in sets and "in_domain" not in sets and not (tmp_path / "train").exists()
     assert sets["in_domain_set"]["dir"] == str(tmp_path / "in") and (tmp_path / "in" / "annotations.json").is_file()
-    assert all((tmp_path / name / "annotations.json").is_file() for name in ("ood", "ood-second", "ood-apart", "ood-large"))
+    assert all(
+        (tmp_path / name / "annotations.json").is_file() for name in ("ood", "ood-second", "ood-apart", "ood-large")
+    )
     finished = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert finished.returncode == 0, finished.stderr[-3000:]
     report = json.loads(out.read_text())
@@ -121,11 +163,17 @@ def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
     # The third set covers ground and clutter with photographs no training path reads.
     apart = report["out_of_domain_apart"]
     assert apart["images"] == 2 and 0.0 <= apart["map"] <= 1.0
-    assert report["ood_set_apart"]["recipe"]["photos"] == "held_apart" and report["ood_set_apart"]["recipe"]["seed"] == 11
+    assert (
+        report["ood_set_apart"]["recipe"]["photos"] == "held_apart" and report["ood_set_apart"]["recipe"]["seed"] == 11
+    )
     assert report["ratio_apart"] == (None if not in_map else apart["map"] / in_map)
     # The large-frame set, asked for here, is scored and counts toward the goal like the others.
     large = report["out_of_domain_large"]
-    assert large["images"] == 1 and report["ood_set_large"]["recipe"]["width"] == 96 and report["ood_set_large"]["recipe"]["seed"] == 13
+    assert (
+        large["images"] == 1
+        and report["ood_set_large"]["recipe"]["width"] == 96
+        and report["ood_set_large"]["recipe"]["seed"] == 13
+    )
     assert report["ratio_large"] == (None if not in_map else large["map"] / in_map)
     assert report["goal"]["ratio_at_least"] == 0.8
     ratios = (report["ratio"], report["ratio_second"], report["ratio_apart"], report["ratio_large"])
@@ -164,13 +212,18 @@ def test_a_plain_scene_is_a_flat_sheet_seen_from_above_at_half_the_frame():
     recipe = wild.OodRecipe(n=1, width=160, height=120, samples=1, seed=0, classes=("coffee",), factors=())
     scene = wild.OodScene(wild.load_textures(recipe.classes), recipe)
     image, objects, info = scene.render(3, negative=False)
-    assert info["fill"] == 0.5 and info["fov_deg"] == pytest.approx(40.0) and info["elevation_deg"] == pytest.approx(90.0)
+    assert (
+        info["fill"] == 0.5 and info["fov_deg"] == pytest.approx(40.0) and info["elevation_deg"] == pytest.approx(90.0)
+    )
     assert len(objects) == 1
     x0, y0, x1, y1 = objects[0][1]
     assert x1 - x0 == pytest.approx(0.5 * 160, abs=2)  # coffee is wider than tall: its width is the long side
     assert objects[0][2] == 1.0
     # Names as Blender gives them (another scene in this process may hold the plain ones).
-    assert sorted(o.name.split(".")[0] for o in scene.scene.objects if o.type == "MESH") == ["wild-ground", "wild-target-0"]
+    assert sorted(o.name.split(".")[0] for o in scene.scene.objects if o.type == "MESH") == [
+        "wild-ground",
+        "wild-target-0",
+    ]
     with pytest.raises(ValueError, match="unknown factor"):
         wild.OodRecipe(factors=("weather",))
 
@@ -185,7 +238,9 @@ def test_reframing_pads_to_four_by_three_and_moves_the_boxes(tmp_path):
         image[10:20, 5:15] = 255
         cv2.imwrite(str(source / f"images/{name}.png"), image)
     document = {
-        "images": [{"id": i + 1, "file_name": f"images/{n}.png", "width": 48, "height": 48} for i, n in enumerate("ab")],
+        "images": [
+            {"id": i + 1, "file_name": f"images/{n}.png", "width": 48, "height": 48} for i, n in enumerate("ab")
+        ],
         "annotations": [{"id": i + 1, "image_id": i + 1, "category_id": 1, "bbox": [5, 10, 10, 10]} for i in range(2)],
         "categories": [{"id": 1, "name": "coffee"}],
     }
@@ -211,7 +266,9 @@ def test_rotating_turns_each_image_by_quarter_turns_and_its_boxes_exactly(tmp_pa
         pixels[10:30, 5:15] = 255
         cv2.imwrite(str(source / f"images/{name}.png"), pixels)
     document = {
-        "images": [{"id": i + 1, "file_name": f"images/{n}.png", "width": 60, "height": 40} for i, n in enumerate(names)],
+        "images": [
+            {"id": i + 1, "file_name": f"images/{n}.png", "width": 60, "height": 40} for i, n in enumerate(names)
+        ],
         "annotations": [{"id": i + 1, "image_id": i + 1, "category_id": 1, "bbox": [5, 10, 10, 20]} for i in range(3)],
         "categories": [{"id": 1, "name": "coffee"}],
     }
@@ -234,8 +291,13 @@ def test_the_class_agnostic_score_counts_a_found_sheet_whatever_class_it_is_give
 
     target = np.array([[10, 10, 50, 40]], np.float32)
     # The sheet is class 0; the detector puts class 1 on it (0.9), and class 0 beside it, shifted (0.6).
-    predictions = [{"boxes": np.array([[11, 10, 50, 41], [12, 11, 51, 40]], np.float32),
-                    "scores": np.array([0.9, 0.6], np.float32), "labels": np.array([1, 0])}]
+    predictions = [
+        {
+            "boxes": np.array([[11, 10, 50, 41], [12, 11, 51, 40]], np.float32),
+            "scores": np.array([0.9, 0.6], np.float32),
+            "labels": np.array([1, 0]),
+        }
+    ]
     truth = [{"boxes": target, "labels": np.array([0])}]
     aware = evaluate_predictions(predictions, truth, ["a", "b"], coco=False)
     merged, merged_truth = wild.class_agnostic(predictions, truth)
@@ -247,7 +309,11 @@ def test_the_class_agnostic_score_counts_a_found_sheet_whatever_class_it_is_give
 
 def test_test_sizes_are_read_as_the_config_reads_them_and_bad_ones_refused(capsys):
     assert wild._test_sizes_argument("128,256") == (128, 256)
-    for bad, problem in (("16", "greater than or equal to 32"), ("128,128", "sizes repeat"), ("big", "not whole numbers")):
+    for bad, problem in (
+        ("16", "greater than or equal to 32"),
+        ("128,128", "sizes repeat"),
+        ("big", "not whole numbers"),
+    ):
         with pytest.raises(SystemExit):
             wild.main(["--test-sizes", bad])
         error = capsys.readouterr().err
@@ -266,7 +332,11 @@ def test_test_turns_are_read_as_the_config_reads_them_and_bad_ones_refused(capsy
 def test_frame_sizes_of_every_out_of_domain_set_are_read_alike_and_bad_ones_refused(capsys):
     assert wild._frame_argument("480X360") == (480, 360)
     for option in ("--ood-size", "--ood-second-size", "--ood-apart-size", "--ood-large-size"):
-        for bad, problem in (("480", "is not WIDTHxHEIGHT"), ("4x3x2", "is not WIDTHxHEIGHT"), ("0x240", "at least 1 pixel")):
+        for bad, problem in (
+            ("480", "is not WIDTHxHEIGHT"),
+            ("4x3x2", "is not WIDTHxHEIGHT"),
+            ("0x240", "at least 1 pixel"),
+        ):
             with pytest.raises(SystemExit):
                 wild.main([option, bad])
             error = capsys.readouterr().err
@@ -314,7 +384,11 @@ def test_the_committed_panoramas_are_what_derive_makes_from_bpys(tmp_path):
         committed = cv2.imread(str(panoramas.path(name))).astype(np.int16)
         assert derived.shape == committed.shape, name
         difference = np.abs(derived - committed)
-        assert difference.max() <= 4 and (difference > 0).mean() < 0.01, (name, difference.max(), (difference > 0).mean())
+        assert difference.max() <= 4 and (difference > 0).mean() < 0.01, (
+            name,
+            difference.max(),
+            (difference > 0).mean(),
+        )
     with pytest.raises(KeyError, match="unknown panorama 'beach'"):
         panoramas.path("beach")
 
@@ -323,7 +397,11 @@ def test_an_empty_first_set_is_refused_before_it_can_replace_a_cached_one(tmp_pa
     cached = tmp_path / "ood"
     cached.mkdir()
     (cached / "annotations.json").write_text('{"info": {"recipe": "kept"}}')
-    for bad, problem in (("0", "needs at least 1 image"), ("-3", "needs at least 1 image"), ("many", "not a whole number")):
+    for bad, problem in (
+        ("0", "needs at least 1 image"),
+        ("-3", "needs at least 1 image"),
+        ("many", "not a whole number"),
+    ):
         with pytest.raises(SystemExit):
             wild.main(["--n-ood", bad, "--ood-dir", str(cached)])
         error = capsys.readouterr().err
@@ -335,7 +413,8 @@ def _coco_folder(samples, classes, folder: Path) -> Path:
     """The samples (images already under ``folder / 'images'``) as a COCO folder wild.score reads."""
     document = {
         "images": [
-            {"id": i + 1, "file_name": f"images/{s.image_path.name}", "width": 64, "height": 64} for i, s in enumerate(samples)
+            {"id": i + 1, "file_name": f"images/{s.image_path.name}", "width": 64, "height": 64}
+            for i, s in enumerate(samples)
         ],
         "annotations": [
             {"id": i + 1, "image_id": i + 1, "category_id": int(label) + 1, "bbox": [x0, y0, x1 - x0, y1 - y0]}
@@ -371,7 +450,10 @@ def test_several_checkpoints_score_as_one_ensemble(tmp_path):
         wild.score([first, other], data, 0.0, 0.5)
 
 
-@pytest.mark.parametrize("config, members", [(None, 2), ("configs/quick.yaml", 2), ("configs/smoke.yaml", 1), ("configs/learnability_quick.yaml", 1)])
+@pytest.mark.parametrize(
+    "config, members",
+    [(None, 2), ("configs/quick.yaml", 2), ("configs/smoke.yaml", 1), ("configs/learnability_quick.yaml", 1)],
+)
 def test_make_run_and_the_benchmark_train_the_same_curricula(config, members):
     """`make run` hands over two curricula of quick.yaml as one ensemble, one of any other config
     (learnability runs hand over no model to join); bench/wild.py trains what make run trains."""
@@ -382,7 +464,11 @@ def test_make_run_and_the_benchmark_train_the_same_curricula(config, members):
     overrides = [f"CONFIG={config}"] if config else []
     # -n prints the recipe without running it; the stamp is made new so that no install is shown.
     dry = subprocess.run(
-        ["make", "-n", "-W", ".venv/.installed", "run", *overrides], cwd=ROOT, capture_output=True, text=True, timeout=60
+        ["make", "-n", "-W", ".venv/.installed", "run", *overrides],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
     )
     assert dry.returncode == 0, dry.stderr
     run_line = [line for line in dry.stdout.splitlines() if " run " in line and "foldwise" in line]

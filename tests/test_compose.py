@@ -243,7 +243,9 @@ def compose() -> dict[str, Any]:
 
 def test_compose_refuses_to_start_without_a_token():
     for variables in ({}, {"FOLDWISE_API_TOKEN": ""}):
-        with pytest.raises(ComposeError, match="required variable FOLDWISE_API_TOKEN is missing a value: set FOLDWISE_API_TOKEN"):
+        with pytest.raises(
+            ComposeError, match="required variable FOLDWISE_API_TOKEN is missing a value: set FOLDWISE_API_TOKEN"
+        ):
             load_compose(variables)
 
 
@@ -304,7 +306,9 @@ def test_foldwise_services_share_one_definition_and_one_artifact_store(compose):
         assert volume_mounts(service).get(data_dir) == "artifacts", f"{name} does not mount the store at {data_dir}"
         # The texture check's cache outlives a container: a restarted detect worker reads it back.
         cache_dir = PurePosixPath(service_environment(service)["FOLDWISE_CACHE_DIR"])
-        assert cache_dir.is_relative_to(data_dir) and cache_dir != PurePosixPath(data_dir), f"{name} keeps its cache outside the store"
+        assert cache_dir.is_relative_to(data_dir) and cache_dir != PurePosixPath(data_dir), (
+            f"{name} keeps its cache outside the store"
+        )
     assert "artifacts" in compose["volumes"]
 
 
@@ -533,7 +537,9 @@ def test_image_compiles_the_render_kernels_into_a_cache_its_workers_load(instruc
     assert users[-1] > compile_at, "the runtime user is set after the kernels are compiled"
     command = re.search(r'python -c "([^"]+)"', runs[0]).group(1)
     environment = {**os.environ, "NUMBA_CACHE_DIR": str(tmp_path / cache_dir.lstrip("/"))}
-    compiled = subprocess.run([sys.executable, "-c", command], env=environment, cwd=REPO, capture_output=True, text=True, timeout=300)
+    compiled = subprocess.run(
+        [sys.executable, "-c", command], env=environment, cwd=REPO, capture_output=True, text=True, timeout=300
+    )
     assert compiled.returncode == 0, compiled.stderr[-2000:]
     assert list((tmp_path / cache_dir.lstrip("/")).rglob("*.nbi")), "the compile step wrote no numba cache"
     # A later process: the same step again, then count compilations against cache loads over
@@ -545,7 +551,9 @@ def test_image_compiles_the_render_kernels_into_a_cache_its_workers_load(instruc
         "           for v in vars(m).values() if isinstance(v, numba.core.registry.CPUDispatcher)]\n"
         "print(sum(sum(k.stats.cache_misses.values()) for k in kernels), sum(sum(k.stats.cache_hits.values()) for k in kernels))\n"
     )
-    loaded = subprocess.run([sys.executable, "-c", check], env=environment, cwd=REPO, capture_output=True, text=True, timeout=300)
+    loaded = subprocess.run(
+        [sys.executable, "-c", check], env=environment, cwd=REPO, capture_output=True, text=True, timeout=300
+    )
     assert loaded.returncode == 0, loaded.stderr[-2000:]
     misses, hits = map(int, loaded.stdout.split())
     assert misses == 0 and hits >= 10, (misses, hits)
@@ -558,7 +566,9 @@ def test_make_install_compiles_the_render_kernels_as_the_image_does(instructions
     and checked above)."""
     makefile = (REPO / "Makefile").read_text()
     recipe = makefile.split("$(STAMP): pyproject.toml constraints.txt\n", 1)[1].split("\n\n", 1)[0].splitlines()
-    (image_step,) = [arguments for keyword, arguments in instructions if keyword == "RUN" and "compile_kernels" in arguments]
+    (image_step,) = [
+        arguments for keyword, arguments in instructions if keyword == "RUN" and "compile_kernels" in arguments
+    ]
     command = re.search(r'python -c "([^"]+)"', image_step).group(1)
     compiles = [i for i, line in enumerate(recipe) if command in line]
     installs = [i for i, line in enumerate(recipe) if "pip install" in line and "-e '.[dev]'" in line]

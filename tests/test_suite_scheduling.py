@@ -8,12 +8,24 @@ from pathlib import Path
 
 def _root_conftest(pytestconfig):
     root = Path(__file__).resolve().parent / "conftest.py"
-    return next(plugin for plugin in pytestconfig.pluginmanager.get_plugins() if getattr(plugin, "__file__", None) == str(root))
+    return next(
+        plugin for plugin in pytestconfig.pluginmanager.get_plugins() if getattr(plugin, "__file__", None) == str(root)
+    )
 
 
 def test_integration_tests_are_one_unit_and_every_other_module_its_own(pytestconfig):
     unit = _root_conftest(pytestconfig).xdist_unit
-    assert unit("tests/integration/test_distributed.py::test_a") == unit("tests/integration/test_faults.py::test_b[x::y]") == "tests/integration"
-    assert unit("tests/workers/train/test_export.py::test_a[faster_rcnn]") == unit("tests/workers/train/test_export.py::test_b") == "tests/workers/train/test_export.py"
+    assert (
+        unit("tests/integration/test_distributed.py::test_a")
+        == unit("tests/integration/test_faults.py::test_b[x::y]")
+        == "tests/integration"
+    )
+    assert (
+        unit("tests/workers/train/test_export.py::test_a[faster_rcnn]")
+        == unit("tests/workers/train/test_export.py::test_b")
+        == "tests/workers/train/test_export.py"
+    )
     assert unit("tests/workers/train/test_training.py::test_a") != unit("tests/workers/train/test_export.py::test_a")
-    assert unit("tests/test_integration_notes.py::test_a") == "tests/test_integration_notes.py"  # only the folder is one unit
+    assert (
+        unit("tests/test_integration_notes.py::test_a") == "tests/test_integration_notes.py"
+    )  # only the folder is one unit

@@ -199,7 +199,9 @@ class Fail:
     reason: str
 
 
-Decision = Start | SampleTraining | EnqueueRender | OpenStage | CreateModel | EnqueueTraining | CloseStage | Finish | Fail
+Decision = (
+    Start | SampleTraining | EnqueueRender | OpenStage | CreateModel | EnqueueTraining | CloseStage | Finish | Fail
+)
 
 
 def plan(s: Snapshot) -> list[Decision]:
@@ -495,9 +497,7 @@ def _assets(config: ExperimentConfig):
     return asset_names(config.assets)
 
 
-def _sample(
-    config: ExperimentConfig, condition: str, difficulty: str, n: int, seed: int
-) -> list[dict]:
+def _sample(config: ExperimentConfig, condition: str, difficulty: str, n: int, seed: int) -> list[dict]:
     from foldwise.sampling import generate_parameters
     from foldwise.theta import CANONICAL
 
@@ -562,7 +562,9 @@ def apply(
             case SampleTraining(stage_id, k):
                 stage = stages[stage_id]
                 seed = derive_seed(experiment.seed, 2, stage.order, k)
-                thetas = _sample(config, stage.condition, stage.difficulty, config.stage_active_learning(stage.condition).m, seed)
+                thetas = _sample(
+                    config, stage.condition, stage.difficulty, config.stage_active_learning(stage.condition).m, seed
+                )
                 session.add_all(
                     ParameterSet(
                         experiment_id=experiment.id,
@@ -580,7 +582,9 @@ def apply(
                 )
             case EnqueueRender(ids, requeue):
                 if requeue:
-                    log.warning("experiment %s: sending θ %s again (nobody holds their message)", experiment.id, list(ids))
+                    log.warning(
+                        "experiment %s: sending θ %s again (nobody holds their message)", experiment.id, list(ids)
+                    )
                     _release_claims(session, ParameterSet, ids)
                 batch = config.render.batch_size
                 for start in range(0, len(ids), batch):
@@ -606,7 +610,9 @@ def apply(
                 sends.append(Send("train", (model.id,), config.tasks.train_time_limit_s))
             case EnqueueTraining(model_id, requeue):
                 if requeue:
-                    log.warning("experiment %s: sending model %s again (nobody holds its message)", experiment.id, model_id)
+                    log.warning(
+                        "experiment %s: sending model %s again (nobody holds its message)", experiment.id, model_id
+                    )
                     _release_claims(session, Model, (model_id,))
                 sends.append(Send("train", (model_id,), config.tasks.train_time_limit_s))
             case CloseStage(stage_id, reason, best_model_id):
@@ -692,7 +698,10 @@ def _send(send: Send) -> None:
         app.send_task(name, args=args)
     else:
         app.send_task(
-            name, args=args, soft_time_limit=send.soft_time_limit_s, time_limit=send.soft_time_limit_s + HARD_LIMIT_GRACE_S
+            name,
+            args=args,
+            soft_time_limit=send.soft_time_limit_s,
+            time_limit=send.soft_time_limit_s + HARD_LIMIT_GRACE_S,
         )
 
 
@@ -751,7 +760,9 @@ def reconcile_once(experiment_id: int, sent: set[tuple[str, int]] | None = None)
         if isinstance(config, str):
             # A stored config this version refuses (recorded before a bound existed) can never
             # plan: the experiment fails with the reason instead of raising on every pass.
-            decisions = [Fail(config)] if experiment.status in (ExperimentStatus.pending, ExperimentStatus.running) else []
+            decisions = (
+                [Fail(config)] if experiment.status in (ExperimentStatus.pending, ExperimentStatus.running) else []
+            )
             if decisions:
                 apply(session, experiment, decisions, None)
             return decisions

@@ -34,20 +34,31 @@ def test_rows_rendered_before_objects_per_image_get_their_one_target(tmp_path):
     engine = create_engine(url)
     theta = {"condition": "fb", "difficulty": "easy", "object": "coffee", "seed": 1}
     with engine.begin() as connection:
-        connection.execute(text(
-            "INSERT INTO experiments (id, name, config, seed, status, created_at) VALUES (1, 'old', '{}', 0, 'finished', '2026-01-01')"
-        ))
+        connection.execute(
+            text(
+                "INSERT INTO experiments (id, name, config, seed, status, created_at) VALUES (1, 'old', '{}', 0, 'finished', '2026-01-01')"
+            )
+        )
         for row_id, box in ((1, "[1.0, 2.0, 30.0, 40.0]"), (2, "null")):
-            connection.execute(text(
-                "INSERT INTO parameter_sets (id, experiment_id, key, split, \"index\", condition, difficulty, seed, theta, status, label, box, amodal_box, visible_fraction) "
-                f"VALUES ({row_id}, 1, 'test/fb/easy/{row_id}', 'test', {row_id}, 'fb', 'easy', 1, :theta, 'rendered', 1, '{box}', '{box}', 0.75)"
-            ), {"theta": json.dumps(theta)})
+            connection.execute(
+                text(
+                    'INSERT INTO parameter_sets (id, experiment_id, key, split, "index", condition, difficulty, seed, theta, status, label, box, amodal_box, visible_fraction) '
+                    f"VALUES ({row_id}, 1, 'test/fb/easy/{row_id}', 'test', {row_id}, 'fb', 'easy', 1, :theta, 'rendered', 1, '{box}', '{box}', 0.75)"
+                ),
+                {"theta": json.dumps(theta)},
+            )
     upgrade(url)
     with engine.connect() as connection:
         rows = dict(connection.execute(text("SELECT id, objects FROM parameter_sets ORDER BY id")).all())
     engine.dispose()
     assert json.loads(rows[1]) == [
-        {"object": "coffee", "label": 1, "box": [1.0, 2.0, 30.0, 40.0], "amodal_box": [1.0, 2.0, 30.0, 40.0], "visible_fraction": 0.75}
+        {
+            "object": "coffee",
+            "label": 1,
+            "box": [1.0, 2.0, 30.0, 40.0],
+            "amodal_box": [1.0, 2.0, 30.0, 40.0],
+            "visible_fraction": 0.75,
+        }
     ]
     assert rows[2] is None or json.loads(rows[2]) is None
 
@@ -66,7 +77,11 @@ def _stage_end_reasons_added_since_the_first_migration_are_stored(url):
         experiment = Experiment(name="b", config={}, seed=0)
         session.add(experiment)
         for order, reason in enumerate((StageEndReason.kappa, StageEndReason.increments)):
-            session.add(Stage(experiment=experiment, order=order, condition="canonical", difficulty="canonical", end_reason=reason))
+            session.add(
+                Stage(
+                    experiment=experiment, order=order, condition="canonical", difficulty="canonical", end_reason=reason
+                )
+            )
         session.commit()
     with Session(engine) as session:
         stored = [(s.condition, s.difficulty, s.end_reason) for s in session.query(Stage).order_by(Stage.order)]

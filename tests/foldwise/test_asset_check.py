@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import yaml
 
-from foldwise.config import AssetsConfig
 from foldwise.asset_check import MAX_PIXELS, AssetError, validate_assets
+from foldwise.config import AssetsConfig
 
 REPO_ROOT = Path(__file__).resolve().parents[2]
 
@@ -33,7 +33,12 @@ def _chunk(kind: bytes, data: bytes) -> bytes:
 def _png_claiming(path: Path, width: int, height: int) -> Path:
     """A well-formed PNG header (valid CRCs) that claims width x height, with one row of data."""
     header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", header) + _chunk(b"IDAT", zlib.compress(b"\x00" * 64)) + _chunk(b"IEND", b""))
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + _chunk(b"IHDR", header)
+        + _chunk(b"IDAT", zlib.compress(b"\x00" * 64))
+        + _chunk(b"IEND", b"")
+    )
     return path
 
 
@@ -74,24 +79,66 @@ def test_good_folders_and_the_defaults_pass(folders):
         ("objects", lambda d: d / "missing", "folder '{d}/missing' does not exist"),
         ("backgrounds", lambda d: _png(d / "x.png", 20, 20), "is not a folder"),
         ("occluders", lambda d: (d.mkdir(), d)[-1], "holds no images"),
-        ("objects", lambda d: (d.mkdir(), (d / "notes.png").write_text("not an image"), d)[-1], "notes.png' is not a readable image"),
-        ("backgrounds", lambda d: (_png(d / "cut.png", 64, 64).write_bytes((d / "cut.png").read_bytes()[:90]), d)[-1], "cut.png' is not a readable image"),
-        ("backgrounds", lambda d: (_png(d / "dot.png", 1, 1), d)[-1], "dot.png' is 1x1 pixels; backgrounds need at least 16"),
-        ("occluders", lambda d: (_png(d / "speck.png", 7, 30), d)[-1], "speck.png' is 7x30 pixels; occluders need at least 8"),
-        ("objects", lambda d: (d.mkdir(), _png_claiming(d / "bomb.png", 100_000, 100_000), d)[-1], f"bomb.png' is larger than {MAX_PIXELS:,} pixels"),
+        (
+            "objects",
+            lambda d: (d.mkdir(), (d / "notes.png").write_text("not an image"), d)[-1],
+            "notes.png' is not a readable image",
+        ),
+        (
+            "backgrounds",
+            lambda d: (_png(d / "cut.png", 64, 64).write_bytes((d / "cut.png").read_bytes()[:90]), d)[-1],
+            "cut.png' is not a readable image",
+        ),
+        (
+            "backgrounds",
+            lambda d: (_png(d / "dot.png", 1, 1), d)[-1],
+            "dot.png' is 1x1 pixels; backgrounds need at least 16",
+        ),
+        (
+            "occluders",
+            lambda d: (_png(d / "speck.png", 7, 30), d)[-1],
+            "speck.png' is 7x30 pixels; occluders need at least 8",
+        ),
+        (
+            "objects",
+            lambda d: (d.mkdir(), _png_claiming(d / "bomb.png", 100_000, 100_000), d)[-1],
+            f"bomb.png' is larger than {MAX_PIXELS:,} pixels",
+        ),
         # OpenCV, which renders, reads no GIF: a GIF named .png failed every θ that drew it.
-        ("objects", lambda d: (_saved_as(d / "flag.png", "GIF"), d)[-1], "flag.png' holds a GIF image, not PNG as its name says"),
-        ("backgrounds", lambda d: (_png(d / "a.png", 32, 32), _saved_as(d / "photo.png", "JPEG"), d)[-1], "photo.png' holds a JPEG image, not PNG"),
+        (
+            "objects",
+            lambda d: (_saved_as(d / "flag.png", "GIF"), d)[-1],
+            "flag.png' holds a GIF image, not PNG as its name says",
+        ),
+        (
+            "backgrounds",
+            lambda d: (_png(d / "a.png", 32, 32), _saved_as(d / "photo.png", "JPEG"), d)[-1],
+            "photo.png' holds a JPEG image, not PNG",
+        ),
         ("occluders", lambda d: (_saved_as(d / "leaf.jpg", "PNG"), d)[-1], "leaf.jpg' holds a PNG image, not JPEG/MPO"),
         ("backgrounds", lambda d: (_saved_as(d / "scan.tif", "BMP"), d)[-1], "scan.tif' holds a BMP image, not TIFF"),
         # Pillow's structural check passes these (whole headers): their pixels do not decode.
-        ("backgrounds", lambda d: (_truncated(_saved_as(d / "cut.jpg", "JPEG", 64, 64)), d)[-1], "cut.jpg' does not decode (OSError: image file is truncated"),
+        (
+            "backgrounds",
+            lambda d: (_truncated(_saved_as(d / "cut.jpg", "JPEG", 64, 64)), d)[-1],
+            "cut.jpg' does not decode (OSError: image file is truncated",
+        ),
         ("objects", lambda d: (_truncated(_saved_as(d / "cut.bmp", "BMP", 64, 64)), d)[-1], "cut.bmp' does not decode"),
-        ("occluders", lambda d: (_truncated(_saved_as(d / "cut.tif", "TIFF", 64, 64)), d)[-1], "cut.tif' does not decode"),
-        ("objects", lambda d: (_png(d / "poster.png", 32, 32), _saved_as(d / "poster.jpg", "JPEG"), d)[-1],
-         "'{d}/poster.jpg' and '{d}/poster.png' both name the class 'poster'"),
-        ("objects", lambda d: (_png(d / "a" / "mug.png", 32, 32), _png(d / "b" / "mug.png", 32, 32), d)[-1],
-         "'{d}/a/mug.png' and '{d}/b/mug.png' both name the class 'mug'"),
+        (
+            "occluders",
+            lambda d: (_truncated(_saved_as(d / "cut.tif", "TIFF", 64, 64)), d)[-1],
+            "cut.tif' does not decode",
+        ),
+        (
+            "objects",
+            lambda d: (_png(d / "poster.png", 32, 32), _saved_as(d / "poster.jpg", "JPEG"), d)[-1],
+            "'{d}/poster.jpg' and '{d}/poster.png' both name the class 'poster'",
+        ),
+        (
+            "objects",
+            lambda d: (_png(d / "a" / "mug.png", 32, 32), _png(d / "b" / "mug.png", 32, 32), d)[-1],
+            "'{d}/a/mug.png' and '{d}/b/mug.png' both name the class 'mug'",
+        ),
     ],
 )
 def test_each_bad_folder_or_file_is_named(tmp_path, folders, what, spoil, message):
@@ -137,7 +184,14 @@ def test_foldwise_run_with_a_bad_asset_folder_is_one_line_and_records_nothing(tm
 
 def test_every_accepted_format_under_its_own_name_passes(tmp_path):
     folder = tmp_path / "backgrounds"
-    for name, image_format in [("a.png", "PNG"), ("b.jpg", "JPEG"), ("c.JPEG", "JPEG"), ("d.bmp", "BMP"), ("e.tiff", "TIFF"), ("f.webp", "WEBP")]:
+    for name, image_format in [
+        ("a.png", "PNG"),
+        ("b.jpg", "JPEG"),
+        ("c.JPEG", "JPEG"),
+        ("d.bmp", "BMP"),
+        ("e.tiff", "TIFF"),
+        ("f.webp", "WEBP"),
+    ]:
         _saved_as(folder / name, image_format)
     validate_assets(AssetsConfig(backgrounds=folder))
 
@@ -167,7 +221,10 @@ def _loop(folder: Path) -> Path:
 @pytest.mark.parametrize(
     ("folder", "message"),
     [
-        (lambda root: "~nosuchuser-foldwise", "there is no user 'nosuchuser-foldwise' on this server to expand ~nosuchuser-foldwise"),
+        (
+            lambda root: "~nosuchuser-foldwise",
+            "there is no user 'nosuchuser-foldwise' on this server to expand ~nosuchuser-foldwise",
+        ),
         (lambda root: "~nosuchuser-foldwise/objects", "no user 'nosuchuser-foldwise'"),
         (lambda root: str(root / (("d" * 200 + "/") * 25)), "a path of 5,"),
         (lambda root: str(root / ("n" * 256)), "is 256 bytes; at most 255 are allowed"),

@@ -46,7 +46,9 @@ def test_the_rest_of_table_1_and_its_canonical_values_leave_version_1_images_alo
     assert set(table.conditions["ci"].variants) == {"narrow", "wide"}
 
 
-@pytest.mark.parametrize(("text", "value"), [("pi", math.pi), ("pi/6", math.pi / 6), ("2*pi/3", 2 * math.pi / 3), (0.5, 0.5)])
+@pytest.mark.parametrize(
+    ("text", "value"), [("pi", math.pi), ("pi/6", math.pi / 6), ("2*pi/3", 2 * math.pi / 3), (0.5, 0.5)]
+)
 def test_numbers_and_pi_expressions(text, value):
     assert parse_number(text, "x") == pytest.approx(value)
 

@@ -73,7 +73,9 @@ def test_config_round_trips_through_json():
 def test_a_mixed_stage_ends_the_curriculum_with_its_own_settings():
     config = load_config(REPO_ROOT / "configs/quick.yaml")
     stages = config.stage_order()
-    assert stages[:21] == [(c, d) for c in ("fb", "mb", "po", "de", "eo", "sc", "li") for d in ("easy", "medium", "hard")]
+    assert stages[:21] == [
+        (c, d) for c in ("fb", "mb", "po", "de", "eo", "sc", "li") for d in ("easy", "medium", "hard")
+    ]
     assert stages[21:] == [("mixed", "hard")]
     assert ("mixed", "hard") in config.test_pairs()
     mixed = config.stage_active_learning("mixed")
@@ -89,8 +91,14 @@ def test_a_mixed_stage_ends_the_curriculum_with_its_own_settings():
     ("mixed", "key"),
     [
         ({"conditions_per_image": [3, 2]}, "conditions_per_image: needs 1 <= low <= high"),
-        ({"conditions_per_image": [1, 10]}, "curriculum.mixed.conditions_per_image.1: Input should be less than or equal to 9"),
-        ({"conditions_per_image": [0, 2]}, "curriculum.mixed.conditions_per_image.0: Input should be greater than or equal to 1"),
+        (
+            {"conditions_per_image": [1, 10]},
+            "curriculum.mixed.conditions_per_image.1: Input should be less than or equal to 9",
+        ),
+        (
+            {"conditions_per_image": [0, 2]},
+            "curriculum.mixed.conditions_per_image.0: Input should be greater than or equal to 1",
+        ),
         ({"draw_from": ["fb", "mb"], "conditions_per_image": [1, 3]}, "only 2 to draw from"),
         ({"difficulties": ["hard", "medium", "hard"]}, "curriculum.mixed: difficulties: a difficulty is listed twice"),
         ({"draw_from": ["fb", "mb", "fb"]}, "curriculum.mixed: draw_from: a condition is listed twice"),
@@ -98,7 +106,10 @@ def test_a_mixed_stage_ends_the_curriculum_with_its_own_settings():
         ({"always": ["or", "zz"]}, "always[1]: unknown condition 'zz'"),
         ({"always": ["or", "or"]}, "always: a condition is listed twice"),
         ({"draw_from": ["fb", "mb", "po"], "always": ["or"]}, "always: ['or'] not in draw_from"),
-        ({"draw_from": ["fb", "mb", "or"], "always": ["or"], "conditions_per_image": [1, 3]}, "only 2 to draw from besides always (or)"),
+        (
+            {"draw_from": ["fb", "mb", "or"], "always": ["or"], "conditions_per_image": [1, 3]},
+            "only 2 to draw from besides always (or)",
+        ),
         ({"difficulties": ["brutal"]}, "unknown difficulty 'brutal'"),
         ({"negatives": 0.95}, "curriculum.mixed.negatives"),
         ({"active_learning": {"t": 0}}, "curriculum.mixed.active_learning.t"),
@@ -113,7 +124,10 @@ def test_bad_mixed_stages_name_the_key(mixed, key):
 
 def test_covers_table3_all_and_curriculum():
     base = {"name": "x", "curriculum": {"conditions": ["fb"], "difficulties": ["easy"], "mixed": {}}}
-    pairs = {covers: parse_config({**base, "test_set": {"covers": covers}}).test_pairs() for covers in ("table3", "all", "curriculum")}
+    pairs = {
+        covers: parse_config({**base, "test_set": {"covers": covers}}).test_pairs()
+        for covers in ("table3", "all", "curriculum")
+    }
     assert len(pairs["table3"]) == 21 and len(pairs["all"]) == 51
     assert pairs["curriculum"] == [("fb", "easy"), ("mixed", "hard")]
 
@@ -136,9 +150,18 @@ def test_a_mixed_stage_may_grow_its_training_set_while_the_others_reset():
         ({"detector": {"learning_rate": False}}, "detector.learning_rate: expected a number, got a boolean"),
         ({"render": {"smooth_steps": 2.5}}, "render.smooth_steps: expected a whole number, got 2.5"),
         ({"seed": "7"}, "seed: expected a number, got the text '7'"),
-        ({"detector": {"anchor_size_range": [0.1, "1"]}}, "detector.anchor_size_range[1]: expected a number, got the text '1'"),
-        ({"curriculum": {"mixed": {"conditions_per_image": [2, 4.0]}}}, "conditions_per_image[1]: expected a whole number, got 4.0"),
-        ({"curriculum": {"mixed": {"active_learning": {"t": "100"}}}}, "curriculum.mixed.active_learning.t: expected a number"),
+        (
+            {"detector": {"anchor_size_range": [0.1, "1"]}},
+            "detector.anchor_size_range[1]: expected a number, got the text '1'",
+        ),
+        (
+            {"curriculum": {"mixed": {"conditions_per_image": [2, 4.0]}}},
+            "conditions_per_image[1]: expected a whole number, got 4.0",
+        ),
+        (
+            {"curriculum": {"mixed": {"active_learning": {"t": "100"}}}},
+            "curriculum.mixed.active_learning.t: expected a number",
+        ),
     ],
 )
 def test_numbers_are_numbers(data, message):
@@ -309,7 +332,9 @@ def test_every_number_in_the_config_has_an_upper_bound_in_the_schema():
     for key in NUMERIC_FIELDS:
         node = property_of(key)
         items = node.get("prefixItems")
-        if key != "detector.anchor_size_range" and not (all(has_maximum(i) for i in items) if items else has_maximum(node)):
+        if key != "detector.anchor_size_range" and not (
+            all(has_maximum(i) for i in items) if items else has_maximum(node)
+        ):
             unbounded.append(key)
     assert unbounded == []
 
@@ -332,10 +357,17 @@ def test_a_backbone_the_family_cannot_build_is_refused_before_any_work(family, b
 
 @pytest.mark.parametrize(
     ("family", "backbone"),
-    [("faster_rcnn", "resnet50_fpn_v2"), ("fast_rcnn", "mobilenet_v3_large_320_fpn"), ("yolo", "resnet18"), ("yolo", "mobilenet_v3_large_fpn")],
+    [
+        ("faster_rcnn", "resnet50_fpn_v2"),
+        ("fast_rcnn", "mobilenet_v3_large_320_fpn"),
+        ("yolo", "resnet18"),
+        ("yolo", "mobilenet_v3_large_fpn"),
+    ],
 )
 def test_every_backbone_a_family_builds_is_accepted(family, backbone):
-    assert parse_config({"name": "x", "detector": {"family": family, "backbone": backbone}}).detector.backbone == backbone
+    assert (
+        parse_config({"name": "x", "detector": {"family": family, "backbone": backbone}}).detector.backbone == backbone
+    )
 
 
 LEARNABILITY = {"name": "l", "kind": "learnability"}
@@ -344,16 +376,31 @@ LEARNABILITY = {"name": "l", "kind": "learnability"}
 @pytest.mark.parametrize(
     ("data", "message"),
     [
-        ({"name": "x", "kind": "learnabilty"}, "kind: Input should be 'active_learning', 'learnability' or 'canonical_baseline'"),
-        ({**LEARNABILITY, "learnability": {"kappa": 0}}, "learnability.kappa: Input should be greater than or equal to 1"),
-        ({**LEARNABILITY, "learnability": {"kappa": 10**6}}, "learnability.kappa: Input should be less than or equal to"),
+        (
+            {"name": "x", "kind": "learnabilty"},
+            "kind: Input should be 'active_learning', 'learnability' or 'canonical_baseline'",
+        ),
+        (
+            {**LEARNABILITY, "learnability": {"kappa": 0}},
+            "learnability.kappa: Input should be greater than or equal to 1",
+        ),
+        (
+            {**LEARNABILITY, "learnability": {"kappa": 10**6}},
+            "learnability.kappa: Input should be less than or equal to",
+        ),
         ({**LEARNABILITY, "learnability": {"kapa": 3}}, "learnability.kapa: unknown key"),
         ({**LEARNABILITY, "learnability": {"kappa": True}}, "learnability.kappa: expected a number, got a boolean"),
         ({"name": "x", "learnability": {"kappa": 3}}, "learnability: only read by kind: learnability"),
         ({**LEARNABILITY, "active_learning": {"M": 2}}, "active_learning.M: kind: learnability has no stopping rule"),
-        ({**LEARNABILITY, "active_learning": {"max_increments": 5}}, "active_learning.max_increments: kind: learnability"),
+        (
+            {**LEARNABILITY, "active_learning": {"max_increments": 5}},
+            "active_learning.max_increments: kind: learnability",
+        ),
         ({**LEARNABILITY, "curriculum": {"mixed": {}}}, "curriculum.mixed: kind: learnability has no mixed stage"),
-        ({**LEARNABILITY, "test_set": {"covers": "table3"}}, "test_set.covers: kind: learnability tests each condition"),
+        (
+            {**LEARNABILITY, "test_set": {"covers": "table3"}},
+            "test_set.covers: kind: learnability tests each condition",
+        ),
     ],
 )
 def test_kind_and_learnability_errors_name_the_key(data, message):
@@ -377,12 +424,27 @@ CANONICAL_BASELINE = {"name": "b", "kind": "canonical_baseline"}
 @pytest.mark.parametrize(
     ("data", "message"),
     [
-        ({**CANONICAL_BASELINE, "canonical_baseline": {"increments": 0}}, "canonical_baseline.increments: Input should be greater"),
+        (
+            {**CANONICAL_BASELINE, "canonical_baseline": {"increments": 0}},
+            "canonical_baseline.increments: Input should be greater",
+        ),
         ({**CANONICAL_BASELINE, "canonical_baseline": {"iterations": 3}}, "canonical_baseline.iterations: unknown key"),
-        ({"name": "x", "canonical_baseline": {"increments": 3}}, "canonical_baseline: only read by kind: canonical_baseline"),
-        ({**CANONICAL_BASELINE, "learnability": {"kappa": 3}}, "learnability: only read by kind: learnability (this config's kind is canonical_baseline)"),
-        ({**CANONICAL_BASELINE, "active_learning": {"tau": 0.1}}, "active_learning.tau: kind: canonical_baseline has no stopping rule; canonical_baseline.increments sets"),
-        ({**CANONICAL_BASELINE, "curriculum": {"mixed": {}}}, "curriculum.mixed: kind: canonical_baseline has no mixed stage (it trains on canonical images only"),
+        (
+            {"name": "x", "canonical_baseline": {"increments": 3}},
+            "canonical_baseline: only read by kind: canonical_baseline",
+        ),
+        (
+            {**CANONICAL_BASELINE, "learnability": {"kappa": 3}},
+            "learnability: only read by kind: learnability (this config's kind is canonical_baseline)",
+        ),
+        (
+            {**CANONICAL_BASELINE, "active_learning": {"tau": 0.1}},
+            "active_learning.tau: kind: canonical_baseline has no stopping rule; canonical_baseline.increments sets",
+        ),
+        (
+            {**CANONICAL_BASELINE, "curriculum": {"mixed": {}}},
+            "curriculum.mixed: kind: canonical_baseline has no mixed stage (it trains on canonical images only",
+        ),
     ],
 )
 def test_canonical_baseline_errors_name_the_key(data, message):
@@ -434,14 +496,35 @@ CANONICAL_START = {"start": "canonical", "canonical_increments": 5}
 @pytest.mark.parametrize(
     ("data", "message"),
     [
-        ({**LEARNABILITY, "learnability": {"start": "pretrained"}}, "learnability.start: Input should be 'initial' or 'canonical'"),
-        ({**LEARNABILITY, "learnability": {"canonical_increments": 5}}, "learnability.canonical_increments: only read with learnability.start: canonical"),
-        ({**LEARNABILITY, "learnability": {"start": "initial", "canonical_increments": 5}}, "learnability.canonical_increments: only read with learnability.start: canonical"),
-        ({**LEARNABILITY, "learnability": {"start": "canonical"}}, "learnability.canonical_increments: learnability.start: canonical needs"),
-        ({**LEARNABILITY, "learnability": {**CANONICAL_START, "canonical_increments": 0}}, "learnability.canonical_increments: Input should be greater than or equal to 1"),
-        ({**LEARNABILITY, "learnability": {**CANONICAL_START, "canonical_increments": 1.5}}, "learnability.canonical_increments: expected a whole number"),
+        (
+            {**LEARNABILITY, "learnability": {"start": "pretrained"}},
+            "learnability.start: Input should be 'initial' or 'canonical'",
+        ),
+        (
+            {**LEARNABILITY, "learnability": {"canonical_increments": 5}},
+            "learnability.canonical_increments: only read with learnability.start: canonical",
+        ),
+        (
+            {**LEARNABILITY, "learnability": {"start": "initial", "canonical_increments": 5}},
+            "learnability.canonical_increments: only read with learnability.start: canonical",
+        ),
+        (
+            {**LEARNABILITY, "learnability": {"start": "canonical"}},
+            "learnability.canonical_increments: learnability.start: canonical needs",
+        ),
+        (
+            {**LEARNABILITY, "learnability": {**CANONICAL_START, "canonical_increments": 0}},
+            "learnability.canonical_increments: Input should be greater than or equal to 1",
+        ),
+        (
+            {**LEARNABILITY, "learnability": {**CANONICAL_START, "canonical_increments": 1.5}},
+            "learnability.canonical_increments: expected a whole number",
+        ),
         ({"name": "x", "learnability": CANONICAL_START}, "learnability: only read by kind: learnability"),
-        ({**CANONICAL_BASELINE, "learnability": {"start": "canonical", "canonical_increments": 3}}, "learnability: only read by kind: learnability"),
+        (
+            {**CANONICAL_BASELINE, "learnability": {"start": "canonical", "canonical_increments": 3}},
+            "learnability: only read by kind: learnability",
+        ),
     ],
 )
 def test_learnability_start_errors_name_the_key(data, message):
@@ -454,7 +537,9 @@ def test_a_canonical_start_adds_one_canonical_stage_first_and_keeps_it_through_j
     config = parse_config({**LEARNABILITY, "learnability": {"kappa": 3, **CANONICAL_START},
                            "curriculum": {"conditions": ["fb", "po"], "difficulties": ["easy", "hard"]}})  # fmt: skip
     assert config.learnability.start == "canonical" and config.starts_from_canonical
-    assert config.stage_order() == [("canonical", "canonical")] + [(c, d) for c in ("fb", "po") for d in ("easy", "hard")]
+    assert config.stage_order() == [("canonical", "canonical")] + [
+        (c, d) for c in ("fb", "po") for d in ("easy", "hard")
+    ]
     assert config.stage_increments_cap("canonical") == 5 and config.stage_increments_cap("po") == 3
     assert config.test_pairs() == [(c, d) for c in ("fb", "po") for d in ("easy", "hard")]
     assert parse_config(config.model_dump(mode="json")) == config

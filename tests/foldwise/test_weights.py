@@ -67,7 +67,10 @@ def test_foldwise_run_stops_before_any_work_without_the_weights(tmp_path):
                           text=True, env=env)  # fmt: skip
     output = (done.stdout + done.stderr).strip()
     assert done.returncode == 2 and output.count("\n") == 0, output
-    assert output.startswith("error: detector.pretrained: 'imagenet' needs ") and "mobilenet_v3_large-8738ca79.pth" in output
+    assert (
+        output.startswith("error: detector.pretrained: 'imagenet' needs ")
+        and "mobilenet_v3_large-8738ca79.pth" in output
+    )
     assert not (tmp_path / "data").exists()  # nothing rendered, nothing recorded
 
 
@@ -80,4 +83,3 @@ def test_foldwise_train_stops_before_reading_the_data_without_the_weights(tmp_pa
     output = (done.stdout + done.stderr).strip()
     assert done.returncode != 0 and "detector.pretrained: 'imagenet' needs " in output, output
     assert "no-such-set" not in output  # refused on the weights, before the data was looked at
-

@@ -407,7 +407,9 @@ def scratch_database() -> Iterator[str]:
     name = f"foldwise_it_{secrets.token_hex(6)}"
     with psycopg.connect(ADMIN_URL, autocommit=True) as admin:
         admin.execute(sql.SQL("CREATE DATABASE {}").format(sql.Identifier(name)))
-    compose_url = service_environment(load_compose({"FOLDWISE_API_TOKEN": "unused"})["services"]["migrate"])["FOLDWISE_DATABASE_URL"]
+    compose_url = service_environment(load_compose({"FOLDWISE_API_TOKEN": "unused"})["services"]["migrate"])[
+        "FOLDWISE_DATABASE_URL"
+    ]
     try:
         # The compose URL's driver and host, with loopback's trust-auth user instead of the container's.
         yield localize_url(compose_url, database=name, user="postgres")

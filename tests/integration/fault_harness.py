@@ -182,7 +182,9 @@ def kill_train_worker_mid_increment(
 
     def training() -> Model | None:
         with rows() as session:
-            return session.scalar(select(Model).where(Model.experiment_id == experiment_id, Model.status == ModelStatus.training))
+            return session.scalar(
+                select(Model).where(Model.experiment_id == experiment_id, Model.status == ModelStatus.training)
+            )
 
     victim = stack.wait_for("a model to be training", training, stack.experiment_timeout_s, interval_s=0.1)
     time.sleep(0.5)  # inside the increment
@@ -208,7 +210,9 @@ def kill_train_worker_mid_increment(
     )
 
 
-def kill_render_worker_mid_batch(stack: Stack, api, rows: Rows, recovery_timeout_s: float = RECOVERY_GOAL_S) -> Recovery:
+def kill_render_worker_mid_batch(
+    stack: Stack, api, rows: Rows, recovery_timeout_s: float = RECOVERY_GOAL_S
+) -> Recovery:
     # Batches of 40 θ at 768 px: a couple of seconds each, long enough to be killed inside.
     experiment_id = post_smoke_experiment(
         stack, api, "fault-render-worker",
@@ -282,21 +286,30 @@ def kill_scheduler(stack: Stack, api, rows: Rows, recovery_timeout_s: float = RE
         with rows() as session:
             return bool(
                 session.scalar(
-                    select(func.count()).where(Model.experiment_id == experiment_id, Model.status == ModelStatus.evaluated)
+                    select(func.count()).where(
+                        Model.experiment_id == experiment_id, Model.status == ModelStatus.evaluated
+                    )
                 )
             )
 
-    stack.wait_for("the first model to be evaluated", first_model_evaluated, stack.experiment_timeout_s, interval_s=0.05)
+    stack.wait_for(
+        "the first model to be evaluated", first_model_evaluated, stack.experiment_timeout_s, interval_s=0.05
+    )
     with rows() as session:
         status = session.get(Experiment, experiment_id).status
-    assert status == ExperimentStatus.running, f"experiment {experiment_id} was {status.value} before the scheduler could be killed"
+    assert status == ExperimentStatus.running, (
+        f"experiment {experiment_id} was {status.value} before the scheduler could be killed"
+    )
     scheduler = stack.running("scheduler")
     killed_at = time.monotonic()
     scheduler.kill_hard()  # it has no child processes: its main process is the whole of it
     restarted = stack.restart(scheduler)
     pattern = re.compile(_DECISIONS.format(experiment_id=experiment_id), re.MULTILINE)
     decided = stack.wait_for(
-        "the restarted scheduler to decide", lambda: pattern.search(restarted.log()), recovery_timeout_s, interval_s=0.05
+        "the restarted scheduler to decide",
+        lambda: pattern.search(restarted.log()),
+        recovery_timeout_s,
+        interval_s=0.05,
     )
     return Recovery(
         "scheduler_killed",
@@ -319,7 +332,12 @@ def restart_redis_empty(
         active_learning={"m": 8, "max_increments": 1},
     )  # fmt: skip
     client = redis.Redis.from_url(own_redis.url)
-    stack.wait_for("batches waiting in the render queue", lambda: client.llen("render") >= 4, stack.experiment_timeout_s, interval_s=0.02)
+    stack.wait_for(
+        "batches waiting in the render queue",
+        lambda: client.llen("render") >= 4,
+        stack.experiment_timeout_s,
+        interval_s=0.02,
+    )
     # Writes paused (the workers' pops and the scheduler's pushes wait), then what waits is read and lost.
     client.execute_command("CLIENT", "PAUSE", "10000", "WRITE")
     waiting = _queued(client, "render") + _queued(client, "train")
@@ -414,9 +432,9 @@ def audit_done_once(stack: Stack, rows: Rows, recovery: Recovery) -> Audit:
     wrong_model_sends = {m.id: m.sends for m in models if m.sends != (2 if m.id in recovery.lost_models else 1)}
     if wrong_model_sends:
         problems.append(f"models sent other than once (twice if lost): {wrong_model_sends}")
-    excess = {
-        ("θ", t.id): t.attempts - (2 if t.id in recovery.cut_off_thetas else 1) for t in thetas
-    } | {("model", m.id): m.attempts - (2 if m.id in recovery.cut_off_models else 1) for m in models}
+    excess = {("θ", t.id): t.attempts - (2 if t.id in recovery.cut_off_thetas else 1) for t in thetas} | {
+        ("model", m.id): m.attempts - (2 if m.id in recovery.cut_off_models else 1) for m in models
+    }
     started_too_often = {key: n for key, n in excess.items() if n > 0}
     if started_too_often:
         problems.append(f"started more often than the fault allows (extra starts): {started_too_often}")

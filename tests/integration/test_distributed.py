@@ -128,13 +128,18 @@ def test_experiment_posted_to_the_api_runs_through_the_workers(stack, api, recor
     final = summary(api, experiment_id)["final_model_id"]
     with records() as session:
         test_image = session.scalars(
-            select(ParameterSet.image_path).where(ParameterSet.experiment_id == experiment_id, ParameterSet.split == Split.test)
+            select(ParameterSet.image_path).where(
+                ParameterSet.experiment_id == experiment_id, ParameterSet.split == Split.test
+            )
         ).first()
     image = (stack.data_dir / test_image).read_bytes()
     headers = {**stack.auth_headers, "Content-Type": "image/png"}
     found = api.post(f"/models/{final}/detect?threshold=0", content=image, headers=headers)
     assert found.status_code == 200, found.text
-    assert found.json()["image"] == {"width": 64, "height": 64} and found.json()["classes"] == summary(api, experiment_id)["classes"]
+    assert (
+        found.json()["image"] == {"width": 64, "height": 64}
+        and found.json()["classes"] == summary(api, experiment_id)["classes"]
+    )
     garbage = api.post(f"/models/{final}/detect", content=image[:8] + b"\0" * 64, headers=headers)
     assert garbage.status_code == 422 and "not an image OpenCV can decode" in garbage.json()["detail"]
     (detect_worker,) = stack.replicas("detect-worker")
@@ -182,7 +187,11 @@ def test_experiment_finishes_exactly_once_after_the_scheduler_is_killed(stack, a
     # Every θ rendered, each to the one file its id names, and nothing else on disk (no second
     # copy, no temporary file left by a duplicate delivery); a θ rendered ahead for an increment
     # that never came is discarded when the experiment finishes (its image may exist or not).
-    unrendered = [(t.id, t.status.value, t.error) for t in thetas if t.status not in (RenderStatus.rendered, RenderStatus.discarded)]
+    unrendered = [
+        (t.id, t.status.value, t.error)
+        for t in thetas
+        if t.status not in (RenderStatus.rendered, RenderStatus.discarded)
+    ]
     assert thetas and not unrendered, unrendered
     rendered = [t for t in thetas if t.status == RenderStatus.rendered]
     discarded = {f"{t.id}.png" for t in thetas if t.status == RenderStatus.discarded}

@@ -106,7 +106,9 @@ def test_a_render_worker_killed_mid_batch_loses_nothing_and_renders_nothing_twic
     check_done_once(fault_stack, fault_api, rows, recovery)
     # Only the θ that was rendering at the kill may start twice (the audit allows the cut-off ones).
     assert len(recovery.cut_off_thetas) <= 1, recovery.cut_off_thetas
-    print(f"\nkilled render worker: {len(recovery.lost_thetas)} lost θ claimed again {recovery.seconds:.1f} s after the kill")
+    print(
+        f"\nkilled render worker: {len(recovery.lost_thetas)} lost θ claimed again {recovery.seconds:.1f} s after the kill"
+    )
 
 
 def test_a_scheduler_killed_mid_run_is_restarted_and_nothing_runs_twice(fault_stack, fault_api, rows):
@@ -120,5 +122,6 @@ def test_redis_restarted_empty_mid_run_loses_nothing(fault_stack, fault_api, row
     recovery = restart_redis_empty(fault_stack, fault_api, rows, own_redis)
     # No process died: nothing was cut off, so the audit allows no θ a second start.
     check_done_once(fault_stack, fault_api, rows, recovery)
-    print(f"\nRedis restarted empty: {len(recovery.lost_thetas)} lost θ rendering again {recovery.seconds:.1f} s after the kill")
-
+    print(
+        f"\nRedis restarted empty: {len(recovery.lost_thetas)} lost θ rendering again {recovery.seconds:.1f} s after the kill"
+    )

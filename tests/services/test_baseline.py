@@ -33,7 +33,9 @@ def test_table2_scores_each_condition_at_each_difficulty_beside_the_paper(tmp_pa
 
 
 def test_an_unknown_condition_is_one_line(tmp_path):
-    result = CliRunner().invoke(app, ["baseline", str(REPO_ROOT / "configs/smoke.yaml"), "--out", str(tmp_path), "--conditions", "fb,zz"])
+    result = CliRunner().invoke(
+        app, ["baseline", str(REPO_ROOT / "configs/smoke.yaml"), "--out", str(tmp_path), "--conditions", "fb,zz"]
+    )
     assert result.exit_code == 2 and "--conditions: unknown value 'zz'; known: fb, mb" in result.output
 
 
@@ -46,7 +48,10 @@ def test_table2_rows_take_each_condition_from_the_breakdown_and_leave_a_missing_
         "condition/difficulty": {"sc/easy": {"map": 0.5}, "sc/medium": {"map": 0.125}},
     }
     rows = table2_rows(breakdown, ["sc", "sn"], ["easy", "medium", "hard"])
-    assert [(r.condition, r.name, r.map, r.paper) for r in rows] == [("sc", "scale", 0.25, 0.5947), ("sn", "sensor noise and compression", None, 0.8349)]
+    assert [(r.condition, r.name, r.map, r.paper) for r in rows] == [
+        ("sc", "scale", 0.25, 0.5947),
+        ("sn", "sensor noise and compression", None, 0.8349),
+    ]
     assert rows[0].by_difficulty == {"easy": 0.5, "medium": 0.125, "hard": None}
     path = write_table2_csv(rows, ["easy", "medium", "hard"], tmp_path / "t.csv")
     assert path.read_text().splitlines() == [
@@ -63,7 +68,9 @@ def test_an_experiments_table2_reads_its_latest_score_while_it_runs_and_its_fina
     from services import queries
     from services.baseline import experiment_table2
 
-    config = parse_config({"name": "b", "kind": "canonical_baseline", "curriculum": {"conditions": ["fb"], "difficulties": ["easy"]}})
+    config = parse_config(
+        {"name": "b", "kind": "canonical_baseline", "curriculum": {"conditions": ["fb"], "difficulties": ["easy"]}}
+    )
     with session_scope() as session:
         experiment = queries.create_experiment(session, config)
         experiment.status = ExperimentStatus.running

@@ -32,7 +32,11 @@ def test_a_canonical_baseline_run_stores_every_conditions_score_and_reports_tabl
         evaluations = {e.model_id: e for e in session.scalars(select(Evaluation))}
         train = session.scalars(select(ParameterSet).where(ParameterSet.split == Split.train)).all()
         assert experiment.status.value == "finished"
-        assert (stage.condition, stage.difficulty, stage.end_reason) == ("canonical", "canonical", StageEndReason.increments)
+        assert (stage.condition, stage.difficulty, stage.end_reason) == (
+            "canonical",
+            "canonical",
+            StageEndReason.increments,
+        )
         # a fixed number of increments from the initial weights, each from the one before
         assert [m.increment for m in models] == list(range(1, INCREMENTS + 1))
         assert stage.init_model_id is None and [m.parent_id for m in models] == [None, models[0].id]
@@ -59,7 +63,9 @@ def test_a_canonical_baseline_run_stores_every_conditions_score_and_reports_tabl
     # `foldwise report` writes and prints the same table
     again = tmp_path / "again"
     assert "Table 2" in report(str(experiment.id), "--out", str(again)).output
-    assert (again / f"table2-{experiment.id}.csv").read_text() == (report_dir / f"table2-{experiment.id}.csv").read_text()
+    assert (again / f"table2-{experiment.id}.csv").read_text() == (
+        report_dir / f"table2-{experiment.id}.csv"
+    ).read_text()
 
     # ... and the API serves it; an Algorithm 1 experiment has none (409), an unknown id is 404
     from fastapi.testclient import TestClient
@@ -79,6 +85,8 @@ def test_a_canonical_baseline_run_stores_every_conditions_score_and_reports_tabl
     assert [row["condition"] for row in body["conditions"]] == CONDITIONS
     for row in body["conditions"]:
         assert row["paper"] == float(next(r["paper_fast_rcnn"] for r in rows if r["condition"] == row["condition"]))
-        assert row["by_difficulty"] == {d: stored["condition/difficulty"][f"{row['condition']}/{d}"]["map"] for d in DIFFICULTIES}
+        assert row["by_difficulty"] == {
+            d: stored["condition/difficulty"][f"{row['condition']}/{d}"]["map"] for d in DIFFICULTIES
+        }
     assert client.get(f"/experiments/{other}/table2").status_code == 409
     assert client.get(f"/experiments/{other + 1}/table2").status_code == 404

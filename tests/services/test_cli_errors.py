@@ -45,33 +45,127 @@ def _with(tmp_path: Path, **sections) -> str:
 #  the line expected on stderr: its start, then text it must contain)
 CASES = [
     ("missing file", lambda d: d / "nowhere.yaml", "error: experiment config '{d}/nowhere.yaml' does not exist", ""),
-    ("a folder", lambda d: (d / "folder.yaml").mkdir() or d / "folder.yaml", "error: experiment config '{d}/folder.yaml' is not a file", ""),
+    (
+        "a folder",
+        lambda d: (d / "folder.yaml").mkdir() or d / "folder.yaml",
+        "error: experiment config '{d}/folder.yaml' is not a file",
+        "",
+    ),
     ("not UTF-8", b"name: caf\xe9\n", "error: experiment config '{d}/config.yaml' is not UTF-8 text (byte 9)", ""),
     ("empty", "", "error: invalid experiment config: expected a mapping at the top level, got NoneType", ""),
     ("a list", "- a\n- b\n", "error: invalid experiment config: expected a mapping", ""),
     ("not YAML", "name: [unclosed\n", "error: invalid experiment config: not YAML: ", "(line 2, column 1)"),
     ("NUL in the file", "name: a\x00b\n", "error: invalid experiment config: not YAML: ", "#x0000"),
-    ("a key twice", "name: x\nseed: 1\nseed: 2\n", "error: invalid experiment config: duplicate key 'seed' (line 3, column 1)", ""),
-    ("10,000 levels", "name: x\na: " + "[" * 10_000 + "]" * 10_000 + "\n", "error: invalid experiment config: nested deeper than 32 levels", ""),
-    ("unknown key and a bad count", lambda d: _with(d, active_learning={"m": "50", "mm": 1}),
-     "error: invalid experiment config: active_learning.m: expected a number, got the text '50'; active_learning.mm: unknown key", ""),
-    ("a count as a float", lambda d: _with(d, active_learning={"t": 1e3}), "error: invalid experiment config: active_learning.t: expected a whole number, got 1000.0", ""),
-    ("too large", lambda d: _with(d, detector={"learning_rate": 11}), "error: invalid experiment config: detector.learning_rate: Input should be less than or equal to 10", ""),
-    ("control character", lambda d: _with(d, assets={"objects": "/srv/a\tb"}), "error: invalid experiment config: assets.objects: control character '\\t' in text", ""),
-    ("missing asset folder", lambda d: _with(d, assets={"backgrounds": str(d / "none")}), "error: assets.backgrounds: folder '{d}/none' does not exist", ""),
-    ("empty asset folder", lambda d: _with(d, assets={"occluders": str(_folder(d, "empty", lambda f: None))}),
-     "error: assets.occluders: folder '{d}/empty' holds no images", ""),
-    ("not an image", lambda d: _with(d, assets={"objects": str(_folder(d, "text", lambda f: (f / "notes.png").write_text("hello")))}),
-     "error: assets.objects: '{d}/text/notes.png' is not a readable image", ""),
-    ("corrupt PNG", lambda d: _with(d, assets={"backgrounds": str(_folder(d, "cut", lambda f: (_png(f / "cut.png", 64), (f / "cut.png").write_bytes((f / "cut.png").read_bytes()[:80]))))}),
-     "error: assets.backgrounds: '{d}/cut/cut.png' is not a readable image", ""),
-    ("1x1 background", lambda d: _with(d, assets={"backgrounds": str(_folder(d, "dots", lambda f: _png(f / "dot.png", 1)))}),
-     "error: assets.backgrounds: '{d}/dots/dot.png' is 1x1 pixels; backgrounds need at least 16 on each side", ""),
-    ("GIF named .png", lambda d: _with(d, assets={"objects": str(_folder(d, "gif", lambda f: Image.new("RGB", (32, 32)).save(f / "flag.png", format="GIF")))}),
-     "error: assets.objects: '{d}/gif/flag.png' holds a GIF image, not PNG as its name says", ""),
-    ("one class twice", lambda d: _with(d, assets={"objects": str(_folder(d, "twice", lambda f: (_png(f / "mug.png", 32), _png(f / "mug.jpg", 32))))}),
-     "error: assets.objects: '{d}/twice/mug.jpg' and '{d}/twice/mug.png' both name the class 'mug'", ""),
-    ("brackets in a path", lambda d: _with(d, assets={"objects": str(d / "[bold]x")}), "error: assets.objects: folder '{d}/[bold]x' does not exist", ""),
+    (
+        "a key twice",
+        "name: x\nseed: 1\nseed: 2\n",
+        "error: invalid experiment config: duplicate key 'seed' (line 3, column 1)",
+        "",
+    ),
+    (
+        "10,000 levels",
+        "name: x\na: " + "[" * 10_000 + "]" * 10_000 + "\n",
+        "error: invalid experiment config: nested deeper than 32 levels",
+        "",
+    ),
+    (
+        "unknown key and a bad count",
+        lambda d: _with(d, active_learning={"m": "50", "mm": 1}),
+        "error: invalid experiment config: active_learning.m: expected a number, got the text '50'; active_learning.mm: unknown key",
+        "",
+    ),
+    (
+        "a count as a float",
+        lambda d: _with(d, active_learning={"t": 1e3}),
+        "error: invalid experiment config: active_learning.t: expected a whole number, got 1000.0",
+        "",
+    ),
+    (
+        "too large",
+        lambda d: _with(d, detector={"learning_rate": 11}),
+        "error: invalid experiment config: detector.learning_rate: Input should be less than or equal to 10",
+        "",
+    ),
+    (
+        "control character",
+        lambda d: _with(d, assets={"objects": "/srv/a\tb"}),
+        "error: invalid experiment config: assets.objects: control character '\\t' in text",
+        "",
+    ),
+    (
+        "missing asset folder",
+        lambda d: _with(d, assets={"backgrounds": str(d / "none")}),
+        "error: assets.backgrounds: folder '{d}/none' does not exist",
+        "",
+    ),
+    (
+        "empty asset folder",
+        lambda d: _with(d, assets={"occluders": str(_folder(d, "empty", lambda f: None))}),
+        "error: assets.occluders: folder '{d}/empty' holds no images",
+        "",
+    ),
+    (
+        "not an image",
+        lambda d: _with(
+            d, assets={"objects": str(_folder(d, "text", lambda f: (f / "notes.png").write_text("hello")))}
+        ),
+        "error: assets.objects: '{d}/text/notes.png' is not a readable image",
+        "",
+    ),
+    (
+        "corrupt PNG",
+        lambda d: _with(
+            d,
+            assets={
+                "backgrounds": str(
+                    _folder(
+                        d,
+                        "cut",
+                        lambda f: (
+                            _png(f / "cut.png", 64),
+                            (f / "cut.png").write_bytes((f / "cut.png").read_bytes()[:80]),
+                        ),
+                    )
+                )
+            },
+        ),
+        "error: assets.backgrounds: '{d}/cut/cut.png' is not a readable image",
+        "",
+    ),
+    (
+        "1x1 background",
+        lambda d: _with(d, assets={"backgrounds": str(_folder(d, "dots", lambda f: _png(f / "dot.png", 1)))}),
+        "error: assets.backgrounds: '{d}/dots/dot.png' is 1x1 pixels; backgrounds need at least 16 on each side",
+        "",
+    ),
+    (
+        "GIF named .png",
+        lambda d: _with(
+            d,
+            assets={
+                "objects": str(
+                    _folder(d, "gif", lambda f: Image.new("RGB", (32, 32)).save(f / "flag.png", format="GIF"))
+                )
+            },
+        ),
+        "error: assets.objects: '{d}/gif/flag.png' holds a GIF image, not PNG as its name says",
+        "",
+    ),
+    (
+        "one class twice",
+        lambda d: _with(
+            d,
+            assets={"objects": str(_folder(d, "twice", lambda f: (_png(f / "mug.png", 32), _png(f / "mug.jpg", 32))))},
+        ),
+        "error: assets.objects: '{d}/twice/mug.jpg' and '{d}/twice/mug.png' both name the class 'mug'",
+        "",
+    ),
+    (
+        "brackets in a path",
+        lambda d: _with(d, assets={"objects": str(d / "[bold]x")}),
+        "error: assets.objects: folder '{d}/[bold]x' does not exist",
+        "",
+    ),
 ]
 
 
@@ -89,12 +183,19 @@ def _foldwise_run(config: Path, data_dir: Path, database_url: str | None) -> sub
     if database_url:
         env["FOLDWISE_DATABASE_URL"] = database_url
     return subprocess.run(
-        [sys.executable, "-m", "services.cli", "run", str(config)], cwd=REPO_ROOT, capture_output=True, text=True, env=env, timeout=120
+        [sys.executable, "-m", "services.cli", "run", str(config)],
+        cwd=REPO_ROOT,
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
     )
 
 
 @pytest.mark.parametrize(("case", "config", "starts", "contains"), CASES, ids=[case for case, *_ in CASES])
-def test_a_config_it_cannot_run_is_one_line_on_stderr_and_exit_2(tmp_path, database_file, case, config, starts, contains):
+def test_a_config_it_cannot_run_is_one_line_on_stderr_and_exit_2(
+    tmp_path, database_file, case, config, starts, contains
+):
     work = tmp_path / "work"
     work.mkdir()
     if callable(config):

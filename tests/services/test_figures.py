@@ -37,7 +37,11 @@ def test_every_figure_is_written_with_its_numbers(fakes, tmp_path):  # noqa: F81
         stages = queries.stages(session, second)
     fig7 = [row for row in csv.DictReader(open(written["fig7"][2])) if row["experiment"] == str(first)]
     assert [float(row["map"]) for row in fig7] == [entry["map"] for entry in history]
-    fig8 = {(row["condition"], row["difficulty"]): row for row in csv.DictReader(open(written["fig8"][2])) if row["experiment"] == str(second)}
+    fig8 = {
+        (row["condition"], row["difficulty"]): row
+        for row in csv.DictReader(open(written["fig8"][2]))
+        if row["experiment"] == str(second)
+    }
     for stage in stages:
         assert float(fig8[(stage["condition"], stage["difficulty"])]["best_map"]) == stage["best_map"]
     fig6 = [row for row in csv.DictReader(open(written["fig6"][2])) if row["experiment"] == str(first)]
@@ -49,7 +53,14 @@ def test_every_figure_is_written_with_its_numbers(fakes, tmp_path):  # noqa: F81
     assert "difficulty trained" in written["fig5"][1].read_text()
 
     svg = written["fig4"][1].read_text()
-    for text in ("focus blur, easy", "scale, hard", "increment k", "score ≥ 0.8, IoU ≥ 0.5", "faster_rcnn (experiment", "yolo (experiment"):
+    for text in (
+        "focus blur, easy",
+        "scale, hard",
+        "increment k",
+        "score ≥ 0.8, IoU ≥ 0.5",
+        "faster_rcnn (experiment",
+        "yolo (experiment",
+    ):
         assert text in svg, text
     assert "the best model of each stage" in written["fig8"][1].read_text()
 

@@ -208,7 +208,10 @@ def test_members_run_side_by_side_and_hand_over_one_ensemble(database, tmp_path)
 
     with session_scope() as session:
         experiments = session.scalars(select(Experiment).order_by(Experiment.id)).all()
-        assert [(e.name, e.seed, e.status.value) for e in experiments] == [("smoke-seed1", 1, "finished"), ("smoke-seed2", 2, "finished")]
+        assert [(e.name, e.seed, e.status.value) for e in experiments] == [
+            ("smoke-seed1", 1, "finished"),
+            ("smoke-seed2", 2, "finished"),
+        ]
         (study,) = {e.study for e in experiments}
         finals = [checkpoint_file(session, e.final_model_id) for e in experiments]
     ensemble_path = get_settings().data_dir / "studies" / study / "ensemble.pt"
@@ -219,7 +222,10 @@ def test_members_run_side_by_side_and_hand_over_one_ensemble(database, tmp_path)
         for name, tensor in read_checkpoint(final)["state_dict"].items():
             assert torch.equal(member.state_dict()[name], tensor), name
     assert not all(
-        torch.equal(a, b) for a, b in zip(ensemble.model.members[0].state_dict().values(), ensemble.model.members[1].state_dict().values())
+        torch.equal(a, b)
+        for a, b in zip(
+            ensemble.model.members[0].state_dict().values(), ensemble.model.members[1].state_dict().values()
+        )
     )  # two seeds, two networks
 
 

@@ -69,7 +69,9 @@ def annotate(visible_mask: np.ndarray, amodal_pixels: float, amodal_box: list[fl
     box = tight_box(visible_mask)
     width, height = box[2] - box[0], box[3] - box[1]
     if min(width, height) < MIN_BOX_SIDE:
-        raise RenderRejected(f"target too thin: visible box {width:g}x{height:g} pixels (minimum side {MIN_BOX_SIDE:g})")
+        raise RenderRejected(
+            f"target too thin: visible box {width:g}x{height:g} pixels (minimum side {MIN_BOX_SIDE:g})"
+        )
     fraction = min(1.0, visible_pixels / float(amodal_pixels))
     return Annotation(
         box=box,

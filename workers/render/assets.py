@@ -15,10 +15,10 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import lru_cache
+from functools import cache, lru_cache
 from pathlib import Path
-from typing import Callable
 
 import numba
 import numpy as np
@@ -72,7 +72,7 @@ def _to_uint8_rgb(image: np.ndarray, source: str, keep_alpha: bool = False) -> n
     return np.ascontiguousarray(image)
 
 
-@lru_cache(maxsize=None)
+@cache
 def _skimage_image(name: str, keep_alpha: bool) -> np.ndarray:
     import skimage.data
 
@@ -195,7 +195,7 @@ class AssetCatalog:
         if kind == "backgrounds":
             asset = self._get("backgrounds", asset_name)
             if asset.procedural:
-                return procedural_background(asset_name[len(PROCEDURAL_PREFIX):], size, rng)
+                return procedural_background(asset_name[len(PROCEDURAL_PREFIX) :], size, rng)
             photo = asset.load()
             return photo if photo.shape[2] == 3 else np.ascontiguousarray(photo[:, :, :3])
         raise AssetError(f"unknown distractor {name!r}: expected occluders/<name> or backgrounds/<name>")
@@ -252,7 +252,7 @@ class AssetCatalog:
         and interpolation differences."""
         asset = self._get("backgrounds", name)
         if asset.procedural:
-            return procedural_background(name[len(PROCEDURAL_PREFIX):], size, rng)
+            return procedural_background(name[len(PROCEDURAL_PREFIX) :], size, rng)
         if size < 1:
             raise AssetError(f"background size must be >= 1 pixel, got {size}")
         photo = asset.load()
@@ -266,9 +266,14 @@ class AssetCatalog:
 
         # Bilinear reads every source pixel at <= PHOTO_LEVEL_STEP x down, so it barely aliases.
         left, top, window_w, window_h = _level_window(photo.shape, source.shape, y0, x0, side)
-        window = source[top:top + window_h, left:left + window_w]
-        out = cv2.resize(window, None, fx=size / (side * source.shape[1] / w), fy=size / (side * source.shape[0] / h),
-                         interpolation=cv2.INTER_LINEAR)
+        window = source[top : top + window_h, left : left + window_w]
+        out = cv2.resize(
+            window,
+            None,
+            fx=size / (side * source.shape[1] / w),
+            fy=size / (side * source.shape[0] / h),
+            interpolation=cv2.INTER_LINEAR,
+        )
         if out.shape[:2] != (size, size):  # enlarging can round the output size: resize to it instead
             out = cv2.resize(window, (size, size), interpolation=cv2.INTER_LINEAR)
         return _flip(out) if mirror else out
@@ -286,7 +291,7 @@ class AssetCatalog:
                 return image
         photo = asset.load()
         h, w = photo.shape[:2]
-        factor = PHOTO_LEVEL_STEP ** -level
+        factor = PHOTO_LEVEL_STEP**-level
         image = cv2.resize(photo, (max(2, round(w * factor)), max(2, round(h * factor))), interpolation=cv2.INTER_AREA)
         image.setflags(write=False)
         with self._lock:
@@ -348,7 +353,7 @@ def _flip(image: np.ndarray) -> np.ndarray:
 
 
 def _resize_crop(image: np.ndarray, y0: int, x0: int, side: int, size: int, mirror: bool) -> np.ndarray:
-    crop = image[y0:y0 + side, x0:x0 + side, :3]
+    crop = image[y0 : y0 + side, x0 : x0 + side, :3]
     out = _resize_square(crop, size, interpolation="area" if side > size else "linear")
     # Mirroring the small result gives the same bytes as resizing the mirrored crop (both
     # resamplers are symmetric), without copying the large crop backwards first.
@@ -471,8 +476,14 @@ def procedural_background(kind: str, size: int, rng: np.random.Generator) -> np.
             period = rng.uniform(0.05, 0.3)
         elif kind == "checker":
             period = rng.uniform(0.08, 0.3)
-        return _two_colour_pattern(_PATTERN_CODES[kind], size, colours.astype(np.float32),
-                                   np.float32(np.cos(angle)), np.float32(np.sin(angle)), np.float32(period))
+        return _two_colour_pattern(
+            _PATTERN_CODES[kind],
+            size,
+            colours.astype(np.float32),
+            np.float32(np.cos(angle)),
+            np.float32(np.sin(angle)),
+            np.float32(period),
+        )
     else:
         raise AssetError(f"unknown procedural background {kind!r}; known: {', '.join(PROCEDURAL_BACKGROUNDS)}")
 

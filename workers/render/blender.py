@@ -403,7 +403,13 @@ class BlenderRenderer:
         self._sheet.visible_shadow = False
         caster_mesh = bpy.data.meshes.new(_NAME + "-caster")
         self._caster = bpy.data.objects.new(_NAME + "-caster", caster_mesh)
-        for ray in ("visible_camera", "visible_diffuse", "visible_glossy", "visible_transmission", "visible_volume_scatter"):
+        for ray in (
+            "visible_camera",
+            "visible_diffuse",
+            "visible_glossy",
+            "visible_transmission",
+            "visible_volume_scatter",
+        ):
             setattr(self._caster, ray, False)
         self._caster.hide_render = True
         scene.collection.objects.link(self._caster)
@@ -516,7 +522,7 @@ class BlenderRenderer:
             # A sun shines along its local −z: point its +z at the light.
             sun.rotation_mode = "QUATERNION"
             sun.rotation_quaternion = towards_light.to_track_quat("Z", "Y")
-        for sun in self._suns[len(lights):]:
+        for sun in self._suns[len(lights) :]:
             sun.hide_render = True
         # Only the key light (light 0) is blocked, and only by the caster.
         key = self._suns[0].data

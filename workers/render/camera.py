@@ -115,7 +115,11 @@ def make_camera(
 ) -> Camera:
     """The canonical camera (for ``field_of_view``), moved by ``offset_m`` in the plane facing the sheet."""
     centre = np.array(
-        [offset_m * math.cos(offset_angle), offset_m * math.sin(offset_angle), canonical_distance(field_of_view=field_of_view)]
+        [
+            offset_m * math.cos(offset_angle),
+            offset_m * math.sin(offset_angle),
+            canonical_distance(field_of_view=field_of_view),
+        ]
     )
     rotation = _WORLD_TO_CAMERA.copy()
     return Camera(
@@ -152,7 +156,9 @@ def build_scene(
 
     ``translation`` moves the posed sheet in the world (the layout of several sheets in one
     image); ``camera`` replaces the one θ's offset and lens make (all sheets of an image share one)."""
-    vertices = scale * (np.asarray(sheet_vertices, np.float64) @ sheet_rotation(roll, pitch, yaw, rotation, tilt, tilt_azimuth).T)
+    vertices = scale * (
+        np.asarray(sheet_vertices, np.float64) @ sheet_rotation(roll, pitch, yaw, rotation, tilt, tilt_azimuth).T
+    )
     if any(translation):
         vertices = vertices + np.asarray(translation, np.float64)
     return Scene3D(
@@ -167,8 +173,9 @@ def build_scene(
     )
 
 
-def sheet_rotation(roll: float, pitch: float, yaw: float, rotation: float = 0.0, tilt: float = 0.0,
-                   tilt_azimuth: float = 0.0) -> np.ndarray:
+def sheet_rotation(
+    roll: float, pitch: float, yaw: float, rotation: float = 0.0, tilt: float = 0.0, tilt_azimuth: float = 0.0
+) -> np.ndarray:
     """The sheet's whole orientation: ``orientation_rotation @ pose_rotation`` (the pose alone
     when rotation and tilt are 0, to the bit)."""
     pose = pose_rotation(roll, pitch, yaw)
@@ -209,7 +216,9 @@ def frame_shift(scene: Scene3D, crop: float, angle: float, max_canvas_pixels: in
     K[0, 2] -= lo[0]
     K[1, 2] -= lo[1]
     K[:2, :] /= step
-    grown = Camera(K=K, R=camera.R, t=camera.t, width=int(math.ceil(canvas_w / step)), height=int(math.ceil(canvas_h / step)))
+    grown = Camera(
+        K=K, R=camera.R, t=camera.t, width=int(math.ceil(canvas_w / step)), height=int(math.ceil(canvas_h / step))
+    )
     mask = silhouette(scene, grown)
     total = float(np.count_nonzero(mask))
     if total == 0:

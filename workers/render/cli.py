@@ -9,7 +9,6 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Optional
 
 import typer
 
@@ -159,7 +158,12 @@ def render_dataset(
     if on_image is not None:
         on_image(done)
     coco = {
-        "info": {"description": "foldwise rendered dataset", "backend": backend, "seed": seed, "image_size": image_size},
+        "info": {
+            "description": "foldwise rendered dataset",
+            "backend": backend,
+            "seed": seed,
+            "image_size": image_size,
+        },
         "images": images,
         "annotations": annotations,
         "categories": [{"id": i + 1, "name": name} for i, name in enumerate(assets.classes)],
@@ -167,7 +171,10 @@ def render_dataset(
     if failures:
         coco["failures"] = failures
     (out / "annotations.json").write_text(json.dumps(coco, indent=1))
-    echo(f"wrote {len(images)} images to {out} in {time.perf_counter() - started:.1f} s" + (f"; {len(failures)} failed" if failures else ""))
+    echo(
+        f"wrote {len(images)} images to {out} in {time.perf_counter() - started:.1f} s"
+        + (f"; {len(failures)} failed" if failures else "")
+    )
     return coco
 
 
@@ -280,12 +287,14 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
         name = table.name(code) + (f" ({variant})" if variant else "")
         cv2.putText(sheet, code, (6, y + image_size // 2 - 6), font, 0.6, (0, 0, 0), 2, cv2.LINE_AA)
         for line_index, line in enumerate(_wrap(name, font, 0.42, label_w - 10)):
-            cv2.putText(sheet, line, (6, y + image_size // 2 + 14 + 16 * line_index), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA)
+            cv2.putText(
+                sheet, line, (6, y + image_size // 2 + 14 + 16 * line_index), font, 0.42, (0, 0, 0), 1, cv2.LINE_AA
+            )
         for col, difficulty in enumerate(PREVIEW_COLUMNS):
             x = label_w + col * (image_size + pad)
             if difficulty == CANONICAL and code in first_row_of:  # the same θ: copy, do not render again
                 y0 = first_row_of[code]
-                sheet[y:y + cell_h, x:x + image_size] = sheet[y0:y0 + cell_h, x:x + image_size]
+                sheet[y : y + cell_h, x : x + image_size] = sheet[y0 : y0 + cell_h, x : x + image_size]
                 continue
             theta = generate_parameters(
                 code,
@@ -302,7 +311,7 @@ def render_preview(out: Path, image_size: int, seed: int, backend: str, assets, 
                 cv2.putText(sheet, "rejected", (x + 4, y + 20), font, 0.4, (200, 0, 0), 1, cv2.LINE_AA)
                 cv2.putText(sheet, rejected.reason[:24], (x + 4, y + 36), font, 0.3, (200, 0, 0), 1, cv2.LINE_AA)
                 continue
-            sheet[y:y + image_size, x:x + image_size] = draw_boxes(result.image, result.objects)
+            sheet[y : y + image_size, x : x + image_size] = draw_boxes(result.image, result.objects)
             caption = describe(used) + (f" (+{len(reasons)})" if reasons else "")
             cv2.putText(sheet, caption, (x + 2, y + image_size + 12), font, 0.34, (0, 0, 0), 1, cv2.LINE_AA)
         first_row_of.setdefault(code, y)
@@ -319,7 +328,9 @@ def register(app: typer.Typer) -> None:
         condition: str = typer.Option(
             "all", "--condition", "-c", help="code or name (po, pose, focus_blur...), comma-separated, or all"
         ),
-        difficulty: str = typer.Option("all", "--difficulty", "-d", help="canonical, easy, medium, hard, comma-separated, or all"),
+        difficulty: str = typer.Option(
+            "all", "--difficulty", "-d", help="canonical, easy, medium, hard, comma-separated, or all"
+        ),
         n: int = typer.Option(10, "-n", min=1, help="images per (condition, difficulty)"),
         backend: str = typer.Option("raster", "--backend", help="raster or blender"),
         seed: int = typer.Option(0, "--seed", min=0),
@@ -327,9 +338,9 @@ def register(app: typer.Typer) -> None:
         preview: bool = typer.Option(False, "--preview", help="write a contact sheet PNG instead of a dataset"),
         max_resamples: int = typer.Option(20, "--max-resamples", min=0),
         samples: int = typer.Option(16, "--samples", min=1, help="Cycles samples (blender backend)"),
-        objects: Optional[Path] = typer.Option(None, "--objects", help="folder of object textures (default: built-in)"),
-        backgrounds: Optional[Path] = typer.Option(None, "--backgrounds", help="folder of background images"),
-        occluders: Optional[Path] = typer.Option(None, "--occluders", help="folder of occluder images"),
+        objects: Path | None = typer.Option(None, "--objects", help="folder of object textures (default: built-in)"),
+        backgrounds: Path | None = typer.Option(None, "--backgrounds", help="folder of background images"),
+        occluders: Path | None = typer.Option(None, "--occluders", help="folder of occluder images"),
     ) -> None:
         """Render images with ground-truth boxes (COCO JSON: 0..n per image) for any condition or the mixed stage, or a preview sheet."""
         from foldwise.config import AssetsConfig
@@ -337,7 +348,9 @@ def register(app: typer.Typer) -> None:
         from workers.render.pipeline import BACKENDS
 
         if backend not in BACKENDS:
-            raise typer.BadParameter(f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}", param_hint="--backend")
+            raise typer.BadParameter(
+                f"unknown backend {backend!r}; known: {', '.join(BACKENDS)}", param_hint="--backend"
+            )
         codes = resolve_conditions(condition)
         try:
             assets = load_assets(AssetsConfig(objects=objects, backgrounds=backgrounds, occluders=occluders))
@@ -384,11 +397,15 @@ def register(app: typer.Typer) -> None:
         try:
             mesh = sample_sheet(rulings, np.random.default_rng(seed), width, height)
         except SelfIntersection as error:
-            typer.echo(f"error: the sheet drawn from seed {seed} intersects itself ({error}); try another seed", err=True)
+            typer.echo(
+                f"error: the sheet drawn from seed {seed} intersects itself ({error}); try another seed", err=True
+            )
             raise typer.Exit(1) from None
         except ValueError as error:
             typer.echo(f"error: {error}", err=True)
             raise typer.Exit(2) from None
         out.parent.mkdir(parents=True, exist_ok=True)
         write_obj(mesh, out)
-        typer.echo(f"wrote {out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces, {len(mesh.rulings)} guiding rulings")
+        typer.echo(
+            f"wrote {out}: {len(mesh.vertices)} vertices, {len(mesh.faces)} faces, {len(mesh.rulings)} guiding rulings"
+        )

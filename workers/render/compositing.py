@@ -94,7 +94,13 @@ def motion_kernel(length_px: float, angle: float) -> np.ndarray:
     for dx, dy, weight in ((0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)), (0, 1, (1 - fx) * fy), (1, 1, fx * fy)):
         np.add.at(kernel, (y0 + dy, x0 + dx), weight)
     # Trim empty border rows/columns symmetrically so the kernel stays centred and odd.
-    while kernel.shape[0] > 1 and not kernel[0].any() and not kernel[-1].any() and not kernel[:, 0].any() and not kernel[:, -1].any():
+    while (
+        kernel.shape[0] > 1
+        and not kernel[0].any()
+        and not kernel[-1].any()
+        and not kernel[:, 0].any()
+        and not kernel[:, -1].any()
+    ):
         kernel = kernel[1:-1, 1:-1]
     return (kernel / kernel.sum()).astype(np.float32)
 
@@ -120,7 +126,7 @@ def motion_blur(image: np.ndarray, percent: float, angle: float, image_size: int
     for row0, row1, col0, col1 in _kernel_bands(kernel):
         band = np.ascontiguousarray(kernel[row0:row1, col0:col1])
         part = cv2.filter2D(padded, -1, band, anchor=(0, 0), borderType=cv2.BORDER_REFLECT_101)
-        part = part[row0:row0 + height, col0:col0 + width]
+        part = part[row0 : row0 + height, col0 : col0 + width]
         out = part.copy() if out is None else cv2.add(out, part, dst=out)
     return out
 
@@ -181,14 +187,16 @@ def _srgb_index(linear: float) -> int:
 
 
 @numba.njit(cache=True, nogil=True, inline="always")
-def _srgb_over(linear: float, weight: float, under: float, under_weight: float, denominator: float,
-               table: np.ndarray) -> float:
+def _srgb_over(
+    linear: float, weight: float, under: float, under_weight: float, denominator: float, table: np.ndarray
+) -> float:
     return (table[_srgb_index(linear)] * weight + under * under_weight) / denominator
 
 
 @numba.njit(cache=True, nogil=True)
-def _composite_object_kernel(background: np.ndarray, linear: np.ndarray, alpha: np.ndarray, box: tuple,
-                             table: np.ndarray, opaque: np.ndarray) -> None:
+def _composite_object_kernel(
+    background: np.ndarray, linear: np.ndarray, alpha: np.ndarray, box: tuple, table: np.ndarray, opaque: np.ndarray
+) -> None:
     """composite_object's blend over ``box`` (row0, row1, col0, col1), in place."""
     for r in range(box[0], box[1]):
         for c in range(box[2], box[3]):
@@ -200,13 +208,23 @@ def _composite_object_kernel(background: np.ndarray, linear: np.ndarray, alpha: 
             under_weight = np.float32(1.0) - weight
             denominator = (weight + under_weight) + _BLEND_EPSILON
             for k in range(3):
-                background[r, c, k] = _srgb_over(linear[r, c, k], weight, background[r, c, k], under_weight, denominator, table)
+                background[r, c, k] = _srgb_over(
+                    linear[r, c, k], weight, background[r, c, k], under_weight, denominator, table
+                )
 
 
 @numba.njit(cache=True, nogil=True)
-def _composite_uint8_kernel(out: np.ndarray, linear: np.ndarray, alpha: np.ndarray, box: tuple, region: tuple,
-                            occluder_rgb: np.ndarray, occluder_alpha: np.ndarray, table: np.ndarray,
-                            opaque: np.ndarray) -> None:
+def _composite_uint8_kernel(
+    out: np.ndarray,
+    linear: np.ndarray,
+    alpha: np.ndarray,
+    box: tuple,
+    region: tuple,
+    occluder_rgb: np.ndarray,
+    occluder_alpha: np.ndarray,
+    table: np.ndarray,
+    opaque: np.ndarray,
+) -> None:
     """composite_to_uint8 in one pass over ``region`` of ``out`` (uint8, in place): the object
     inside its ``box`` (composite_object's), then the occluder (when ``occluder_alpha`` is not
     empty), then to_uint8. A pixel neither covers is left alone: its level survives the round
@@ -271,7 +289,7 @@ def _drawn_box(alpha: np.ndarray) -> tuple[int, int, int, int] | None:
 
 
 def composite_to_uint8(
-    background: np.ndarray, linear_rgb: np.ndarray, alpha: np.ndarray, occlusion: "Occlusion | None" = None
+    background: np.ndarray, linear_rgb: np.ndarray, alpha: np.ndarray, occlusion: Occlusion | None = None
 ) -> np.ndarray:
     """The object (linear light) and then the occluder over a uint8 background, encoded to
     uint8: the same bytes as converting the whole background to float, ``composite_object``,
@@ -290,8 +308,17 @@ def composite_to_uint8(
     else:
         occluder_rgb, occluder_alpha = _float32_c(occlusion.rgb), _float32_c(occlusion.alpha)
         opaque = _SRGB_OPAQUE_UNDER_NOTHING_UINT8  # composite() blends the whole region, at weight 0 too
-    _composite_uint8_kernel(out, _float32_c(linear_rgb), _float32_c(alpha), box or (0, 0, 0, 0), region,
-                            occluder_rgb, occluder_alpha, _SRGB_ENCODE, opaque)
+    _composite_uint8_kernel(
+        out,
+        _float32_c(linear_rgb),
+        _float32_c(alpha),
+        box or (0, 0, 0, 0),
+        region,
+        occluder_rgb,
+        occluder_alpha,
+        _SRGB_ENCODE,
+        opaque,
+    )
     return out
 
 
@@ -324,8 +351,12 @@ def _border_rows(pivot: tuple[float, float], height: int, width: int, points: np
     px, py = pivot
     (x_min, y_min), (x_max, y_max) = points.min(axis=0), points.max(axis=0)
     rows = []
-    for near, normal, offset in ((x_min < 1.5, (-1.0, 0.0), px + 0.5), (x_max > width - 2.5, (1.0, 0.0), width - 0.5 - px),
-                                 (y_min < 1.5, (0.0, -1.0), py + 0.5), (y_max > height - 2.5, (0.0, 1.0), height - 0.5 - py)):
+    for near, normal, offset in (
+        (x_min < 1.5, (-1.0, 0.0), px + 0.5),
+        (x_max > width - 2.5, (1.0, 0.0), width - 0.5 - px),
+        (y_min < 1.5, (0.0, -1.0), py + 0.5),
+        (y_max > height - 2.5, (0.0, 1.0), height - 0.5 - py),
+    ):
         if near:
             rows.append((normal[0] / max(offset, 1e-9), normal[1] / max(offset, 1e-9)))
     return rows
@@ -343,8 +374,10 @@ class _ConvexPolygon:
         crosses = [x0 * y1 - x1 * y0 for (x0, y0), (x1, y1) in pairs]
         area = 0.5 * sum(crosses)
         if abs(area) > 1e-9:
-            self.pivot = (sum((x0 + x1) * c for ((x0, _), (x1, _)), c in zip(pairs, crosses)) / (6 * area),
-                          sum((y0 + y1) * c for ((_, y0), (_, y1)), c in zip(pairs, crosses)) / (6 * area))
+            self.pivot = (
+                sum((x0 + x1) * c for ((x0, _), (x1, _)), c in zip(pairs, crosses)) / (6 * area),
+                sum((y0 + y1) * c for ((_, y0), (_, y1)), c in zip(pairs, crosses)) / (6 * area),
+            )
         else:
             self.pivot = (sum(x for x, _ in vertices) / len(vertices), sum(y for _, y in vertices) / len(vertices))
         # A point x (from the pivot) is inside the drawn shape iff max over edges of
@@ -466,7 +499,7 @@ def _deepest_point(alpha: np.ndarray) -> tuple[float, float]:
     return float(x - 1), float(y - 1)
 
 
-def _random_outline(rng: np.random.Generator, height: int, width: int) -> "_Ellipse | _ConvexPolygon":
+def _random_outline(rng: np.random.Generator, height: int, width: int) -> _Ellipse | _ConvexPolygon:
     """An ellipse, rotated rectangle or random convex polygon filling most of the (height, width)
     box, all star-shaped about the centre (the random draws random_shape has always made)."""
     centre = ((width - 1) / 2.0, (height - 1) / 2.0)
@@ -509,7 +542,7 @@ _PREPARED: OrderedDict[tuple[int, int, int], tuple] = OrderedDict()
 _PREPARED_LOCK = threading.Lock()
 
 
-def _prepared_occluder(rgb: np.ndarray, alpha: np.ndarray | None, limit: int) -> "tuple[np.ndarray, _AlphaShape | None]":
+def _prepared_occluder(rgb: np.ndarray, alpha: np.ndarray | None, limit: int) -> tuple[np.ndarray, _AlphaShape | None]:
     """The occluder as place_occluder uses it: float32 colour in [0, 1] no larger than ``limit``
     pixels a side, and its own alpha (uint8, with its radial profile) or None. Cached per
     source array when the arrays are read-only (the asset catalog's are): converting a
@@ -602,8 +635,15 @@ def _coverage_at(mask: np.ndarray, x: float, y: float) -> int:
 
 
 @numba.njit(cache=True, nogil=True)
-def _real_critical_scales(shape_mask: np.ndarray, pivot_x: float, pivot_y: float, rotated: np.ndarray,
-                          low: np.ndarray, high: np.ndarray, steps: int) -> np.ndarray:
+def _real_critical_scales(
+    shape_mask: np.ndarray,
+    pivot_x: float,
+    pivot_y: float,
+    rotated: np.ndarray,
+    low: np.ndarray,
+    high: np.ndarray,
+    steps: int,
+) -> np.ndarray:
     """Each pixel's critical scale on the real shape, by bisection inside [low, high]: the
     pixel at ``rotated`` (m, 2: its offset from the placement's centre, rotated into the
     occluder's frame) is hidden at scale s iff the shape sampled at pivot + rotated / s is
@@ -625,7 +665,9 @@ def compile_kernels() -> None:
     """Compile (or load from numba's cache) this module's kernels for the types the pipeline
     passes, as raster.compile_kernels does for the rasteriser's."""
     mask = np.zeros((4, 4), np.uint8)
-    _real_critical_scales(mask, 1.5, 1.5, np.zeros((1, 2), np.float32), np.ones(1, np.float32), np.ones(1, np.float32), 1)
+    _real_critical_scales(
+        mask, 1.5, 1.5, np.zeros((1, 2), np.float32), np.ones(1, np.float32), np.ones(1, np.float32), 1
+    )
     linear, alpha = np.full((4, 4, 3), 0.5, np.float32), np.full((4, 4), 0.5, np.float32)
     composite_object(np.zeros((4, 4, 3), np.float32), linear, alpha)
     occlusion = Occlusion(rgb=linear, alpha=alpha, mask=alpha >= 0.5, target_fraction=0.5, achieved_fraction=0.5)
@@ -634,7 +676,17 @@ def compile_kernels() -> None:
 
 
 def _fit_scale(
-    shape, shape_mask, target_mask, centre, angle, offsets, critical, need, max_scale, max_warps, fallback_slack=math.inf
+    shape,
+    shape_mask,
+    target_mask,
+    centre,
+    angle,
+    offsets,
+    critical,
+    need,
+    max_scale,
+    max_warps,
+    fallback_slack=math.inf,
 ) -> _Placement:
     """The placement at ``centre`` / ``angle`` whose real hidden count is closest to ``need``.
 
@@ -667,9 +719,17 @@ def _fit_scale(
         dx, dy = offsets[0, band], offsets[1, band]
         rotated = np.stack([cos * dx - sin * dy, sin * dx + cos * dy], axis=1)
         model = critical[band]
-        ordered[first:first + band.size] = np.sort(_real_critical_scales(
-            shape_mask, shape.pivot[0], shape.pivot[1], rotated, model * np.float32(1.0 - tolerance),
-            model * np.float32(1.0 + tolerance), _BISECTION_STEPS))
+        ordered[first : first + band.size] = np.sort(
+            _real_critical_scales(
+                shape_mask,
+                shape.pivot[0],
+                shape.pivot[1],
+                rotated,
+                model * np.float32(1.0 - tolerance),
+                model * np.float32(1.0 + tolerance),
+                _BISECTION_STEPS,
+            )
+        )
 
     tried: dict[float, _Placement] = {}
     rank = wanted
@@ -693,6 +753,7 @@ def _search_scale(shape, shape_mask, target_mask, centre, angle, need, max_scale
     scale), the scale is searched on real warps: grown by half until one hides at least
     ``need`` (a tiny shape hides nothing, so that brackets it), then bisected between the
     closest scales hiding fewer and more, keeping the warp nearest the ask."""
+
     def warp(scale: float) -> _Placement:
         if scale not in tried:
             tried[scale] = _warp_shape(shape, shape_mask, target_mask, centre, angle, scale)
@@ -766,10 +827,21 @@ def place_occluder(
         k = int(rng.integers(rows.size))
         centre = (float(cols[k]), float(rows[k]))  # warpAffine puts pixel (i, j)'s centre at (j, i)
         angle = float(rng.uniform(-math.pi, math.pi))
-        offsets = points_f - points_f[:, k:k + 1]  # (2, n): x and y from the centre
+        offsets = points_f - points_f[:, k : k + 1]  # (2, n): x and y from the centre
         critical = shape.critical_scales(offsets, angle)
-        placement = _fit_scale(shape, shape_mask, target_mask, centre, angle, offsets, critical, need, max_scale, max_warps,
-                               fallback_slack=_GOOD_ENOUGH * amodal_area)
+        placement = _fit_scale(
+            shape,
+            shape_mask,
+            target_mask,
+            centre,
+            angle,
+            offsets,
+            critical,
+            need,
+            max_scale,
+            max_warps,
+            fallback_slack=_GOOD_ENOUGH * amodal_area,
+        )
         error = abs(placement.hidden - need) / amodal_area
         if best is None or error < best[0]:
             best = (error, placement)
@@ -783,14 +855,16 @@ def place_occluder(
     # The occluder's colour matters only where it covers something: warp just that box.
     x, y, w, h = cv2.boundingRect(placement.coverage)
     if w and h:
-        coverage = placement.coverage[y:y + h, x:x + w]
+        coverage = placement.coverage[y : y + h, x : x + w]
         region = (slice(r0 + y, r0 + y + h), slice(c0 + x, c0 + x + w))
         alpha[region] = np.multiply(coverage, np.float32(1.0 / 255.0), dtype=np.float32)
         mask[region] = coverage >= 128  # alpha >= 0.5
         shifted = placement.matrix.copy()
         shifted[0, 2] -= c0 + x
         shifted[1, 2] -= r0 + y
-        rgb[region] = cv2.warpAffine(occluder_f, shifted, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        rgb[region] = cv2.warpAffine(
+            occluder_f, shifted, (w, h), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
     return Occlusion(
         rgb=rgb,
         alpha=alpha,

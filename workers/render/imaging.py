@@ -53,7 +53,9 @@ def add_noise(image: np.ndarray, sigma_levels: float, rng: np.random.Generator) 
 
 def jpeg_round_trip(image_u8: np.ndarray, quality: int) -> np.ndarray:
     """The uint8 RGB image as a JPEG decoder shows it after encoding at ``quality`` (1..100)."""
-    ok, encoded = cv2.imencode(".jpg", cv2.cvtColor(image_u8, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    ok, encoded = cv2.imencode(
+        ".jpg", cv2.cvtColor(image_u8, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, int(quality)]
+    )
     if not ok:
         raise RuntimeError(f"JPEG encoding at quality {quality} failed")
     return cv2.cvtColor(cv2.imdecode(encoded, cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)

@@ -59,7 +59,9 @@ def light_rig(theta, rng: np.random.Generator) -> tuple[tuple[Light, ...] | None
         if spread > 0:
             polar = math.acos(1.0 - rng.random() * (1.0 - math.cos(spread)))
             azimuth = rng.uniform(0.0, 2.0 * math.pi)
-            direction = np.array([math.sin(polar) * math.cos(azimuth), math.sin(polar) * math.sin(azimuth), math.cos(polar)])
+            direction = np.array(
+                [math.sin(polar) * math.cos(azimuth), math.sin(polar) * math.sin(azimuth), math.cos(polar)]
+            )
         else:
             direction = LIGHT_DIRECTION.copy()
         hue = (base_hue + rng.uniform(-0.08, 0.08)) % 1.0
@@ -70,7 +72,9 @@ def light_rig(theta, rng: np.random.Generator) -> tuple[tuple[Light, ...] | None
     return tuple(lights), (level, level, level)
 
 
-def highlight_direction(vertices: np.ndarray, faces: np.ndarray, camera_centre: np.ndarray, rng: np.random.Generator) -> np.ndarray | None:
+def highlight_direction(
+    vertices: np.ndarray, faces: np.ndarray, camera_centre: np.ndarray, rng: np.random.Generator
+) -> np.ndarray | None:
     """Towards a light whose mirror reflection off a random point of the sheet (area-weighted,
     on a face the camera sees from its front or back) reaches the camera; None when no face
     reflects anything towards it."""
@@ -94,7 +98,12 @@ def highlight_direction(vertices: np.ndarray, faces: np.ndarray, camera_centre: 
 
 
 def wrinkle_normal_map(
-    wrinkles: int, depth: float, width_m: float, height_m: float, rng: np.random.Generator, texels: int = NORMAL_MAP_TEXELS
+    wrinkles: int,
+    depth: float,
+    width_m: float,
+    height_m: float,
+    rng: np.random.Generator,
+    texels: int = NORMAL_MAP_TEXELS,
 ) -> np.ndarray | None:
     """(rows, cols, 3) float32 tangent-space unit normals of the creases over the flat sheet
     (row 0 at the top, v = 1); None when there is nothing to show."""

@@ -58,10 +58,11 @@ disk after that.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from os import PathLike
-from typing import Any, Sequence
+from typing import Any
 
 import numba
 import numpy as np
@@ -175,6 +176,7 @@ def _border(width: float, height: float) -> _Border:
     """One _Border per sheet size: the pipeline draws many sheets of few sizes."""
     return _Border(width, height)
 
+
 # -- options ---------------------------------------------------------------------------------
 
 
@@ -246,9 +248,7 @@ def _parse_options(width: float, height: float, opts: dict) -> _Options:
     min_angle = float(get("min_angle", math.radians(10.0)))
     max_angle = float(get("max_angle", math.radians(50.0)))
     if not (0.0 <= min_angle <= max_angle < math.pi):
-        raise ValueError(
-            f"need 0 <= min_angle <= max_angle < pi, got min_angle={min_angle!r}, max_angle={max_angle!r}"
-        )
+        raise ValueError(f"need 0 <= min_angle <= max_angle < pi, got min_angle={min_angle!r}, max_angle={max_angle!r}")
     max_tries = get("max_tries", 200)
     if isinstance(max_tries, bool) or not isinstance(max_tries, (int, np.integer)) or max_tries < 1:
         raise ValueError(f"max_tries must be an integer >= 1, got {max_tries!r}")
@@ -437,13 +437,30 @@ def _chords(border: _Border, guides: np.ndarray, options: _Options) -> tuple[_Ch
 
 
 def _layout_arguments(border: _Border, options: _Options) -> tuple:
-    return (options.smooth_steps, options.bend_spacing, border.length, border.breaks, border.corner_x,
-            border.corner_y, border.width, border.height, options.corner_gap, options.min_strip)
+    return (
+        options.smooth_steps,
+        options.bend_spacing,
+        border.length,
+        border.breaks,
+        border.corner_x,
+        border.corner_y,
+        border.width,
+        border.height,
+        options.corner_gap,
+        options.min_strip,
+    )
 
 
 def _checked(
-    guides: np.ndarray, ends: np.ndarray, end_points: np.ndarray, angle: np.ndarray, guide_points: np.ndarray,
-    problem: int, where: int, value: float, options: _Options,
+    guides: np.ndarray,
+    ends: np.ndarray,
+    end_points: np.ndarray,
+    angle: np.ndarray,
+    guide_points: np.ndarray,
+    problem: int,
+    where: int,
+    value: float,
+    options: _Options,
 ) -> tuple[_Chords, list[Ruling], str | None]:
     """_chords' answer from _chords_and_problem's: the problem, if any, in words."""
     chords = _Chords(ends, end_points, angle)
@@ -543,8 +560,23 @@ def _place_guides(split, unit, signs, keep_off, spacing, min_angle, angle_span, 
 
 @numba.njit(cache=True, nogil=True)
 def _sampled_chords_and_problem(
-    split, unit, signs, keep_off, spacing, min_angle, angle_span,
-    steps, bend_spacing, length, breaks, corner_x, corner_y, width, height, corner_gap, min_strip,
+    split,
+    unit,
+    signs,
+    keep_off,
+    spacing,
+    min_angle,
+    angle_span,
+    steps,
+    bend_spacing,
+    length,
+    breaks,
+    corner_x,
+    corner_y,
+    width,
+    height,
+    corner_gap,
+    min_strip,
 ):  # pragma: no cover - compiled
     """_place_guides, then _chords_and_problem: (guides, then what that returns)."""
     guides = _place_guides(split, unit, signs, keep_off, spacing, min_angle, angle_span, length)
@@ -565,8 +597,14 @@ def _sample_chords(
     unit = rng.random(3 * n)
     signs = rng.integers(0, 2, n)
     guides, *answer = _sampled_chords_and_problem(
-        split, unit, signs, sampler.keep_off, sampler.spacing, options.min_angle,
-        options.max_angle - options.min_angle, *_layout_arguments(border, options),
+        split,
+        unit,
+        signs,
+        sampler.keep_off,
+        sampler.spacing,
+        options.min_angle,
+        options.max_angle - options.min_angle,
+        *_layout_arguments(border, options),
     )
     return _checked(guides, *answer, options)
 
@@ -593,8 +631,14 @@ def _trace_regions(positions, n):  # pragma: no cover - compiled
     n_vertices = 4 + 2 * n
     if n == 0:
         whole = np.arange(4)
-        return (whole, np.full(1, 4), np.zeros(1, np.int64), np.zeros((0, 2), np.int64), np.zeros(1, np.int64),
-                np.zeros((0, 2, 3), np.int64))
+        return (
+            whole,
+            np.full(1, 4),
+            np.zeros(1, np.int64),
+            np.zeros((0, 2), np.int64),
+            np.zeros(1, np.int64),
+            np.zeros((0, 2, 3), np.int64),
+        )
     sorted_ids = np.argsort(positions, kind="mergesort")
     first_end = 0
     while sorted_ids[first_end] < 4:
@@ -697,8 +741,12 @@ def _minimal_faces(points, ids, counts, start):  # pragma: no cover - compiled
             for apex in range(k):
                 quality = np.inf
                 for j in range(k - 2):
-                    quality = min(quality, _sin2_smallest_angle(
-                        points, corners[apex], corners[(apex + j + 1) % k], corners[(apex + j + 2) % k]))
+                    quality = min(
+                        quality,
+                        _sin2_smallest_angle(
+                            points, corners[apex], corners[(apex + j + 1) % k], corners[(apex + j + 2) % k]
+                        ),
+                    )
                 if quality > best_quality:
                     best_apex, best_quality = apex, quality
             if not best_quality > 0.0:
@@ -823,9 +871,11 @@ def _in_plane(corners, origin, rotation):  # pragma: no cover - compiled
     out = np.empty((len(corners), 2))
     for i in range(len(corners)):
         for axis in range(2):
-            out[i, axis] = ((corners[i, 0] - origin[0]) * rotation[0, axis]
-                            + (corners[i, 1] - origin[1]) * rotation[1, axis]
-                            + (corners[i, 2] - origin[2]) * rotation[2, axis])
+            out[i, axis] = (
+                (corners[i, 0] - origin[0]) * rotation[0, axis]
+                + (corners[i, 1] - origin[1]) * rotation[1, axis]
+                + (corners[i, 2] - origin[2]) * rotation[2, axis]
+            )
     return out
 
 
@@ -890,8 +940,12 @@ def _self_intersection(corners, start, counts, rotations, adjacent, clearance): 
             piece, n_piece = _clip_to_slab(corners_b, _heights(corners_b, corners_a[0], rotations[a, :, 2]), clearance)
             if n_piece == 0:
                 continue
-            if _convex_sets_overlap(_in_plane(corners_a, corners_a[0], rotations[a]), len(corners_a),
-                                    _in_plane(piece[:n_piece], corners_a[0], rotations[a]), n_piece):
+            if _convex_sets_overlap(
+                _in_plane(corners_a, corners_a[0], rotations[a]),
+                len(corners_a),
+                _in_plane(piece[:n_piece], corners_a[0], rotations[a]),
+                n_piece,
+            ):
                 return a, b
     return -1, -1
 
@@ -1020,8 +1074,7 @@ def _regions_and_frames(ends, end_points, angle, corner_s, corner_points, width,
         x, y = centred[v, 0], centred[v, 1]
         for i in range(3):
             vertices[v, i] = rotations[r, i, 0] * x + rotations[r, i, 1] * y + translations[r, i]
-    return (points, vertices, ids, counts, start, adjacent, order, parent_of, angle_to_parent, rotations,
-            translations)
+    return (points, vertices, ids, counts, start, adjacent, order, parent_of, angle_to_parent, rotations, translations)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -1301,9 +1354,7 @@ def build_sheet(
         except (TypeError, ValueError):
             raise RulingLayoutError(f"ruling {index}: bending angle must be a number, got {angle!r}") from None
         if not math.isfinite(angle) or abs(angle) >= math.pi:
-            raise RulingLayoutError(
-                f"ruling {index}: bending angle {angle!r} must be finite and below pi in magnitude"
-            )
+            raise RulingLayoutError(f"ruling {index}: bending angle {angle!r} must be finite and below pi in magnitude")
         guides.append((border.position(p0, tol), border.position(p1, tol), angle))
     chords, guide_rulings, problem = _chords(border, np.array(guides, np.float64).reshape(-1, 3), options)
     if problem is not None:

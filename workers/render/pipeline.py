@@ -177,7 +177,12 @@ def _shading(theta: Theta, scene, mesh_size, rng_lights, rng_wrinkles, rng_shado
         towards = lighting.highlight_direction(scene.vertices, scene.faces, centre, rng_lights)
         if towards is not None:
             lights = (dataclasses.replace(lights[0], direction=towards),) + lights[1:]
-    shared = {"lights": lights, "ambient": ambient, "specular": float(theta.specular), "roughness": float(theta.roughness)}
+    shared = {
+        "lights": lights,
+        "ambient": ambient,
+        "specular": float(theta.specular),
+        "roughness": float(theta.roughness),
+    }
     normal_map = None
     if theta.wrinkles and theta.wrinkle_depth:
         normal_map = lighting.wrinkle_normal_map(theta.wrinkles, theta.wrinkle_depth, *mesh_size, rng_wrinkles)
@@ -190,7 +195,9 @@ def _shading(theta: Theta, scene, mesh_size, rng_lights, rng_wrinkles, rng_shado
 
 
 def _uses_light_rig(theta: Theta) -> bool:
-    return bool(theta.light_count != 1 or theta.light_saturation or theta.light_spread or theta.ambient or theta.specular)
+    return bool(
+        theta.light_count != 1 or theta.light_saturation or theta.light_spread or theta.ambient or theta.specular
+    )
 
 
 def _uses_lighting(theta: Theta) -> bool:
@@ -227,7 +234,9 @@ def _instance_layers(theta: Theta, scene, shared: dict, assets, render) -> list[
     if theta.instances == 0:
         return []
     layers = []
-    for index, placement in enumerate(instance_placements(theta, scene.camera, assets.classes, _rng(theta, _INSTANCES))):
+    for index, placement in enumerate(
+        instance_placements(theta, scene.camera, assets.classes, _rng(theta, _INSTANCES))
+    ):
         texture = assets.texture(placement.object)
         mesh, _ = _sheet_mesh(placement.rulings, theta.smooth_steps, np.random.default_rng(placement.seed), texture)
         sheet = _sheet_scene(placement, mesh, texture, scene.camera, shared, theta.image_size, theta.irradiance)
@@ -282,9 +291,7 @@ def _clutter_layers(theta: Theta, scene, shared: dict, assets, render, size: int
     return [layer for _, layer in sorted(behind, key=order)], [layer for _, layer in sorted(front, key=order)]
 
 
-def render_theta(
-    theta, backend: str = "raster", assets=None, samples: int = 16, device: str = "CPU"
-) -> RenderResult:
+def render_theta(theta, backend: str = "raster", assets=None, samples: int = 16, device: str = "CPU") -> RenderResult:
     """Render one θ (a Theta or its stored dict of any version); RenderRejected (with a
     reason) when its image cannot be used."""
     from workers.render import compositing
@@ -337,7 +344,9 @@ def render_theta(
 
     shared: dict = {}
     if _uses_lighting(theta):
-        scene, shared = _shading(theta, scene, mesh_size, _rng(theta, _LIGHTS), _rng(theta, _WRINKLES), _rng(theta, _SHADOW))
+        scene, shared = _shading(
+            theta, scene, mesh_size, _rng(theta, _LIGHTS), _rng(theta, _WRINKLES), _rng(theta, _SHADOW)
+        )
         lap("lights")
 
     if theta.frame_crop > 0:
@@ -488,9 +497,7 @@ def render_with_resample(
             return result, current, reasons
         except RenderRejected as rejected:
             reasons.append(rejected.reason)
-    raise RenderRejected(
-        f"θ and its {max_resamples} resamples were all rejected; last reason: {reasons[-1]}", reasons
-    )
+    raise RenderRejected(f"θ and its {max_resamples} resamples were all rejected; last reason: {reasons[-1]}", reasons)
 
 
 def compile_kernels() -> None:
@@ -510,7 +517,9 @@ def compile_kernels() -> None:
     procedural_background("checker", 16, np.random.default_rng(0))  # gradient, stripes and checker share one kernel
     table = load_condition_table()
     for index, condition in enumerate(table.codes + (MIXED,)):
-        for theta in generate_parameters(condition, table.difficulties[-1], 1, seed=derive_seed(2018, index), image_size=64):
+        for theta in generate_parameters(
+            condition, table.difficulties[-1], 1, seed=derive_seed(2018, index), image_size=64
+        ):
             try:
                 render_with_resample(theta, backend="raster", max_resamples=5)
             except RenderRejected:

@@ -382,7 +382,9 @@ def rasterize_face_ids(
 def compile_kernels() -> None:
     """Compile (or load from numba's cache) the rasteriser's kernels for both ways the pipeline
     calls them: a textured render and a bare silhouette (part of pipeline.compile_kernels)."""
-    camera = Camera(K=np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]), R=np.eye(3), t=np.array([0.0, 0, 2]), width=8, height=8)
+    camera = Camera(
+        K=np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]), R=np.eye(3), t=np.array([0.0, 0, 2]), width=8, height=8
+    )
     vertices = np.array([[-0.5, -0.5, 0.0], [0.5, -0.5, 0.0], [0.5, 0.5, 0.0], [-0.5, 0.5, 0.0]])
     scene = Scene3D(
         vertices=vertices,
@@ -454,7 +456,9 @@ def _face_radiance_kernel(vertices, faces, camera_centre, light, scale):  # prag
         ny = e1[2] * e2[0] - e1[0] * e2[2]
         nz = e1[0] * e2[1] - e1[1] * e2[0]
         norm = max(math.sqrt(nx * nx + ny * ny + nz * nz), 1e-300)
-        towards_camera = (camera_centre[0] - v0[0]) * nx + (camera_centre[1] - v0[1]) * ny + (camera_centre[2] - v0[2]) * nz
+        towards_camera = (
+            (camera_centre[0] - v0[0]) * nx + (camera_centre[1] - v0[1]) * ny + (camera_centre[2] - v0[2]) * nz
+        )
         facing = 1.0 if towards_camera >= 0 else -1.0
         cosine = max(0.0, facing * (nx * light[0] + ny * light[1] + nz * light[2]) / norm)
         radiance[f] = scale * cosine
@@ -570,9 +574,30 @@ def _ggx(nh, nl, nv, a2):  # pragma: no cover - compiled
 
 
 @numba.njit(cache=True, nogil=True)
-def _shade_lit(face_image, box, texturing, texture, rgb, k_inverse, r_transpose, t, centre, normal, facing,
-               tangent_u, tangent_v, directions, radiance, ambient, specular, a2, normal_map, caster, coverage,
-               extent):  # pragma: no cover - compiled
+def _shade_lit(
+    face_image,
+    box,
+    texturing,
+    texture,
+    rgb,
+    k_inverse,
+    r_transpose,
+    t,
+    centre,
+    normal,
+    facing,
+    tangent_u,
+    tangent_v,
+    directions,
+    radiance,
+    ambient,
+    specular,
+    a2,
+    normal_map,
+    caster,
+    coverage,
+    extent,
+):  # pragma: no cover - compiled
     """``rgb`` of every covered pixel in ``box`` under the full shading model of scene.py
     (several coloured lights, ambient, GGX gloss, normal map, the key light's shadow).
 
@@ -648,7 +673,11 @@ def _shade_lit(face_image, box, texturing, texture, rgb, k_inverse, r_transpose,
                     if abs(along) > 1e-12:
                         s = (qx * caster[3, 0] + qy * caster[3, 1] + qz * caster[3, 2]) / along
                         if s > 0.0:
-                            hx, hy, hz = wx + s * lx - caster[0, 0], wy + s * ly - caster[0, 1], wz + s * lz - caster[0, 2]
+                            hx, hy, hz = (
+                                wx + s * lx - caster[0, 0],
+                                wy + s * ly - caster[0, 1],
+                                wz + s * lz - caster[0, 2],
+                            )
                             cu = hx * caster[1, 0] + hy * caster[1, 1] + hz * caster[1, 2]
                             cv = hx * caster[2, 0] + hy * caster[2, 1] + hz * caster[2, 2]
                             if extent[0] <= cu <= extent[1] and extent[2] <= cv <= extent[3]:

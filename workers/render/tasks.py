@@ -141,7 +141,10 @@ def claim_batch(parameter_set_ids: list[int], task_id: str) -> tuple[list[int], 
         rows = {
             row.id: row
             for row in session.scalars(
-                select(ParameterSet).where(ParameterSet.id.in_(parameter_set_ids)).order_by(ParameterSet.id).with_for_update()
+                select(ParameterSet)
+                .where(ParameterSet.id.in_(parameter_set_ids))
+                .order_by(ParameterSet.id)
+                .with_for_update()
             )
         }
         for parameter_set_id in parameter_set_ids:
@@ -178,7 +181,9 @@ def render_batch(self, parameter_set_ids: list[int]) -> dict[str, int]:
     if app.conf.task_always_eager:  # one process: no other worker to take over, nothing to renew
         outcome = _render_claimed(mine)
     else:
-        with Heartbeat(f"render-{task_id}", functools.partial(_renew_claims, mine, task_id), get_settings().lease_s / 4):
+        with Heartbeat(
+            f"render-{task_id}", functools.partial(_renew_claims, mine, task_id), get_settings().lease_s / 4
+        ):
             outcome = _render_claimed(mine)
     if held:
         outcome["held elsewhere"] = len(held)

@@ -231,7 +231,9 @@ def _jpeg_transform():
     return OpenCVJpeg()
 
 
-def augmented(transform, image: np.ndarray, boxes: np.ndarray, labels: np.ndarray, device: torch.device) -> tuple[Tensor, dict[str, Tensor]]:
+def augmented(
+    transform, image: np.ndarray, boxes: np.ndarray, labels: np.ndarray, device: torch.device
+) -> tuple[Tensor, dict[str, Tensor]]:
     """One sample through ``transform``: the image as a float tensor in 0..1 and its
     torchvision target (labels 1-based)."""
     from torchvision import tv_tensors

@@ -67,7 +67,12 @@ class Calibration:
         return (1.0 / (1.0 + np.exp(-np.clip(logits, -60, 60)))).astype(np.float32)
 
     def to_dict(self) -> dict:
-        return {"features": list(self.features), "weights": list(self.weights), "bias": self.bias, "fitted_on": self.fitted_on}
+        return {
+            "features": list(self.features),
+            "weights": list(self.weights),
+            "bias": self.bias,
+            "fitted_on": self.fitted_on,
+        }
 
     @classmethod
     def from_dict(cls, data: Mapping) -> Calibration:
@@ -109,7 +114,11 @@ def fit(features: np.ndarray, truths: Sequence[bool], fitted_on: str = "", itera
     for _ in range(iterations):
         probability = 1.0 / (1.0 + np.exp(-np.clip(design @ theta, -60, 60)))
         gradient = design.T @ (probability - y) + ridge * theta
-        hessian = (design * (probability * (1 - probability))[:, None]).T @ design + np.diag(ridge) + 1e-9 * np.eye(len(theta))
+        hessian = (
+            (design * (probability * (1 - probability))[:, None]).T @ design
+            + np.diag(ridge)
+            + 1e-9 * np.eye(len(theta))
+        )
         step = np.linalg.solve(hessian, gradient)
         theta -= step
         if np.abs(step).max() < 1e-8:

@@ -130,7 +130,8 @@ def save_checkpoint(
         from workers.train.texture_check import grayscale
 
         payload["textures"] = {
-            str(name): torch.from_numpy(grayscale(np.asarray(image, dtype=np.uint8)).copy()) for name, image in textures.items()
+            str(name): torch.from_numpy(grayscale(np.asarray(image, dtype=np.uint8)).copy())
+            for name, image in textures.items()
         }
     return _write_atomically(payload, path)
 
@@ -172,7 +173,9 @@ def _load_payload(path: str | Path) -> dict[str, Any]:
     if kind == ENSEMBLE_FORMAT:
         version, expected = payload.get("format_version"), ENSEMBLE_VERSION
         if version != expected:  # before its members: another version may hold them otherwise
-            raise CheckpointError(f"ensemble {path} has format version {version}; this foldwise reads version {expected}")
+            raise CheckpointError(
+                f"ensemble {path} has format version {version}; this foldwise reads version {expected}"
+            )
         members = payload.get("members")
         if not isinstance(members, list) or not members:
             raise CheckpointError(f"ensemble {path} holds no members")
@@ -366,13 +369,17 @@ def combine_detectors(detectors: Sequence[Detector]) -> Detector:
         if detector.device != first.device:
             raise ValueError(f"detector {index} is on {detector.device}, detector 1 on {first.device}")
     heads = getattr(first.model, "roi_heads", None)  # yolo has none: torchvision's NMS IoU, the config's cap
-    iou, limit = (heads.nms_thresh, heads.detections_per_img) if heads is not None else (0.5, first.config.detections_per_image)
+    iou, limit = (
+        (heads.nms_thresh, heads.detections_per_img) if heads is not None else (0.5, first.config.detections_per_image)
+    )
     meta = {**first.meta, "members": [detector.meta for detector in detectors]}
     # One class list, so one set of textures checks the merged detections (the first member's).
     textures = next((d.textures for d in detectors if d.textures), None)
     return Detector(
         model=EnsembleModel([d.model for d in detectors], iou, limit, vote=1.0 if first.config.view_vote else None),
-        meta=meta, device=first.device, textures=textures
+        meta=meta,
+        device=first.device,
+        textures=textures,
     )
 
 
@@ -402,7 +409,9 @@ def _image_array(image: np.ndarray | str | Path, index: int) -> tuple[np.ndarray
 @contextmanager
 def _test_views(model: nn.Module, sizes: Sequence[int] | None, turns: Sequence[int] | None) -> Iterator[None]:
     """The model detects at ``sizes`` and ``turns`` inside the block (None: as built), as before after it."""
-    overrides = {name: tuple(value) for name, value in (("test_sizes", sizes), ("test_turns", turns)) if value is not None}
+    overrides = {
+        name: tuple(value) for name, value in (("test_sizes", sizes), ("test_turns", turns)) if value is not None
+    }
     saved = {name: getattr(model, name) for name in overrides}
     try:
         for name, value in overrides.items():
@@ -469,7 +478,9 @@ def detect_object(
     return results
 
 
-def detection_records(found: dict[str, np.ndarray], classes: Sequence[str], score_threshold: float = 0.0) -> list[dict[str, Any]]:
+def detection_records(
+    found: dict[str, np.ndarray], classes: Sequence[str], score_threshold: float = 0.0
+) -> list[dict[str, Any]]:
     """One image's detections at or above ``score_threshold`` as JSON-able records, best first:
     ``box`` [x0, y0, x1, y1] in the image's pixels (2 decimals), ``class``, ``label`` (its index),
     ``score`` and ``confirmed`` (whether the texture check confirmed it; None without a check)."""

@@ -11,7 +11,7 @@ import math
 from collections.abc import Callable
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Any, NoReturn, Optional
+from typing import Annotated, Any, NoReturn
 
 import typer
 
@@ -19,6 +19,7 @@ from foldwise.progress import CommandProgress, command_console
 
 # Off a terminal, a progress line at most this often (a line per step would flood a log).
 PROGRESS_INTERVAL_S = 5.0
+
 
 class Family(str, Enum):
     faster_rcnn = "faster_rcnn"
@@ -68,7 +69,7 @@ def _load_samples(data: Path):
     return samples, classes
 
 
-def _load_model(path: Path, device: Optional[str] = None):
+def _load_model(path: Path, device: str | None = None):
     """A trained detector, or a clear exit for a missing or unreadable checkpoint."""
     from workers.train.checkpoint import load_detector
 
@@ -97,15 +98,17 @@ def train(
     iterations: Annotated[int, typer.Option("--iterations", min=1, help="Training iterations (mini-batches).")],
     out: Annotated[Path, typer.Option("--out", help="Checkpoint to write.")],
     init: Annotated[
-        Optional[Path], typer.Option("--init", help="Warm start from this checkpoint (ω_in); default: fresh weights.")
+        Path | None, typer.Option("--init", help="Warm start from this checkpoint (ω_in); default: fresh weights.")
     ] = None,
-    input_size: Annotated[Optional[int], typer.Option("--input-size", min=32, max=2048, help="Network input side, px.")] = None,
-    backbone: Annotated[Optional[str], typer.Option("--backbone", help="Backbone name (default: the config's).")] = None,
+    input_size: Annotated[
+        int | None, typer.Option("--input-size", min=32, max=2048, help="Network input side, px.")
+    ] = None,
+    backbone: Annotated[str | None, typer.Option("--backbone", help="Backbone name (default: the config's).")] = None,
     seed: Annotated[int, typer.Option("--seed", help="Seed of weights init and batch order.")] = 0,
     config: Annotated[
-        Optional[Path], typer.Option("--config", help="Experiment YAML whose `detector` section is the base settings.")
+        Path | None, typer.Option("--config", help="Experiment YAML whose `detector` section is the base settings.")
     ] = None,
-    batch_size: Annotated[Optional[int], typer.Option("--batch-size", min=1, help="Images per iteration.")] = None,
+    batch_size: Annotated[int | None, typer.Option("--batch-size", min=1, help="Images per iteration.")] = None,
     threads: Annotated[int, typer.Option("--threads", min=0, help="Torch CPU threads (0: torch decides).")] = 0,
 ) -> None:
     """Train a detector on a rendered dataset and write a self-describing checkpoint."""
@@ -196,8 +199,14 @@ def _result_tables(result) -> list:
         )
     per_class.add_section()
     per_class.add_row(
-        "mAP", str(result.num_ground_truth), str(result.num_detections), "", "",
-        _fmt(result.map), _fmt(result.map_unthresholded), _fmt(result.coco.get("AP50") if result.coco else None),
+        "mAP",
+        str(result.num_ground_truth),
+        str(result.num_detections),
+        "",
+        "",
+        _fmt(result.map),
+        _fmt(result.map_unthresholded),
+        _fmt(result.coco.get("AP50") if result.coco else None),
     )
     tables = [per_class]
     titles = {"condition": "Per condition", "difficulty": "Per difficulty", "condition/difficulty": "Per stage (c/δ)"}
@@ -208,7 +217,13 @@ def _result_tables(result) -> list:
         for column in (field, "images", "GT", "mAP paper", "mAP all"):
             table.add_column(column, justify="left" if column == field else "right", no_wrap=True)
         for value, group in groups.items():
-            table.add_row(value, str(group.num_images), str(group.num_ground_truth), _fmt(group.map), _fmt(group.map_unthresholded))
+            table.add_row(
+                value,
+                str(group.num_images),
+                str(group.num_ground_truth),
+                _fmt(group.map),
+                _fmt(group.map_unthresholded),
+            )
         tables.append(table)
     return tables
 
@@ -216,16 +231,18 @@ def _result_tables(result) -> list:
 def evaluate(
     model: Annotated[Path, typer.Option("--model", help="Checkpoint written by `foldwise train`.")],
     data: Annotated[Path, typer.Option("--data", help=DATA_HELP)],
-    json_out: Annotated[Optional[Path], typer.Option("--json", help="Also write the full result as JSON here.")] = None,
+    json_out: Annotated[Path | None, typer.Option("--json", help="Also write the full result as JSON here.")] = None,
     score_threshold: Annotated[
         float, typer.Option("--threshold", min=0.0, max=1.0, help="The paper's confidence cut.")
     ] = 0.8,
     iou_threshold: Annotated[float, typer.Option("--iou", min=0.01, max=1.0, help="IoU for a match.")] = 0.5,
     batch_size: Annotated[int, typer.Option("--batch-size", min=1, help="Images per forward pass.")] = 16,
-    device: Annotated[Optional[str], typer.Option("--device", help="cpu or cuda (default: the checkpoint's choice).")] = None,
+    device: Annotated[
+        str | None, typer.Option("--device", help="cpu or cuda (default: the checkpoint's choice).")
+    ] = None,
     threads: Annotated[int, typer.Option("--threads", min=0, help="Torch CPU threads (0: torch decides).")] = 0,
     report: Annotated[
-        Optional[Path],
+        Path | None,
         typer.Option(
             "--report",
             help="Write a page to look at here: DIR/index.html with the worst images (most false boxes plus "
@@ -252,7 +269,12 @@ def evaluate(
                 detector, samples, classes, batch_size=batch_size, on_batch=lambda done: bar.update(done)
             )
         result = evaluate_predictions(
-            predictions, truth, model_classes, score_threshold=score_threshold, iou_threshold=iou_threshold, groups=groups
+            predictions,
+            truth,
+            model_classes,
+            score_threshold=score_threshold,
+            iou_threshold=iou_threshold,
+            groups=groups,
         )
         at_threshold = precision_recall_at(predictions, truth, model_classes, score_threshold, iou_threshold)
     except ValueError as error:
@@ -283,7 +305,9 @@ def evaluate(
         console.print(f"wrote {json_out}")
     if report is not None:
         try:
-            page = write_report(report, samples, predictions, truth, at_threshold, worst, title=f"{model.name} on {data.name}")
+            page = write_report(
+                report, samples, predictions, truth, at_threshold, worst, title=f"{model.name} on {data.name}"
+            )
         except OSError as error:
             _fail(f"cannot write the report to {report}: {error}")
         console.print(f"report: {page}")
@@ -294,11 +318,15 @@ def _threshold_tables(result) -> list:
     from rich.table import Table
 
     cut = f"score ≥ {result.score_threshold:g}, IoU ≥ {result.iou_threshold:g}"
-    per_class = Table(title=f"At the threshold ({cut}): boxes right (TP), false (FP), objects missed (FN)", title_justify="left")
+    per_class = Table(
+        title=f"At the threshold ({cut}): boxes right (TP), false (FP), objects missed (FN)", title_justify="left"
+    )
     for column in ("class", "TP", "FP", "FN", "precision", "recall"):
         per_class.add_column(column, justify="left" if column == "class" else "right", no_wrap=True)
     for name, item in result.per_class.items():
-        per_class.add_row(name, str(item["tp"]), str(item["fp"]), str(item["fn"]), _fmt(item["precision"], 3), _fmt(item["recall"], 3))
+        per_class.add_row(
+            name, str(item["tp"]), str(item["fp"]), str(item["fn"]), _fmt(item["precision"], 3), _fmt(item["recall"], 3)
+        )
     per_class.add_section()
     per_class.add_row(
         "all", str(result.true_positives), str(result.false_positives), str(result.false_negatives),
@@ -368,7 +396,9 @@ def write_report(folder: Path, samples, predictions, truth, at_threshold, count:
             f"{html.escape(str(sample.image_path))}: {item.false_positives} false box(es), {item.false_negatives} object(s) "
             f"missed, {item.true_positives} found"
         )
-        rows.append(f'<figure><img src="{html.escape(name)}" alt="{html.escape(name)}"><figcaption>{caption}</figcaption></figure>')
+        rows.append(
+            f'<figure><img src="{html.escape(name)}" alt="{html.escape(name)}"><figcaption>{caption}</figcaption></figure>'
+        )
     cut = f"score ≥ {at_threshold.score_threshold:g}, IoU ≥ {at_threshold.iou_threshold:g}"
     summary = (
         f"precision {_fmt(at_threshold.precision, 3)}, recall {_fmt(at_threshold.recall, 3)} at {cut}: "
@@ -377,11 +407,11 @@ def write_report(folder: Path, samples, predictions, truth, at_threshold, count:
     body = "\n".join(rows) if rows else "<p>No image has a false box or a missed object at this threshold.</p>"
     page = folder / "index.html"
     page.write_text(
-        "<!doctype html>\n<html><head><meta charset=\"utf-8\"><title>" + html.escape(title) + "</title><style>"
+        '<!doctype html>\n<html><head><meta charset="utf-8"><title>' + html.escape(title) + "</title><style>"
         "body{font-family:sans-serif;margin:1em}figure{display:inline-block;margin:.5em;vertical-align:top}"
         "img{max-width:480px;max-height:480px;border:1px solid #ccc}figcaption{max-width:480px;font-size:90%}</style></head><body>"
         f"<h1>{html.escape(title)}</h1><p>{html.escape(summary)}</p>"
-        "<p>The worst images first (false boxes plus objects missed). True boxes: white, labelled \"true\"; "
+        '<p>The worst images first (false boxes plus objects missed). True boxes: white, labelled "true"; '
         "detections at the threshold: coloured by class, solid where the texture check confirmed them, dashed where not.</p>"
         f"{body}</body></html>\n"
     )
@@ -422,7 +452,9 @@ def draw_detections(image_rgb, detections: dict, classes: list[str], score_thres
     confirmed = np.asarray(detections.get("confirmed", np.ones(len(keep), bool)), bool)
     labels_drawn: list[tuple[int, int, int, int]] = []
     for box, score, label, solid in zip(
-        np.asarray(detections["boxes"])[keep], np.asarray(detections["scores"])[keep], np.asarray(detections["labels"])[keep],
+        np.asarray(detections["boxes"])[keep],
+        np.asarray(detections["scores"])[keep],
+        np.asarray(detections["labels"])[keep],
         confirmed[keep],
     ):
         colour = _PALETTE[int(label) % len(_PALETTE)]
@@ -430,18 +462,24 @@ def draw_detections(image_rgb, detections: dict, classes: list[str], score_thres
         if solid:
             cv2.rectangle(canvas, (x0, y0), (x1, y1), colour, thickness)
         else:
-            dashed_rectangle(canvas, (x0, y0, x1, y1), colour, dash=3 * thickness + 2, thickness=thickness, pixel_edges=False)
+            dashed_rectangle(
+                canvas, (x0, y0, x1, y1), colour, dash=3 * thickness + 2, thickness=thickness, pixel_edges=False
+            )
         name = classes[int(label)] if 0 <= int(label) < len(classes) else str(int(label))
         text = f"{name} {float(score):.2f}"
         (text_w, text_h), baseline = cv2.getTextSize(text, cv2.FONT_HERSHEY_SIMPLEX, font_scale, 1)
         left, top = _label_position(x0, y0, y1, text_w, text_h + baseline, width, height, labels_drawn)
         labels_drawn.append((left, top, left + text_w, top + text_h + baseline))
         cv2.rectangle(canvas, labels_drawn[-1][:2], labels_drawn[-1][2:], colour, -1)
-        cv2.putText(canvas, text, (left, top + text_h), cv2.FONT_HERSHEY_SIMPLEX, font_scale, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            canvas, text, (left, top + text_h), cv2.FONT_HERSHEY_SIMPLEX, font_scale, (255, 255, 255), 1, cv2.LINE_AA
+        )
     return cv2.cvtColor(canvas, cv2.COLOR_BGR2RGB)
 
 
-def _label_position(x0: int, y0: int, y1: int, label_w: int, label_h: int, width: int, height: int, taken: list) -> tuple[int, int]:
+def _label_position(
+    x0: int, y0: int, y1: int, label_w: int, label_h: int, width: int, height: int, taken: list
+) -> tuple[int, int]:
     """Top-left corner of a box's label: above the box's top-left corner, or, where an earlier
     label is there (nested boxes share corners), the first free place down the box's left edge;
     the first place if none is free."""
@@ -467,7 +505,8 @@ def detect(
     out_dir: Annotated[
         Path,
         typer.Option(
-            "--out", "--out-dir",
+            "--out",
+            "--out-dir",
             help="Folder for the drawn copies (one PNG per image, named after it); default: detections/ in the working directory.",
         ),
     ] = Path("detections"),
@@ -475,10 +514,12 @@ def detect(
         float, typer.Option("--threshold", min=0.0, max=1.0, help="Draw detections at or above this score.")
     ] = 0.8,
     batch_size: Annotated[int, typer.Option("--batch-size", min=1)] = 8,
-    device: Annotated[Optional[str], typer.Option("--device", help="cpu or cuda (default: the checkpoint's choice).")] = None,
+    device: Annotated[
+        str | None, typer.Option("--device", help="cpu or cuda (default: the checkpoint's choice).")
+    ] = None,
     threads: Annotated[int, typer.Option("--threads", min=0, help="Torch CPU threads (0: torch decides).")] = 0,
     sizes: Annotated[
-        Optional[str],
+        str | None,
         typer.Option(
             "--sizes",
             help="Input sizes to detect at, merged, e.g. 128,256 or 128 alone for speed "
@@ -486,7 +527,7 @@ def detect(
         ),
     ] = None,
     turns: Annotated[
-        Optional[str],
+        str | None,
         typer.Option(
             "--turns",
             help="Quarter turns of each image to detect on too, merged, e.g. 0,1,2,3, or 0 for speed "
@@ -494,7 +535,7 @@ def detect(
         ),
     ] = None,
     json_path: Annotated[
-        Optional[Path],
+        Path | None,
         typer.Option(
             "--json",
             help="Also write the detections at or above --threshold as JSON: per image its path, size, "
@@ -533,7 +574,9 @@ def detect(
     from workers.train.checkpoint import detect_ensemble, detection_records
 
     try:
-        detections = detect_ensemble(detectors, pictures, batch_size=batch_size, test_sizes=test_sizes, test_turns=test_turns)
+        detections = detect_ensemble(
+            detectors, pictures, batch_size=batch_size, test_sizes=test_sizes, test_turns=test_turns
+        )
     except ValueError as error:  # e.g. --sizes or --turns for a yolo detector, or ensemble members of other classes
         _fail(str(error))
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -572,7 +615,12 @@ def detect(
             }
         )
     if json_path is not None:
-        document = {"models": [str(path) for path in model], "classes": classes, "threshold": score_threshold, "images": records}
+        document = {
+            "models": [str(path) for path in model],
+            "classes": classes,
+            "threshold": score_threshold,
+            "images": records,
+        }
         try:
             json_path.parent.mkdir(parents=True, exist_ok=True)
             json_path.write_text(json.dumps(document, indent=2))
@@ -587,7 +635,10 @@ def detect(
 def ensemble(
     model: Annotated[
         list[Path],
-        typer.Option("--model", help="A checkpoint to join (two or more, one class list): final models of runs with other seeds, say."),
+        typer.Option(
+            "--model",
+            help="A checkpoint to join (two or more, one class list): final models of runs with other seeds, say.",
+        ),
     ],
     out: Annotated[Path, typer.Option("--out", help="The ensemble file to write, e.g. ensemble.pt.")],
 ) -> None:
@@ -608,10 +659,15 @@ def ensemble(
 
 
 def calibrate(
-    model: Annotated[Path, typer.Option("--model", help="The checkpoint or ensemble to calibrate (make run's ensemble.pt, say).")],
+    model: Annotated[
+        Path, typer.Option("--model", help="The checkpoint or ensemble to calibrate (make run's ensemble.pt, say).")
+    ],
     data: Annotated[
         Path,
-        typer.Option("--data", help="Labelled images: a COCO JSON file or folder, or a Pascal VOC folder (your photographs, with lookalikes among them)."),
+        typer.Option(
+            "--data",
+            help="Labelled images: a COCO JSON file or folder, or a Pascal VOC folder (your photographs, with lookalikes among them).",
+        ),
     ],
     out: Annotated[Path, typer.Option("--out", help="Where to write the calibrated model (may be --model itself).")],
     iou: Annotated[float, typer.Option("--iou", help="IoU at which a detection counts as finding its target.")] = 0.5,
@@ -643,8 +699,10 @@ def export(
     out: Annotated[Path, typer.Option("--out", help="File to write, e.g. model.onnx.")],
     export_format: Annotated[str, typer.Option("--format", help="Export format: onnx.")] = "onnx",
     image_size: Annotated[
-        Optional[str],
-        typer.Option("--image-size", help="HxW (or N) the yolo family is exported at (at most its input size; default that)."),
+        str | None,
+        typer.Option(
+            "--image-size", help="HxW (or N) the yolo family is exported at (at most its input size; default that)."
+        ),
     ] = None,
 ) -> None:
     """Export a detector to run without foldwise (ONNX: faster_rcnn any size, yolo one size; not fast_rcnn)."""
@@ -666,7 +724,11 @@ def export(
     classes = ", ".join(detector.classes)
     typer.echo(f"wrote {written} ({written.stat().st_size / 1e6:.1f} MB): {detector.meta['family']}, classes {classes}")
     if (check := detector.texture_check()) is not None:
-        what = "texture check and search (detector.texture_check, texture_search)" if check.search else "texture check (detector.texture_check)"
+        what = (
+            "texture check and search (detector.texture_check, texture_search)"
+            if check.search
+            else "texture check (detector.texture_check)"
+        )
         typer.echo(
             f"note: the graph holds the network only; this detector's {what} "
             "runs in foldwise detect, evaluate and the REST routes, not in the ONNX model"
@@ -678,19 +740,28 @@ def export(
 
 def finetune(
     model: Annotated[
-        Path, typer.Option("--model", help="The foldwise checkpoint to fine-tune; an ensemble (`make run`'s) is fine-tuned member by member.")
+        Path,
+        typer.Option(
+            "--model",
+            help="The foldwise checkpoint to fine-tune; an ensemble (`make run`'s) is fine-tuned member by member.",
+        ),
     ],
     data: Annotated[Path, typer.Option("--data", help=f"Real images. {DATA_HELP}")],
     out: Annotated[Path, typer.Option("--out", help="Folder for the models, the table and Fig. 11.")],
-    sweep: Annotated[str, typer.Option("--sweep", help="Real training images per point, e.g. 0,25,50,100,200.")] = "0,25,50,100,200",
+    sweep: Annotated[
+        str, typer.Option("--sweep", help="Real training images per point, e.g. 0,25,50,100,200.")
+    ] = "0,25,50,100,200",
     iterations: Annotated[int, typer.Option("--iterations", min=1, max=1_000_000, help="Iterations per model.")] = 200,
-    test_fraction: Annotated[float, typer.Option("--test-fraction", min=0.05, max=0.95, help="Share held out for testing.")] = 0.5,
+    test_fraction: Annotated[
+        float, typer.Option("--test-fraction", min=0.05, max=0.95, help="Share held out for testing.")
+    ] = 0.5,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the split, weights and batch order.")] = 0,
 ) -> None:
     """Fine-tune a foldwise model on real photographs: a sweep over the number of real training
     images, a fresh-initialisation baseline beside it, both scored on a held-out real split (Fig. 11)."""
     from workers.train.data import DatasetError, load_dataset
-    from workers.train.finetune import match_classes, split, sweep as run_sweep, write_fig11
+    from workers.train.finetune import match_classes, split, write_fig11
+    from workers.train.finetune import sweep as run_sweep
 
     def bad_input(message: str) -> NoReturn:
         typer.secho(f"error: {message}", fg=typer.colors.RED, err=True)

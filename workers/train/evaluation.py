@@ -151,7 +151,9 @@ def _check_image(item: Any, index: int, kind: str, num_classes: int, with_scores
         row = int(np.flatnonzero(inverted)[0])
         raise ValueError(f"{where}.boxes[{row}]: x1 < x0 or y1 < y0 in {boxes[row].tolist()} (expected xyxy)")
     if len(labels) and not np.issubdtype(labels.dtype, np.integer):
-        if not np.issubdtype(labels.dtype, np.floating) or not np.all(np.isfinite(labels) & (labels == np.round(labels))):
+        if not np.issubdtype(labels.dtype, np.floating) or not np.all(
+            np.isfinite(labels) & (labels == np.round(labels))
+        ):
             raise ValueError(f"{where}.labels: expected integer class indices, got {labels.dtype}")
     labels = labels.astype(np.int64)
     bad = (labels < 0) | (labels >= num_classes)
@@ -540,8 +542,13 @@ def detector_predictions(
         )
     to_model = np.array([model_classes.index(name) for name in classes], dtype=np.int64)
     predictions = detect_ensemble(
-        detectors, [sample.image_path for sample in samples], batch_size=batch_size, on_batch=on_batch,
-        test_sizes=test_sizes, test_turns=test_turns, texture_check=texture_check,
+        detectors,
+        [sample.image_path for sample in samples],
+        batch_size=batch_size,
+        on_batch=on_batch,
+        test_sizes=test_sizes,
+        test_turns=test_turns,
+        texture_check=texture_check,
     )
     ground_truth = [
         {"boxes": sample.boxes, "labels": to_model[np.asarray(sample.labels, dtype=np.int64)]} for sample in samples
@@ -681,12 +688,19 @@ def precision_recall_at(
     for k, name in enumerate(classes):
         tp, fp = int(np.count_nonzero(tp_labels == k)), int(np.count_nonzero(fp_labels == k))
         fn = int(np.count_nonzero(gt.labels == k)) - tp
-        per_class[name] = {"tp": tp, "fp": fp, "fn": fn, "precision": _ratio(tp, tp + fp), "recall": _ratio(tp, tp + fn)}
+        per_class[name] = {
+            "tp": tp,
+            "fp": fp,
+            "fn": fn,
+            "precision": _ratio(tp, tp + fp),
+            "recall": _ratio(tp, tp + fn),
+        }
     tp_per_image = np.bincount(det.image[order[is_tp]], minlength=num_images)
     fp_per_image = np.bincount(det.image[order[~is_tp]], minlength=num_images)
     gt_per_image = np.bincount(gt.image, minlength=num_images)
     per_image = [
-        ImageErrors(i, int(tp_per_image[i]), int(fp_per_image[i]), int(gt_per_image[i] - tp_per_image[i])) for i in range(num_images)
+        ImageErrors(i, int(tp_per_image[i]), int(fp_per_image[i]), int(gt_per_image[i] - tp_per_image[i]))
+        for i in range(num_images)
     ]
     tp, fp = int(is_tp.sum()), int((~is_tp).sum())
     fn = len(gt.labels) - tp

@@ -64,7 +64,9 @@ def export_onnx(detector: Any, out: str | Path, image_size: tuple[int, int] | No
 
     families = sorted(set(member_families(detector)))
     if len(families) > 1:
-        raise ExportError(f"an ensemble of several detector families ({', '.join(families)}) cannot be exported as one graph")
+        raise ExportError(
+            f"an ensemble of several detector families ({', '.join(families)}) cannot be exported as one graph"
+        )
     family = detector.meta["family"]
     if family in NOT_EXPORTABLE:
         raise ExportError(f"the {family} detector cannot be exported to ONNX: {NOT_EXPORTABLE[family]}")

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import csv
 import json
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
 
 import numpy as np
 
@@ -119,13 +119,25 @@ def sweep(
     def train_all(n: int, kind: str) -> Path:
         """One model per member, on the first n pool images, joined when there are several."""
         target = out_dir / f"{kind}-{n}.pt"
-        paths = [target] if len(members) == 1 else [out_dir / "members" / f"{kind}-{n}-{i}.pt" for i in range(1, len(members) + 1)]
+        paths = (
+            [target]
+            if len(members) == 1
+            else [out_dir / "members" / f"{kind}-{n}-{i}.pt" for i in range(1, len(members) + 1)]
+        )
         for index, (member, payload, path) in enumerate(zip(members, payloads, paths)):
             config = DetectorConfig.model_validate(payload["meta"]["config"])
             # Members differ by seed: a fresh ensemble of one seed would be one model repeated.
             member_seed = seed + index
             if kind == "finetuned":
-                train_detector(pool[:n], init=member, iterations=iterations, config=config, classes=classes, out=path, seed=member_seed)
+                train_detector(
+                    pool[:n],
+                    init=member,
+                    iterations=iterations,
+                    config=config,
+                    classes=classes,
+                    out=path,
+                    seed=member_seed,
+                )
             else:  # the fresh model checks with the same textures
                 train_detector(
                     pool[:n], init=None, iterations=iterations, config=config, classes=classes, out=path, seed=member_seed,

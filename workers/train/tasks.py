@@ -82,7 +82,9 @@ def _samples(rows):
 
     samples = []
     for row in rows:
-        targets = row.objects if row.objects is not None else ([{"box": row.box, "label": row.label}] if row.box else [])
+        targets = (
+            row.objects if row.objects is not None else ([{"box": row.box, "label": row.label}] if row.box else [])
+        )
         boxes = np.asarray([t["box"] for t in targets], dtype=np.float32).reshape(-1, 4)
         labels = np.asarray([t["label"] for t in targets], dtype=np.int64)
         samples.append(

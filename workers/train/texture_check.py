@@ -212,7 +212,10 @@ def tilted_views(gray: np.ndarray):
             squeezed_width = max(1, round(size[0] / tilt))
             view = cv2.resize(blurred, (squeezed_width, size[1]), interpolation=cv2.INTER_LINEAR)
             # Keypoints only well inside the texture: its turned edges are no texture of its own.
-            mask = cv2.erode(cv2.resize(inside, (squeezed_width, size[1]), interpolation=cv2.INTER_NEAREST), np.ones((5, 5), np.uint8))
+            mask = cv2.erode(
+                cv2.resize(inside, (squeezed_width, size[1]), interpolation=cv2.INTER_NEAREST),
+                np.ones((5, 5), np.uint8),
+            )
             to_turned = np.diag([size[0] / squeezed_width, 1.0, 1.0])
             to_texture = np.linalg.inv(np.vstack([turn, [0, 0, 1]])) @ to_turned
             yield view, mask, to_texture[:2]
@@ -255,7 +258,15 @@ def cache_key(grays: list[np.ndarray]) -> str:
     import cv2
 
     digest = hashlib.sha256()
-    made_by = (CACHE_VERSION, cv2.__version__, CONTRAST_THRESHOLD, TEXTURE_TILTS, TEXTURE_TILT_DIRECTIONS, FLANN_TREES, FLANN_SEED)
+    made_by = (
+        CACHE_VERSION,
+        cv2.__version__,
+        CONTRAST_THRESHOLD,
+        TEXTURE_TILTS,
+        TEXTURE_TILT_DIRECTIONS,
+        FLANN_TREES,
+        FLANN_SEED,
+    )
     digest.update(repr(made_by).encode())
     for gray in grays:
         digest.update(repr(gray.shape).encode())
@@ -294,7 +305,12 @@ class _CheckCache:
             log.warning("texture check: cached keypoints %s unreadable (%s); made again", self.features_path, error)
             return None
         n = len(descriptors)
-        if descriptors.shape != (n, 128) or labels.shape != (n,) or points.shape != (n, 2) or (n and labels.max() >= len(sizes)):
+        if (
+            descriptors.shape != (n, 128)
+            or labels.shape != (n,)
+            or points.shape != (n, 2)
+            or (n and labels.max() >= len(sizes))
+        ):
             log.warning("texture check: cached keypoints %s malformed; made again", self.features_path)
             return None
         try:
@@ -496,10 +512,14 @@ class TextureCheck:
         with self._index_lock:
             found, squared = self._index.knnSearch(descriptors, count, params=dict(checks=FLANN_CHECKS))
         indices = found.astype(np.int64)
-        distances = np.where(indices >= 0, np.sqrt(np.maximum(squared, 0)), np.inf).astype(np.float32)  # FLANN's L2 is squared
+        distances = np.where(indices >= 0, np.sqrt(np.maximum(squared, 0)), np.inf).astype(
+            np.float32
+        )  # FLANN's L2 is squared
         return indices, distances
 
-    def apply(self, image: np.ndarray, detections: Mapping[str, np.ndarray], with_evidence: bool = False) -> dict[str, np.ndarray]:
+    def apply(
+        self, image: np.ndarray, detections: Mapping[str, np.ndarray], with_evidence: bool = False
+    ) -> dict[str, np.ndarray]:
         """``detections`` (boxes, scores, labels as ``detect_object`` gives them, in ``image``'s
         pixels) checked: new arrays, best score first, with ``confirmed`` (n,) bool: whether the
         texture confirmed each box (or the search found it). ``with_evidence``: also
@@ -518,7 +538,9 @@ class TextureCheck:
             every, image_points, match_labels, texture_points = self._keypoints_and_matches(gray)
             height, width = gray.shape
             if self.search:  # scored by the network's boxes as they came, before the check below moves them
-                found, found_labels, found_evidence = self._search(image_points, match_labels, texture_points, width, height)
+                found, found_labels, found_evidence = self._search(
+                    image_points, match_labels, texture_points, width, height
+                )
                 found_network = _network_score(found, found_labels, boxes, scores, labels)
             for index in checked:
                 inside = _inside(image_points, boxes[index])
@@ -529,14 +551,29 @@ class TextureCheck:
                 # Another class's texture matched far more often is tried first, and renames the box
                 # only where its matches agree on a map (a count alone is no evidence: clutter
                 # matches the textures richest in keypoints most).
-                other = best != label and counts[best] >= MIN_INLIERS and counts[best] >= RENAME_FACTOR * max(counts[label], 1)
+                other = (
+                    best != label
+                    and counts[best] >= MIN_INLIERS
+                    and counts[best] >= RENAME_FACTOR * max(counts[label], 1)
+                )
                 for candidate in [best, label] if other else [label]:
                     outline, inliers, coverage = self._fit(
-                        image_points[inside], match_labels[inside], texture_points[inside], candidate, boxes[index], width, height
+                        image_points[inside],
+                        match_labels[inside],
+                        texture_points[inside],
+                        candidate,
+                        boxes[index],
+                        width,
+                        height,
                     )
                     if outline is not None:
                         break
-                evidence[index, 2:] = (np.log1p(inliers), coverage, np.log1p(keypoints), counts[label] / max(keypoints, 1))
+                evidence[index, 2:] = (
+                    np.log1p(inliers),
+                    coverage,
+                    np.log1p(keypoints),
+                    counts[label] / max(keypoints, 1),
+                )
                 if outline is None:
                     continue
                 labels[index] = candidate
@@ -560,7 +597,9 @@ class TextureCheck:
                 for row, outline in enumerate(found):
                     keypoints = int(_inside(every, outline).sum())
                     found_evidence[row, 4] = np.log1p(keypoints)
-                    found_evidence[row, 5] = int((_inside(image_points, outline) & (match_labels == found_labels[row])).sum()) / max(keypoints, 1)
+                    found_evidence[row, 5] = int(
+                        (_inside(image_points, outline) & (match_labels == found_labels[row])).sum()
+                    ) / max(keypoints, 1)
                 if self.calibration is not None:
                     found_scores = self.calibration.probability(found_evidence)
                 else:
@@ -572,14 +611,27 @@ class TextureCheck:
                 evidence = np.concatenate([evidence, found_evidence])
             keep = _merge(boxes, scores, labels)
             keep = keep[_one_per_sheet(boxes[keep], scores[keep], confirmed[keep])]
-            boxes, scores, labels, confirmed, evidence = boxes[keep], scores[keep], labels[keep], confirmed[keep], evidence[keep]
+            boxes, scores, labels, confirmed, evidence = (
+                boxes[keep],
+                scores[keep],
+                labels[keep],
+                confirmed[keep],
+                evidence[keep],
+            )
         order = np.argsort(-scores, kind="stable")
-        checked_detections = {"boxes": boxes[order], "scores": scores[order], "labels": labels[order], "confirmed": confirmed[order]}
+        checked_detections = {
+            "boxes": boxes[order],
+            "scores": scores[order],
+            "labels": labels[order],
+            "confirmed": confirmed[order],
+        }
         if with_evidence:
             checked_detections["evidence"] = evidence[order]
         return checked_detections
 
-    def _fit(self, image_points, match_labels, texture_points, label: int, box, width: int, height: int) -> tuple[np.ndarray | None, int, float]:
+    def _fit(
+        self, image_points, match_labels, texture_points, label: int, box, width: int, height: int
+    ) -> tuple[np.ndarray | None, int, float]:
         """(outline, inliers, coverage) of ``label``'s texture among the matches given (a box's).
 
         The first affine map needs ``MIN_INLIERS`` matches that agree on it and is no false fit
@@ -604,7 +656,9 @@ class TextureCheck:
             needed = MIN_INLIERS if piece == 0 else LOCAL_MIN_INLIERS
             if len(candidates) < needed:
                 break
-            affine, mask = cv2.estimateAffine2D(sources[candidates], targets[candidates], method=cv2.RANSAC, ransacReprojThreshold=threshold)
+            affine, mask = cv2.estimateAffine2D(
+                sources[candidates], targets[candidates], method=cv2.RANSAC, ransacReprojThreshold=threshold
+            )
             if affine is None or mask is None or int(mask.sum()) < needed or _false_fit(affine):
                 break
             inliers = candidates[mask.ravel().astype(bool)]
@@ -625,8 +679,12 @@ class TextureCheck:
         texture_width, texture_height = self._features.sizes[label]
         steps_x = np.linspace(0, texture_width, COVER_GRID + 1)
         steps_y = np.linspace(0, texture_height, COVER_GRID + 1)
-        centres = np.stack(np.meshgrid((steps_x[:-1] + steps_x[1:]) / 2, (steps_y[:-1] + steps_y[1:]) / 2), axis=-1).reshape(-1, 2)
-        nearest = np.stack([np.linalg.norm(centres[:, None] - points[None], axis=2).min(1) for _, points in pieces]).argmin(0)
+        centres = np.stack(
+            np.meshgrid((steps_x[:-1] + steps_x[1:]) / 2, (steps_y[:-1] + steps_y[1:]) / 2), axis=-1
+        ).reshape(-1, 2)
+        nearest = np.stack(
+            [np.linalg.norm(centres[:, None] - points[None], axis=2).min(1) for _, points in pieces]
+        ).argmin(0)
         half = np.array([texture_width, texture_height]) / COVER_GRID / 2
         mapped = []
         for index, (affine, _points) in enumerate(pieces):
@@ -636,10 +694,15 @@ class TextureCheck:
             corners = np.concatenate([cells + half * sign for sign in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
             mapped.append(corners @ affine[:, :2].T + affine[:, 2])
         corners = np.concatenate(mapped)
-        outline = np.array([
-            max(corners[:, 0].min(), 0.0), max(corners[:, 1].min(), 0.0),
-            min(corners[:, 0].max(), float(width)), min(corners[:, 1].max(), float(height)),
-        ], np.float32)
+        outline = np.array(
+            [
+                max(corners[:, 0].min(), 0.0),
+                max(corners[:, 1].min(), 0.0),
+                min(corners[:, 0].max(), float(width)),
+                min(corners[:, 1].max(), float(height)),
+            ],
+            np.float32,
+        )
         return outline if outline[2] > outline[0] and outline[3] > outline[1] else None
 
     def _coverage(self, texture_points: np.ndarray, label: int) -> float:
@@ -655,16 +718,25 @@ class TextureCheck:
         """The class's texture outline mapped by ``affine`` into the image, clipped to the frame
         (xyxy), or None where nothing of it is inside."""
         texture_width, texture_height = self._features.sizes[label]
-        corners = np.array(
-            [[0, 0], [texture_width, 0], [texture_width, texture_height], [0, texture_height]], np.float32
-        ) @ affine[:, :2].T + affine[:, 2]
-        outline = np.array([
-            max(corners[:, 0].min(), 0.0), max(corners[:, 1].min(), 0.0),
-            min(corners[:, 0].max(), float(width)), min(corners[:, 1].max(), float(height)),
-        ], np.float32)
+        corners = (
+            np.array([[0, 0], [texture_width, 0], [texture_width, texture_height], [0, texture_height]], np.float32)
+            @ affine[:, :2].T
+            + affine[:, 2]
+        )
+        outline = np.array(
+            [
+                max(corners[:, 0].min(), 0.0),
+                max(corners[:, 1].min(), 0.0),
+                min(corners[:, 0].max(), float(width)),
+                min(corners[:, 1].max(), float(height)),
+            ],
+            np.float32,
+        )
         return outline if outline[2] > outline[0] and outline[3] > outline[1] else None
 
-    def _search(self, image_points, match_labels, texture_points, width: int, height: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _search(
+        self, image_points, match_labels, texture_points, width: int, height: int
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Sheets the texture alone finds over the whole image: (outlines (n, 4), class indices
         (n,), evidence (n, len(FEATURES)) with the confirmation, inliers and coverage filled in)."""
         import cv2
@@ -679,7 +751,9 @@ class TextureCheck:
             for _ in range(SEARCH_SHEETS_PER_CLASS):
                 if len(points) < SEARCH_MIN_INLIERS:
                     break
-                affine, mask = cv2.estimateAffine2D(sources, points, method=cv2.RANSAC, ransacReprojThreshold=first_threshold)
+                affine, mask = cv2.estimateAffine2D(
+                    sources, points, method=cv2.RANSAC, ransacReprojThreshold=first_threshold
+                )
                 if affine is None or mask is None or int(mask.sum()) < SEARCH_MIN_INLIERS:
                     break
                 # Redo the fit at the box check's threshold, relative to the sheet just found.

@@ -24,6 +24,7 @@ import torch
 from torch import Tensor, nn
 
 from foldwise.config import DetectorConfig
+from workers.train.augment import augmented, build_augmentation
 from workers.train.checkpoint import (
     check_compatible,
     load_state,
@@ -33,7 +34,6 @@ from workers.train.checkpoint import (
     save_checkpoint,
     torch_threads,
 )
-from workers.train.augment import augmented, build_augmentation
 from workers.train.data import Sample, read_image_rgb, validate_box
 
 # Warm-up starts at this fraction of the learning rate (torchvision's references use 0.001).

@@ -10,8 +10,8 @@ amodal_box and visible_fraction, which the upgrade copies into the list. Stored 
 version: ``foldwise.theta.Theta.parse`` reads version 1 and renders it to the same bytes.
 """
 
-from alembic import op
 import sqlalchemy as sa
+from alembic import op
 
 revision = "0002"
 down_revision = "0001"

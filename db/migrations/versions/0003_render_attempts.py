@@ -9,8 +9,8 @@ delivery is redelivered forever; counting the attempts lets the render worker gi
 ``tasks.max_deliveries`` and record why. Rows rendered before count 0.
 """
 
-from alembic import op
 import sqlalchemy as sa
+from alembic import op
 
 revision = "0003"
 down_revision = "0002"

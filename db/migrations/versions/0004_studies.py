@@ -9,8 +9,8 @@ reset/grow choice, of one config; ``experiments.study`` names the group so its f
 them side by side. Experiments recorded before belong to none.
 """
 
-from alembic import op
 import sqlalchemy as sa
+from alembic import op
 
 revision = "0004"
 down_revision = "0003"

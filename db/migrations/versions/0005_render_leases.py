@@ -10,8 +10,8 @@ of ``FOLDWISE_REQUEUE_AFTER_S``; with a claim renewed every lease/4 the schedule
 lapse within one lease. ``sends`` makes "re-sent once" something one can check.
 """
 
-from alembic import op
 import sqlalchemy as sa
+from alembic import op
 
 revision = "0005"
 down_revision = "0004"

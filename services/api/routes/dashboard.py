@@ -70,7 +70,7 @@ DETAIL = """<section id="experiment">
 def _row(item) -> str:
     return (
         f'<tr data-id="{item.id}"><td><a href="/?experiment={item.id}">{item.id}</a></td>'
-        f"<td>{escape(item.name)}</td><td class=\"status {item.status.value}\">{item.status.value}</td>"
+        f'<td>{escape(item.name)}</td><td class="status {item.status.value}">{item.status.value}</td>'
         f"<td>{escape((item.created_at or '')[:19].replace('T', ' '))}</td></tr>"
     )
 

@@ -26,9 +26,7 @@ def queue_status(broker: BrokerDep) -> Any:
 
     reason = broker.skipped_reason
     if reason:
-        return JSONResponse(
-            {"detail": f"no queues to read: {reason}"}, status_code=status.HTTP_503_SERVICE_UNAVAILABLE
-        )
+        return JSONResponse({"detail": f"no queues to read: {reason}"}, status_code=status.HTTP_503_SERVICE_UNAVAILABLE)
     if not broker.is_redis:
         return JSONResponse(
             {"detail": f"queue depth is read from Redis; the broker is {broker.display_url}"},

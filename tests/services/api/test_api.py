@@ -191,6 +191,7 @@ def test_responses_carry_the_query_results_unchanged(client, seeded, database_ur
             f"/models/{seeded['models'][1]}": queries.model_detail(session, seeded["models"][1]),
             f"/models/{seeded['models'][4]}": queries.model_detail(session, seeded["models"][4]),
         }
+
     def settled(value):
         # A running stage's duration counts up between the two reads.
         if isinstance(value, list):
@@ -274,7 +275,11 @@ def test_two_creations_get_distinct_ids(client):
         # JSON has no NaN or Infinity (Python's parser would take them; PostgreSQL's JSON would not).
         ("application/json", '{"name": "x", "detector": {"learning_rate": Infinity}}', "Infinity is not a JSON number"),
         ("application/json", '{"name": "x", "evaluation": {"score_threshold": NaN}}', "NaN is not a JSON number"),
-        ("application/yaml", "name: x\ndetector:\n  learning_rate: .inf\n", "detector.learning_rate: Input should be a finite number"),
+        (
+            "application/yaml",
+            "name: x\ndetector:\n  learning_rate: .inf\n",
+            "detector.learning_rate: Input should be a finite number",
+        ),
     ],
 )
 def test_invalid_configs_are_422_naming_the_problem(client, seeded, database_url, content_type, body, named):
@@ -638,10 +643,17 @@ def test_routes_use_the_session_they_are_given(client, seeded, database_url, tmp
 
 def test_openapi_documents_both_config_media_types(client):
     spec = client.get("/openapi.json").json()
-    assert {"/health", "/experiments", "/experiments/{experiment_id}", "/experiments/{experiment_id}/cancel",
-            "/experiments/{experiment_id}/config",
-            "/experiments/{experiment_id}/stages", "/experiments/{experiment_id}/history", "/models/{model_id}",
-            "/queues"} <= set(spec["paths"])
+    assert {
+        "/health",
+        "/experiments",
+        "/experiments/{experiment_id}",
+        "/experiments/{experiment_id}/cancel",
+        "/experiments/{experiment_id}/config",
+        "/experiments/{experiment_id}/stages",
+        "/experiments/{experiment_id}/history",
+        "/models/{model_id}",
+        "/queues",
+    } <= set(spec["paths"])
     content = spec["paths"]["/experiments"]["post"]["requestBody"]["content"]
     assert {"application/json", "application/yaml", "text/yaml"} <= set(content)
     config_schema = spec["components"]["schemas"]["ExperimentConfig"]

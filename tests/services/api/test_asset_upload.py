@@ -28,7 +28,9 @@ def _gif() -> bytes:
 
 
 def _upload(client, kind: str, files: dict[str, bytes], headers=AUTH):
-    return client.post(f"/assets/{kind}", files=[("files", (name, payload)) for name, payload in files.items()], headers=headers)
+    return client.post(
+        f"/assets/{kind}", files=[("files", (name, payload)) for name, payload in files.items()], headers=headers
+    )
 
 
 def _leftovers() -> list[str]:
@@ -63,7 +65,12 @@ def test_an_uploaded_object_folder_is_kept_by_content_and_a_config_may_name_it(c
         ("objects", {"poster.png": _gif()}, 422, "holds a GIF image, not PNG"),
         ("objects", {"poster.png": b"\x89PNG\r\n\x1a\n not really"}, 422, "'poster.png' is not a readable image"),
         ("backgrounds", {"tiny.png": _png(side=4)}, 422, "'tiny.png' is 4x4 pixels"),
-        ("objects", {"mug.png": _png(), "mug.jpg": cv2.imencode(".jpg", np.zeros((32, 32, 3), np.uint8))[1].tobytes()}, 422, "both name the class 'mug'"),
+        (
+            "objects",
+            {"mug.png": _png(), "mug.jpg": cv2.imencode(".jpg", np.zeros((32, 32, 3), np.uint8))[1].tobytes()},
+            422,
+            "both name the class 'mug'",
+        ),
         ("objects", {"../escape.png": _png()}, 422, "no folders"),
         ("objects", {".hidden.png": _png()}, 422, "starting with a letter or digit"),
         ("objects", {"notes.txt": b"hello"}, 422, "not an image name"),

@@ -88,17 +88,28 @@ def test_an_id_that_names_no_row_is_404(client, method, path, bad_id):
         ({"name": "bell\x07"}, 422, "name: control character"),
         ({"name": "x", "assets": {"objects": "/srv/a\x00b"}}, 422, "assets.objects: control character"),
         ({"name": "x", "active_learning": {"m": True}}, 422, "active_learning.m: expected a number, got a boolean"),
-        ({"name": "x", "active_learning": {"m": 10**9}}, 422, "active_learning.m: Input should be less than or equal to 100000"),
+        (
+            {"name": "x", "active_learning": {"m": 10**9}},
+            422,
+            "active_learning.m: Input should be less than or equal to 100000",
+        ),
         ({"name": "x", "active_learning": {"t": 10**9}}, 422, "active_learning.t"),
         ({"name": "x", "active_learning": {"max_increments": 10**9}}, 422, "active_learning.max_increments"),
         ({"name": "x", "test_set": {"per_stage": 10**9}}, 422, "test_set.per_stage"),
         ({"name": "x", "seed": 2**63}, 422, "seed"),
         ({"name": "x", "render": {"image_size": 10**6}}, 422, "render.image_size"),
         ({"name": "x", "evaluation": {"batch_size": 10**9}}, 422, "evaluation.batch_size"),
-        ({"name": "x", "curriculum": {"mixed": {"active_learning": {"m": False}}}}, 422, "curriculum.mixed.active_learning.m"),
+        (
+            {"name": "x", "curriculum": {"mixed": {"active_learning": {"m": False}}}},
+            422,
+            "curriculum.mixed.active_learning.m",
+        ),
         # An asset folder the server does not have: it was a 201, then a scheduler error on every pass.
-        ({"name": "x", "assets": {"backgrounds": "/nonexistent/foldwise"}}, 422,
-         "assets.backgrounds: folder '/nonexistent/foldwise' does not exist"),
+        (
+            {"name": "x", "assets": {"backgrounds": "/nonexistent/foldwise"}},
+            422,
+            "assets.backgrounds: folder '/nonexistent/foldwise' does not exist",
+        ),
     ],
 )
 def test_a_bad_config_is_422_naming_the_key_and_records_nothing(client, database_url, body, status, named):
@@ -114,23 +125,47 @@ DEEP = 10_000
 @pytest.mark.parametrize(
     ("content_type", "body", "named"),
     [
-        ("application/json", '{"name": "x", "active_learning": {"m": "50"}}', "active_learning.m: expected a number, got the text '50'"),
-        ("application/json", '{"name": "x", "active_learning": {"m": 50.0}}', "active_learning.m: expected a whole number, got 50.0"),
+        (
+            "application/json",
+            '{"name": "x", "active_learning": {"m": "50"}}',
+            "active_learning.m: expected a number, got the text '50'",
+        ),
+        (
+            "application/json",
+            '{"name": "x", "active_learning": {"m": 50.0}}',
+            "active_learning.m: expected a whole number, got 50.0",
+        ),
         ("application/json", '{"name": "x", "name": "y"}', "duplicate key 'name'"),
         ("application/json", '{"name": "x", "a": ' + "[" * DEEP + "]" * DEEP + "}", "nested deeper than 32 levels"),
-        ("application/json", '{"name": "x", "a": ' + '{"b": ' * DEEP + "1" + "}" * DEEP + "}", "nested deeper than 32 levels"),
+        (
+            "application/json",
+            '{"name": "x", "a": ' + '{"b": ' * DEEP + "1" + "}" * DEEP + "}",
+            "nested deeper than 32 levels",
+        ),
         ("application/json", '{"name": "x", "a": ' + "[" * 500 + "]" * 500 + "}", "nested deeper than 32 levels"),
         ("application/yaml", "name: x\na: " + "[" * DEEP + "]" * DEEP, "nested deeper than 32 levels (line 2"),
         ("application/yaml", "name: x\na: " + "{b: " * DEEP + "1" + "}" * DEEP, "nested deeper than 32 levels (line 2"),
         ("application/yaml", "name: x\nactive_learning:\n  m: 5\n  m: 6\n", "duplicate key 'm' (line 4, column 3)"),
         ("application/yaml", "name: x\nactive_learning: {m: '50'}\n", "active_learning.m: expected a number"),
-        ("application/yaml", "name: x\ncurriculum: &c {conditions: [*c]}\n", "refers to the mapping or list that contains it"),
+        (
+            "application/yaml",
+            "name: x\ncurriculum: &c {conditions: [*c]}\n",
+            "refers to the mapping or list that contains it",
+        ),
         # Half a UTF-16 pair: no file system takes it (the asset-root check raised: 500).
-        ("application/json", '{"name": "x", "assets": {"objects": "/srv/\\ud800"}}', "assets.objects: text is not valid Unicode (lone surrogate '\\ud800')"),
+        (
+            "application/json",
+            '{"name": "x", "assets": {"objects": "/srv/\\ud800"}}',
+            "assets.objects: text is not valid Unicode (lone surrogate '\\ud800')",
+        ),
         ("application/json", '{"name": "\\udfff"}', "name: "),
         # pydantic took !!binary bytes as text: a NUL name, 201 on SQLite and a 500 on PostgreSQL.
         ("application/yaml", "name: !!binary AA==\n", "!!binary data has no place in a config (line 1, column 7)"),
-        ("application/yaml", "name: x\nseed: " + "1" * 5000 + "\n", "a whole number of 5,000 characters (line 2, column 7)"),
+        (
+            "application/yaml",
+            "name: x\nseed: " + "1" * 5000 + "\n",
+            "a whole number of 5,000 characters (line 2, column 7)",
+        ),
     ],
     ids=lambda value: value[:40] if isinstance(value, str) else value,
 )
@@ -291,7 +326,9 @@ def test_every_id_route_refuses_every_bad_id(sweep_client, method, route):
 @pytest.mark.parametrize(
     ("method", "route", "parameter", "values"), PARAMETERS, ids=[f"{m} {r}" for m, r, _, _ in PARAMETERS]
 )
-def test_every_parameter_refuses_every_bad_value_naming_it(sweep_client, database_url, method, route, parameter, values):
+def test_every_parameter_refuses_every_bad_value_naming_it(
+    sweep_client, database_url, method, route, parameter, values
+):
     experiment = _existing_experiment(sweep_client)
     wrong = {}
     for value in values:
@@ -317,7 +354,10 @@ def test_a_misnamed_or_clashing_object_image_is_422_naming_the_files(client, dat
     Image.new("RGB", (32, 32), (9, 9, 9)).save(objects / "flag.png", format="GIF")
     response = client.post("/experiments", json={"name": "x", "assets": {"objects": str(objects)}}, headers=AUTH)
     assert response.status_code == 422
-    assert response.json()["detail"] == f"assets.objects: '{objects / 'flag.png'}' holds a GIF image, not PNG as its name says"
+    assert (
+        response.json()["detail"]
+        == f"assets.objects: '{objects / 'flag.png'}' holds a GIF image, not PNG as its name says"
+    )
     (objects / "flag.png").unlink()
     _folder_of_pngs(objects)
     Image.new("RGB", (32, 32), (9, 9, 9)).save(objects / "a.jpg", format="JPEG")
@@ -346,7 +386,11 @@ def test_every_number_in_the_config_refuses_every_bad_value(client, database_url
     wrong = {}
     for key in NUMERIC_FIELDS:
         values = [
-            [v, v] if key.endswith(("conditions_per_image", "anchor_size_range")) else [v] if key.endswith("_sizes") else v
+            [v, v]
+            if key.endswith(("conditions_per_image", "anchor_size_range"))
+            else [v]
+            if key.endswith("_sizes")
+            else v
             for v in BAD_NUMBERS
         ]
         for value in values:
@@ -376,7 +420,9 @@ def test_every_read_of_an_experiment_that_has_not_started_answers(sweep_client):
     assert {route: code for route, code in answers.items() if code != 200} == {}
 
 
-def test_an_imagenet_run_without_the_weights_is_a_422_naming_the_file_and_records_nothing(client, database_url, tmp_path, monkeypatch):
+def test_an_imagenet_run_without_the_weights_is_a_422_naming_the_file_and_records_nothing(
+    client, database_url, tmp_path, monkeypatch
+):
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
     body = {"name": "imagenet", "detector": {"pretrained": "imagenet"}}
     refused = client.post("/experiments", json=body, headers=AUTH)

@@ -74,7 +74,9 @@ def test_training_images_default_to_the_newest_increment_with_their_boxes(client
     last = client.get(f"/experiments/{smoke}/history").json()[-1]
     # the last increment a model trained on, not the one rendered ahead of it
     assert images["split"] == "train" and (images["stage"], images["k"]) == (last["stage"], last["k"]) == (1, 2)
-    assert images["images"] and all(image["condition"] == "fb" and image["difficulty"] == "hard" for image in images["images"])
+    assert images["images"] and all(
+        image["condition"] == "fb" and image["difficulty"] == "hard" for image in images["images"]
+    )
     for image in images["images"]:
         (target,) = image["objects"]
         x0, y0, x1, y1 = target["box"]
@@ -167,7 +169,13 @@ def browser():
 
     options = webdriver.ChromeOptions()
     options.binary_location = CHROMIUM
-    for argument in ("--headless=new", "--no-sandbox", "--disable-gpu", "--disable-dev-shm-usage", "--window-size=1300,1400"):
+    for argument in (
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-gpu",
+        "--disable-dev-shm-usage",
+        "--window-size=1300,1400",
+    ):
         options.add_argument(argument)
     driver = webdriver.Chrome(service=Service(CHROMEDRIVER), options=options)
     yield driver
@@ -186,7 +194,9 @@ def wait_for(driver, script: str, expected, timeout: float = 15.0):
 def land_an_evaluation(experiment_id: int) -> int:
     """A new ω and its score in P, as a train worker records them: what the page must pick up."""
     with session_scope() as session:
-        stage = session.scalars(select(Stage).where(Stage.experiment_id == experiment_id).order_by(Stage.order.desc())).first()
+        stage = session.scalars(
+            select(Stage).where(Stage.experiment_id == experiment_id).order_by(Stage.order.desc())
+        ).first()
         last = session.scalars(select(Model).where(Model.stage_id == stage.id).order_by(Model.increment.desc())).first()
         model = Model(experiment_id=experiment_id, stage_id=stage.id, increment=last.increment + 1, parent_id=last.id,
                       detector=last.detector, status=ModelStatus.evaluated, iterations=last.iterations,
@@ -215,12 +225,16 @@ def test_the_dashboard_in_a_browser_shows_the_experiment_and_follows_it(served, 
     assert [int(model) for model, _ in points] == [entry["model_id"] for entry in history]
     assert len({colour for _, colour in points}) == len(stages)
     # the heat map has a cell per (c, δ) of the curriculum, showing the latest model's mAP
-    cells = browser.execute_script("return [...document.querySelectorAll('#heatmap td.cell')].map(c => [c.dataset.key, c.textContent])")
+    cells = browser.execute_script(
+        "return [...document.querySelectorAll('#heatmap td.cell')].map(c => [c.dataset.key, c.textContent])"
+    )
     assert sorted(key for key, _ in cells) == sorted(f"{s['condition']}/{s['difficulty']}" for s in stages)
     # the stage table, the summary, the downloads
     assert browser.execute_script("return document.querySelectorAll('#stages tbody tr').length") == len(stages)
     assert "finished" in browser.find_element("css selector", "#summary").text
-    links = browser.execute_script("return [...document.querySelectorAll('#downloads a')].map(a => a.getAttribute('href'))")
+    links = browser.execute_script(
+        "return [...document.querySelectorAll('#downloads a')].map(a => a.getAttribute('href'))"
+    )
     final = client.get(f"/experiments/{smoke}").json()["final_model_id"]
     assert f"/models/{final}/checkpoint" in links and f"/experiments/{smoke}/coco?split=test" in links
     assert all(client.get(link).status_code == 200 for link in links)
@@ -234,7 +248,14 @@ def test_the_dashboard_in_a_browser_shows_the_experiment_and_follows_it(served, 
 
     # a new evaluation lands: the page picks it up on its own
     new_model = land_an_evaluation(smoke)
-    assert wait_for(browser, "return document.querySelectorAll('#p-curve circle.point').length", len(history) + 1) == len(history) + 1
-    assert browser.execute_script("return [...document.querySelectorAll('#p-curve circle.point')].pop().dataset.model") == str(new_model)
-    assert wait_for(browser, "return [...document.querySelectorAll('#heatmap td.cell')].every(c => c.textContent === '0.75')", True)
+    assert (
+        wait_for(browser, "return document.querySelectorAll('#p-curve circle.point').length", len(history) + 1)
+        == len(history) + 1
+    )
+    assert browser.execute_script(
+        "return [...document.querySelectorAll('#p-curve circle.point')].pop().dataset.model"
+    ) == str(new_model)
+    assert wait_for(
+        browser, "return [...document.querySelectorAll('#heatmap td.cell')].every(c => c.textContent === '0.75')", True
+    )
     assert f"ω {new_model}" in browser.find_element("css selector", "#heatmap-model").text

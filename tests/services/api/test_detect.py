@@ -39,9 +39,13 @@ def trained(tmp_path_factory):
 
     folder = tmp_path_factory.mktemp("detect")
     assets = load_assets(AssetsConfig(n_objects=2))
-    render_dataset(folder, ["fb"], ["easy"], 8, seed=5, image_size=64, backend="raster", assets=assets, echo=lambda _: None)
+    render_dataset(
+        folder, ["fb"], ["easy"], 8, seed=5, image_size=64, backend="raster", assets=assets, echo=lambda _: None
+    )
     samples, classes = load_coco_dataset(folder)
-    config = DetectorConfig(family="yolo", backbone="mobilenet_v3_large_fpn", input_size=64, batch_size=4, num_threads=1)
+    config = DetectorConfig(
+        family="yolo", backbone="mobilenet_v3_large_fpn", input_size=64, batch_size=4, num_threads=1
+    )
     previous = torch.get_num_threads()
     train_detector(samples, None, 150, config, classes, folder / "model.pt", seed=0)
     torch.set_num_threads(previous)
@@ -57,10 +61,14 @@ def served(database, eager, monkeypatch, trained):
     monkeypatch.setenv("FOLDWISE_API_TOKEN", TOKEN)
     get_settings.cache_clear()
     with session_scope() as session:
-        experiment = Experiment(name="served", config={}, seed=0, classes=trained["classes"], status=ExperimentStatus.running)
+        experiment = Experiment(
+            name="served", config={}, seed=0, classes=trained["classes"], status=ExperimentStatus.running
+        )
         session.add(experiment)
         session.flush()
-        stage = Stage(experiment_id=experiment.id, order=0, condition="fb", difficulty="easy", status=StageStatus.running)
+        stage = Stage(
+            experiment_id=experiment.id, order=0, condition="fb", difficulty="easy", status=StageStatus.running
+        )
         session.add(stage)
         session.flush()
         ready = Model(experiment_id=experiment.id, stage_id=stage.id, increment=1, detector="yolo",
@@ -106,14 +114,20 @@ def test_detect_finds_the_rendered_object_with_its_class(served, trained):
 def test_threshold_keeps_only_detections_scoring_at_least_it(served, trained):
     image = Path(trained["samples"][0].image_path).read_bytes()
     url = f"/models/{served['ready']}/detect"
-    everything = served["client"].post(f"{url}?threshold=0", content=image, headers={**AUTH, "Content-Type": "image/png"})
+    everything = served["client"].post(
+        f"{url}?threshold=0", content=image, headers={**AUTH, "Content-Type": "image/png"}
+    )
     assert everything.status_code == 200
     scores = [d["score"] for d in everything.json()["detections"]]
     assert scores and scores == sorted(scores, reverse=True)
     for cut in (scores[0] - 1e-4, min(scores[0] + 1e-4, 1.0)):
-        some = served["client"].post(f"{url}?threshold={cut}", content=image, headers={**AUTH, "Content-Type": "image/png"})
+        some = served["client"].post(
+            f"{url}?threshold={cut}", content=image, headers={**AUTH, "Content-Type": "image/png"}
+        )
         assert [d["score"] for d in some.json()["detections"]] == [s for s in scores if s >= cut]
-    out_of_range = served["client"].post(f"{url}?threshold=2", content=image, headers={**AUTH, "Content-Type": "image/png"})
+    out_of_range = served["client"].post(
+        f"{url}?threshold=2", content=image, headers={**AUTH, "Content-Type": "image/png"}
+    )
     assert out_of_range.status_code == 422
 
 
@@ -122,7 +136,9 @@ def test_detect_needs_the_token(served, trained):
     url = f"/models/{served['ready']}/detect"
     missing = served["client"].post(url, content=image, headers={"Content-Type": "image/png"})
     assert missing.status_code == 401 and "missing token" in missing.json()["detail"]
-    wrong = served["client"].post(url, content=image, headers={"Authorization": "Bearer nope", "Content-Type": "image/png"})
+    wrong = served["client"].post(
+        url, content=image, headers={"Authorization": "Bearer nope", "Content-Type": "image/png"}
+    )
     assert wrong.status_code == 401
 
 
@@ -217,7 +233,9 @@ def test_a_studys_ensemble_detects_as_its_members_merged(served, trained, tmp_pa
     from workers.train.training import train_detector
 
     other = tmp_path / "other.pt"  # a second member: the served model warm-started a few steps
-    config = DetectorConfig(family="yolo", backbone="mobilenet_v3_large_fpn", input_size=64, batch_size=4, num_threads=1)
+    config = DetectorConfig(
+        family="yolo", backbone="mobilenet_v3_large_fpn", input_size=64, batch_size=4, num_threads=1
+    )
     previous = torch.get_num_threads()
     train_detector(trained["samples"], trained["checkpoint"], 5, config, trained["classes"], other, seed=1)
     torch.set_num_threads(previous)
@@ -266,14 +284,18 @@ def test_a_texture_checked_detector_is_served_with_its_check_and_says_so(served,
     checked = tmp_path / "checked.pt"
     catalog = load_assets()
     searching = {**payload["meta"]["config"], "texture_check": True, "texture_search": True}
-    save_checkpoint(detector.model, {**payload["meta"], "config": searching}, checked, textures=catalog.textures(trained["classes"]))
+    save_checkpoint(
+        detector.model, {**payload["meta"], "config": searching}, checked, textures=catalog.textures(trained["classes"])
+    )
     study = "checked"
     save_ensemble([checked, checked], store.resolve(store.ensemble_path(study)))
     sample = trained["samples"][1]
     headers = {**AUTH, "Content-Type": "image/png"}
-    body = served["client"].post(
-        f"/studies/{study}/detect?threshold=0", content=Path(sample.image_path).read_bytes(), headers=headers
-    ).json()
+    body = (
+        served["client"]
+        .post(f"/studies/{study}/detect?threshold=0", content=Path(sample.image_path).read_bytes(), headers=headers)
+        .json()
+    )
     assert body["texture_check"] is True and body["texture_search"] is True
     (expected,) = detect_object(
         load_detector(store.resolve(store.ensemble_path(study))),
@@ -281,9 +303,15 @@ def test_a_texture_checked_detector_is_served_with_its_check_and_says_so(served,
     )
     assert [d["score"] for d in body["detections"]] == pytest.approx(expected["scores"].tolist())
     assert [d["confirmed"] for d in body["detections"]] == expected["confirmed"].tolist()
-    plain = served["client"].post(
-        f"/models/{served['ready']}/detect?threshold=0", content=Path(sample.image_path).read_bytes(), headers=headers
-    ).json()
+    plain = (
+        served["client"]
+        .post(
+            f"/models/{served['ready']}/detect?threshold=0",
+            content=Path(sample.image_path).read_bytes(),
+            headers=headers,
+        )
+        .json()
+    )
     assert plain["texture_check"] is False and plain["texture_search"] is False
     assert all(d["confirmed"] is None for d in plain["detections"])
 

@@ -22,8 +22,13 @@ from tests.services.scheduler.test_plan import NOW, model, plan, snapshot
 
 def _statuses(experiment_id: int) -> tuple[Counter, Counter]:
     with session_scope() as session:
-        thetas = Counter(s.value for s in session.scalars(select(ParameterSet.status).where(ParameterSet.experiment_id == experiment_id)))
-        models = Counter(s.value for s in session.scalars(select(Model.status).where(Model.experiment_id == experiment_id)))
+        thetas = Counter(
+            s.value
+            for s in session.scalars(select(ParameterSet.status).where(ParameterSet.experiment_id == experiment_id))
+        )
+        models = Counter(
+            s.value for s in session.scalars(select(Model.status).where(Model.experiment_id == experiment_id))
+        )
     return thetas, models
 
 
@@ -90,7 +95,9 @@ def test_a_resent_training_message_waits_a_whole_window_before_the_next():
     # Claimed 2 h ago by a worker that died; re-sent 1 min ago: the old claim must not re-send
     # it again (it did on every pass: 4,112 messages in 60 s).
     claimed_long_ago = model(1, 1, status=ModelStatus.training, enqueued=NOW - timedelta(seconds=30))
-    claimed_long_ago = claimed_long_ago.__class__(**{**claimed_long_ago.__dict__, "claimed_at": NOW - timedelta(hours=2)})
+    claimed_long_ago = claimed_long_ago.__class__(
+        **{**claimed_long_ago.__dict__, "claimed_at": NOW - timedelta(hours=2)}
+    )
     assert not any(isinstance(d, EnqueueTraining) for d in plan(snapshot(models=[claimed_long_ago])))
     lapsed = claimed_long_ago.__class__(**{**claimed_long_ago.__dict__, "enqueued_at": NOW - timedelta(hours=2)})
     assert EnqueueTraining(1, requeue=True) in plan(snapshot(models=[lapsed]))

@@ -159,9 +159,9 @@ def test_every_record_is_kept(fakes):
         summary = queries.summary(session, experiment_id)
         history = queries.history(session, experiment_id)
         test_count = session.scalar(
-            select(func.count()).select_from(ParameterSet).where(
-                ParameterSet.experiment_id == experiment_id, ParameterSet.stage_id.is_(None)
-            )
+            select(func.count())
+            .select_from(ParameterSet)
+            .where(ParameterSet.experiment_id == experiment_id, ParameterSet.stage_id.is_(None))
         )
         unrendered = session.scalar(
             select(func.count()).select_from(ParameterSet).where(ParameterSet.status != RenderStatus.rendered)
@@ -335,5 +335,7 @@ def test_a_run_within_the_allowed_share_finishes_and_counts_what_it_lost(databas
         stages = queries.stages(session, experiment_id)
     lost = summary["failed_by_reason"]["rejected: target hidden"]
     assert lost > 0 and set(summary["failed_by_reason"]) == {"rejected: target hidden"}
-    assert sum(stage["failed_images"] for stage in stages) == lost - summary["counts"]["parameter_sets"]["test"]["failed"]
+    assert (
+        sum(stage["failed_images"] for stage in stages) == lost - summary["counts"]["parameter_sets"]["test"]["failed"]
+    )
     assert all(stage["failed_images"] >= 0 for stage in stages) and any(stage["failed_images"] for stage in stages)

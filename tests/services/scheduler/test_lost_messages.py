@@ -155,7 +155,9 @@ def test_a_queued_model_nobody_holds_is_sent_again_and_a_held_one_is_not(monkeyp
 
 def _kombu_message(task: str, args: list) -> bytes:
     body = base64.b64encode(json.dumps([args, {}, {}]).encode()).decode()
-    return json.dumps({"body": body, "headers": {"task": task, "id": "x"}, "properties": {"body_encoding": "base64"}}).encode()
+    return json.dumps(
+        {"body": body, "headers": {"task": task, "id": "x"}, "properties": {"body_encoding": "base64"}}
+    ).encode()
 
 
 class FakeRedis:

@@ -62,7 +62,10 @@ def test_a_stored_config_this_version_refuses_fails_the_experiment_once_with_the
     _in_flight(experiment_id)
     with session_scope() as session:
         experiment = session.get(Experiment, experiment_id)
-        experiment.config = {**experiment.config, "active_learning": {**experiment.config["active_learning"], "m": 10**9}}
+        experiment.config = {
+            **experiment.config,
+            "active_learning": {**experiment.config["active_learning"], "m": 10**9},
+        }
     sent.clear()
     assert reconcile_until_idle(experiment_id) == 1
     with session_scope() as session:
@@ -70,7 +73,9 @@ def test_a_stored_config_this_version_refuses_fails_the_experiment_once_with_the
         assert experiment.status == ExperimentStatus.failed
         assert "stored config" in experiment.error and "active_learning.m" in experiment.error
         open_models = session.scalars(
-            select(Model).where(Model.experiment_id == experiment_id, Model.status.in_([ModelStatus.queued, ModelStatus.training]))
+            select(Model).where(
+                Model.experiment_id == experiment_id, Model.status.in_([ModelStatus.queued, ModelStatus.training])
+            )
         ).all()
     assert open_models == [] and sent == []  # its open work discarded, nothing sent
     assert reconcile_until_idle(experiment_id) == 0  # a failed experiment is left alone

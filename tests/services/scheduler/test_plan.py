@@ -1,7 +1,7 @@
 """``plan`` is a pure function of a snapshot: the decisions for hand-made states."""
 
 from collections import Counter
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 
 from db.models import ExperimentStatus, ModelStatus, RenderStatus, StageStatus
 from foldwise.config import parse_config
@@ -21,7 +21,7 @@ from services.scheduler.reconcile import (
     plan,
 )
 
-NOW = datetime(2026, 1, 1, tzinfo=timezone.utc)
+NOW = datetime(2026, 1, 1, tzinfo=UTC)
 CONFIG = parse_config(
     {
         "name": "p",
@@ -93,7 +93,9 @@ def test_the_next_stage_opens_from_the_previous_best():
 
 
 def test_every_stage_done_finishes_with_the_last_best():
-    stages = tuple(StageView(10 + i, i, "fb", d, StageStatus.done, None, 20 + i) for i, d in enumerate(["easy", "hard"]))
+    stages = tuple(
+        StageView(10 + i, i, "fb", d, StageStatus.done, None, 20 + i) for i, d in enumerate(["easy", "hard"])
+    )
     assert plan(snapshot(stages=stages)) == [Finish(21)]
 
 

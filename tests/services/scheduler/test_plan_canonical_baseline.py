@@ -2,17 +2,35 @@
 number of increments with no stopping rule, and the LAST model as the experiment's final one."""
 
 from collections import Counter
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 
 from sqlalchemy import select
 
-from db.models import ExperimentStatus, ModelStatus, ParameterSet, RenderStatus, Split, Stage, StageEndReason, StageStatus
+from db.models import (
+    ExperimentStatus,
+    ModelStatus,
+    ParameterSet,
+    RenderStatus,
+    Split,
+    Stage,
+    StageEndReason,
+    StageStatus,
+)
 from db.session import session_scope
 from foldwise.config import parse_config
-from services.scheduler.reconcile import CloseStage, CreateModel, Finish, ModelView, SampleTraining, Snapshot, StageView, plan
+from services.scheduler.reconcile import (
+    CloseStage,
+    CreateModel,
+    Finish,
+    ModelView,
+    SampleTraining,
+    Snapshot,
+    StageView,
+    plan,
+)
 from tests.services.kinds import kind_config
 
-NOW = datetime(2026, 1, 1, tzinfo=timezone.utc)
+NOW = datetime(2026, 1, 1, tzinfo=UTC)
 INCREMENTS = 4
 CONFIG = parse_config(kind_config("canonical_baseline", "b", {"increments": INCREMENTS}))
 RENDERED = Counter({RenderStatus.rendered: 4})
@@ -40,7 +58,9 @@ def test_a_flat_history_that_algorithm_1_would_stop_trains_on_to_the_fixed_incre
     long = parse_config({**CONFIG.model_dump(mode="json"), "canonical_baseline": {"increments": 14}})
     flat, counts = scored([0.5] * 13), {("train", STAGE, 14): RENDERED}
     algorithm_1 = parse_config({**long.model_dump(mode="json"), "kind": "active_learning", "canonical_baseline": {}})
-    assert CloseStage(STAGE, StageEndReason.plateau, 1) in plan(snapshot(StageStatus.running, flat, counts, algorithm_1))
+    assert CloseStage(STAGE, StageEndReason.plateau, 1) in plan(
+        snapshot(StageStatus.running, flat, counts, algorithm_1)
+    )
     decisions = plan(snapshot(StageStatus.running, flat, counts, long))
     assert not any(isinstance(d, CloseStage) for d in decisions)
     assert CreateModel(STAGE, 14, flat[-1].id) in decisions
@@ -84,5 +104,7 @@ def test_start_records_one_canonical_stage_canonical_training_images_and_the_cur
         train = [r for r in rows if r.split == Split.train]
         assert {r.increment for r in train} == {1, 2} and len(train) == 6
         # every training image is canonical: no condition varies from its canonical value
-        assert {(r.condition, r.difficulty, r.theta["difficulty"]) for r in train} == {("canonical", "canonical", "canonical")}
+        assert {(r.condition, r.difficulty, r.theta["difficulty"]) for r in train} == {
+            ("canonical", "canonical", "canonical")
+        }
         assert all(r.theta["focus_blur_pct"] == 0 and r.theta["visible_fraction"] == 1 for r in train)

@@ -3,14 +3,23 @@ each condition's first difficulty from the initial weights, or from the shared c
 last model (``learnability.start: canonical``)."""
 
 from collections import Counter
-from datetime import datetime, timedelta, timezone
+from datetime import UTC, datetime, timedelta
 
 from db.models import ExperimentStatus, ModelStatus, RenderStatus, StageEndReason, StageStatus
 from foldwise.config import parse_config
-from services.scheduler.reconcile import CloseStage, CreateModel, ModelView, OpenStage, SampleTraining, Snapshot, StageView, plan
+from services.scheduler.reconcile import (
+    CloseStage,
+    CreateModel,
+    ModelView,
+    OpenStage,
+    SampleTraining,
+    Snapshot,
+    StageView,
+    plan,
+)
 from tests.services.kinds import kind_config
 
-NOW = datetime(2026, 1, 1, tzinfo=timezone.utc)
+NOW = datetime(2026, 1, 1, tzinfo=UTC)
 KAPPA = 4
 CONFIG = parse_config(kind_config("learnability", "l", {"kappa": KAPPA}))
 RENDERED = Counter({RenderStatus.rendered: 4})
@@ -18,7 +27,9 @@ RENDERED = Counter({RenderStatus.rendered: 4})
 
 def stages(*statuses):
     keys = [("fb", "easy"), ("fb", "hard"), ("po", "easy"), ("po", "hard")]
-    return tuple(StageView(10 + i, i, c, d, status, None, None) for i, ((c, d), status) in enumerate(zip(keys, statuses)))
+    return tuple(
+        StageView(10 + i, i, c, d, status, None, None) for i, ((c, d), status) in enumerate(zip(keys, statuses))
+    )
 
 
 def snapshot(stage_views, models=(), counts=None, config=CONFIG):
@@ -81,13 +92,17 @@ def test_the_next_condition_opens_from_the_initial_weights():
 # learnability.start: canonical: a shared canonical stage (order 0) before every condition.
 CANONICAL_INCREMENTS = 3
 CANONICAL_START = parse_config(
-    kind_config("learnability", "l", {"kappa": KAPPA, "start": "canonical", "canonical_increments": CANONICAL_INCREMENTS})
+    kind_config(
+        "learnability", "l", {"kappa": KAPPA, "start": "canonical", "canonical_increments": CANONICAL_INCREMENTS}
+    )
 )
 
 
 def canonical_stages(*statuses):
     keys = [("canonical", "canonical"), ("fb", "easy"), ("fb", "hard"), ("po", "easy"), ("po", "hard")]
-    return tuple(StageView(20 + i, i, c, d, status, None, None) for i, ((c, d), status) in enumerate(zip(keys, statuses)))
+    return tuple(
+        StageView(20 + i, i, c, d, status, None, None) for i, ((c, d), status) in enumerate(zip(keys, statuses))
+    )
 
 
 def test_a_canonical_start_puts_the_canonical_stage_first_and_keeps_it_out_of_the_test_set():
@@ -121,7 +136,9 @@ def test_each_condition_opens_from_the_canonical_stages_last_model():
     assert plan(snapshot(views, canonical, config=CANONICAL_START)) == [OpenStage(21, 3)]
     # the second condition too, not from the first condition's models
     fb = scored(21, [0.2] * KAPPA, first_id=4) + scored(22, [0.4] * KAPPA, first_id=8)
-    views = canonical_stages(StageStatus.done, StageStatus.done, StageStatus.done, StageStatus.pending, StageStatus.pending)
+    views = canonical_stages(
+        StageStatus.done, StageStatus.done, StageStatus.done, StageStatus.pending, StageStatus.pending
+    )
     assert plan(snapshot(views, canonical + fb, config=CANONICAL_START)) == [OpenStage(23, 3)]
 
 

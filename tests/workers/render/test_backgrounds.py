@@ -55,8 +55,9 @@ def _full_resolution_crop_as_drawn(catalog: AssetCatalog, name: str, size: int, 
     left, top, _, _ = assets_module._level_window(photo.shape, level_shape, y0, x0, side)
     origin_x, origin_y = left * w / level_shape[1], top * h / level_shape[0]
     shift = np.array([[1.0, 0.0, origin_x], [0.0, 1.0, origin_y]])
-    window = cv2.warpAffine(photo, shift, (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                            borderMode=cv2.BORDER_REPLICATE)
+    window = cv2.warpAffine(
+        photo, shift, (side, side), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_REPLICATE
+    )
     out = cv2.resize(window, (size, size), interpolation=cv2.INTER_AREA)
     return cv2.flip(out, 1) if mirror else out
 
@@ -82,13 +83,23 @@ def test_close_to_the_full_resolution_crop():
 def test_builtin_photos_stay_close_to_the_full_resolution_crop():
     catalog = load_assets()
     for name in ("retina", "hubble_deep_field", "brick"):
-        diffs = [np.abs(catalog.background(name, 128, np.random.default_rng(seed)).astype(np.int16)
-                        - _full_resolution_crop_as_drawn(catalog, name, 128, seed)).mean() for seed in range(8)]
+        diffs = [
+            np.abs(
+                catalog.background(name, 128, np.random.default_rng(seed)).astype(np.int16)
+                - _full_resolution_crop_as_drawn(catalog, name, 128, seed)
+            ).mean()
+            for seed in range(8)
+        ]
         assert np.mean(diffs) < 4.0, (name, diffs)
         # And from the exactly drawn window (random_crop), under half a pixel away.
         photo = catalog._get("backgrounds", name).load()
-        diffs = [np.abs(catalog.background(name, 128, np.random.default_rng(seed)).astype(np.int16)
-                        - random_crop(photo, 128, np.random.default_rng(seed))).mean() for seed in range(8)]
+        diffs = [
+            np.abs(
+                catalog.background(name, 128, np.random.default_rng(seed)).astype(np.int16)
+                - random_crop(photo, 128, np.random.default_rng(seed))
+            ).mean()
+            for seed in range(8)
+        ]
         assert np.mean(diffs) < 6.0, (name, diffs)
 
 
@@ -139,7 +150,11 @@ def test_noise_background_matches_its_formula():
             noise, amplitude, total = None, 1.0, 0.0
             for cells in (4, 8, 16, 32):
                 grid = rng.uniform(0, 255, size=(cells, cells, 3)).astype(np.float32)
-                noise = grid if noise is None else cv2.resize(noise, (cells, cells), interpolation=cv2.INTER_CUBIC) + np.float32(amplitude) * grid
+                noise = (
+                    grid
+                    if noise is None
+                    else cv2.resize(noise, (cells, cells), interpolation=cv2.INTER_CUBIC) + np.float32(amplitude) * grid
+                )
                 total += amplitude
                 amplitude *= 0.5
             small = np.clip(noise / np.float32(total) + 0.5, 0, 255).astype(np.uint8)

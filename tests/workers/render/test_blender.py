@@ -169,7 +169,9 @@ def test_no_shadows_follow_the_shading_model(renderer):
     out = renderer.render(scene)
     shadow_spot, _ = scene.camera.project(np.array([[-0.3, 0.0, 0.0]]))
     column, row = np.floor(shadow_spot[0]).astype(int)
-    np.testing.assert_allclose(out.rgb[row - 1 : row + 2, column - 1 : column + 2], srgb_to_linear(128) / np.sqrt(2), rtol=1e-4)
+    np.testing.assert_allclose(
+        out.rgb[row - 1 : row + 2, column - 1 : column + 2], srgb_to_linear(128) / np.sqrt(2), rtol=1e-4
+    )
 
 
 @pytest.mark.parametrize("irradiance", [0.01, 10.0])
@@ -223,7 +225,9 @@ def test_another_process_renders_the_same_bytes(renderer, tmp_path):
     )
     subprocess.run(
         [sys.executable, "-c", child, str(tmp_path / "scene.pkl"), str(tmp_path / "out.npz")],
-        check=True, capture_output=True, timeout=120,
+        check=True,
+        capture_output=True,
+        timeout=120,
     )
     other = np.load(tmp_path / "out.npz")
     here = renderer.render(scene)
@@ -408,7 +412,9 @@ HAS_PIPELINE = importlib.util.find_spec("workers.render.pipeline") is not None
 
 
 @pytest.mark.skipif(not HAS_PIPELINE, reason="workers/render/pipeline.py has not landed yet")
-@pytest.mark.parametrize(("condition", "difficulty"), [("de", "hard"), ("po", "medium"), ("eo", "hard"), ("eo", "medium")])
+@pytest.mark.parametrize(
+    ("condition", "difficulty"), [("de", "hard"), ("po", "medium"), ("eo", "hard"), ("eo", "medium")]
+)
 def test_render_theta_boxes_agree_between_backends(renderer, condition, difficulty):
     from foldwise.sampling import generate_parameters  # noqa: PLC0415
     from workers.render.pipeline import render_theta  # noqa: PLC0415
@@ -440,7 +446,12 @@ def test_lights_shadows_gloss_and_wrinkles_match_the_raster_backend(renderer, co
 
     table = load_condition_table()
     theta = generate_parameters(condition, "hard", 1, seed=5, image_size=64)[0]
-    parameters = {name for variant in table.conditions[condition].variants.values() for level in variant.values() for name in level}
+    parameters = {
+        name
+        for variant in table.conditions[condition].variants.values()
+        for level in variant.values()
+        for name in level
+    }
     plain = theta.replace(**{name: table.canonical[name] for name in parameters})
     renderer.configure(samples=64)
     try:

@@ -8,9 +8,9 @@ import math
 import numpy as np
 import pytest
 
+from foldwise.sampling import generate_parameters
 from workers.render import compositing
 from workers.render.annotation import MIN_BOX_SIDE, MIN_VISIBLE_PIXELS, tight_box
-from foldwise.sampling import generate_parameters
 from workers.render.pipeline import render_theta, render_with_resample
 
 SIZE = 96

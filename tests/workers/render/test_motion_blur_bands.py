@@ -16,7 +16,7 @@ def _reference_blur(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     padded = cv2.copyMakeBorder(image.astype(np.float64), kh // 2, kh // 2, kw // 2, kw // 2, cv2.BORDER_REFLECT_101)
     out = np.zeros(image.shape, np.float64)
     for i, j in zip(*np.nonzero(kernel)):
-        out += float(kernel[i, j]) * padded[i:i + image.shape[0], j:j + image.shape[1]]
+        out += float(kernel[i, j]) * padded[i : i + image.shape[0], j : j + image.shape[1]]
     return out
 
 

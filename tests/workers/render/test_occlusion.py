@@ -37,8 +37,9 @@ def _real_scales(shape, shape_mask, offsets, angle, model):
     """Each pixel's critical scale on the drawn shape, bisected over a wide bracket."""
     cos, sin = np.float32(math.cos(angle)), np.float32(math.sin(angle))
     rotated = np.stack([cos * offsets[0] - sin * offsets[1], sin * offsets[0] + cos * offsets[1]], axis=1)
-    return compositing._real_critical_scales(shape_mask, shape.pivot[0], shape.pivot[1], rotated,
-                                             model * np.float32(0.5), model * np.float32(2.0), 30)
+    return compositing._real_critical_scales(
+        shape_mask, shape.pivot[0], shape.pivot[1], rotated, model * np.float32(0.5), model * np.float32(2.0), 30
+    )
 
 
 @pytest.mark.parametrize("size", [(384, 512), (191, 384), (40, 60)])
@@ -97,7 +98,7 @@ def test_placement_hides_the_asked_share_to_a_pixel(visible):
         assert np.array_equal(occlusion.mask, occlusion.alpha >= 0.5)
         x, y, w, h = cv2.boundingRect((occlusion.alpha > 0).view(np.uint8))
         outside = occlusion.rgb.copy()
-        outside[y:y + h, x:x + w] = 0
+        outside[y : y + h, x : x + w] = 0
         assert w and h and not outside.any()  # colour only where the occluder lies
 
 
@@ -132,10 +133,11 @@ def test_the_scale_is_as_good_as_bisecting_the_real_count():
         shape_mask = shape.draw(150, 200)
         k = int(rng.integers(len(points)))
         centre, angle = (float(points[k, 0]), float(points[k, 1])), float(rng.uniform(-math.pi, math.pi))
-        offsets = points_f - points_f[:, k:k + 1]
+        offsets = points_f - points_f[:, k : k + 1]
         need = 0.3 * len(points) + 0.25
-        fitted = compositing._fit_scale(shape, shape_mask, target, centre, angle, offsets,
-                                        shape.critical_scales(offsets, angle), need, 50.0, 4)
+        fitted = compositing._fit_scale(
+            shape, shape_mask, target, centre, angle, offsets, shape.critical_scales(offsets, angle), need, 50.0, 4
+        )
         low, high = 0.0, 50.0
         for _ in range(40):
             middle = 0.5 * (low + high)
@@ -143,8 +145,10 @@ def test_the_scale_is_as_good_as_bisecting_the_real_count():
                 low = middle
             else:
                 high = middle
-        bisected = min((compositing._warp_shape(shape, shape_mask, target, centre, angle, s).hidden for s in (low, high)),
-                       key=lambda hidden: abs(hidden - need))
+        bisected = min(
+            (compositing._warp_shape(shape, shape_mask, target, centre, angle, s).hidden for s in (low, high)),
+            key=lambda hidden: abs(hidden - need),
+        )
         assert abs(fitted.hidden - need) <= abs(bisected - need) + 1.0, seed
 
 
@@ -173,9 +177,12 @@ def test_own_alpha_occluders():
             if worst is not None:
                 assert abs(occlusion.achieved_fraction - 0.5) <= worst
     glass = _frozen(np.zeros((20, 20), np.uint8))
-    occlusion = compositing.place_occluder(target, target.sum(), 0.5, _frozen(np.zeros((20, 20, 3), np.uint8)), glass,
-                                           np.random.default_rng(0))
-    assert occlusion.achieved_fraction == 1.0 and not occlusion.mask.any()  # nothing to hide with: the caller rejects it
+    occlusion = compositing.place_occluder(
+        target, target.sum(), 0.5, _frozen(np.zeros((20, 20, 3), np.uint8)), glass, np.random.default_rng(0)
+    )
+    assert (
+        occlusion.achieved_fraction == 1.0 and not occlusion.mask.any()
+    )  # nothing to hide with: the caller rejects it
 
 
 @pytest.mark.parametrize("name", ["ring", "C", "L"])
@@ -195,7 +202,9 @@ def test_occluders_that_are_not_star_shaped_still_hide_the_share_asked(name):
     for seed in range(12):
         target = _target(seed)
         for visible in asks:
-            occlusion = compositing.place_occluder(target, target.sum(), visible, rgb, alpha, np.random.default_rng(seed))
+            occlusion = compositing.place_occluder(
+                target, target.sum(), visible, rgb, alpha, np.random.default_rng(seed)
+            )
             hidden = np.count_nonzero(occlusion.mask & target)
             assert occlusion.achieved_fraction == (target.sum() - hidden) / target.sum()
             errors.append(abs(occlusion.achieved_fraction - visible))

@@ -48,7 +48,9 @@ def triangle_angles(points: np.ndarray, faces: np.ndarray) -> np.ndarray:
 
 def signed_flat_areas(flat: np.ndarray, faces: np.ndarray) -> np.ndarray:
     t = flat[faces]
-    return 0.5 * ((t[:, 1, 0] - t[:, 0, 0]) * (t[:, 2, 1] - t[:, 0, 1]) - (t[:, 1, 1] - t[:, 0, 1]) * (t[:, 2, 0] - t[:, 0, 0]))
+    return 0.5 * (
+        (t[:, 1, 0] - t[:, 0, 0]) * (t[:, 2, 1] - t[:, 0, 1]) - (t[:, 1, 1] - t[:, 0, 1]) * (t[:, 2, 0] - t[:, 0, 0])
+    )
 
 
 def border_sides(points: np.ndarray, width: float, height: float, tol: float) -> np.ndarray:
@@ -105,8 +107,7 @@ def best_smallest_angle(corners: np.ndarray) -> float:
         if j - i < 2:
             return math.inf
         return max(
-            min(best(i, m), best(m, j), triangle_angles(corners, np.array([[i, m, j]])).min())
-            for m in range(i + 1, j)
+            min(best(i, m), best(m, j), triangle_angles(corners, np.array([[i, m, j]])).min()) for m in range(i + 1, j)
         )
 
     return best(0, len(corners) - 1)
@@ -193,7 +194,9 @@ def assert_valid_sheet(mesh: SheetMesh) -> None:
     sides1 = border_sides(flat[open_edges[:, 1]], width, height, tol)
     assert np.all(np.any(sides0 & sides1, axis=1)), "an open edge is not along the sheet border"
     assert math.isclose(
-        np.linalg.norm(flat[open_edges[:, 0]] - flat[open_edges[:, 1]], axis=1).sum(), 2 * (width + height), rel_tol=1e-12
+        np.linalg.norm(flat[open_edges[:, 0]] - flat[open_edges[:, 1]], axis=1).sum(),
+        2 * (width + height),
+        rel_tol=1e-12,
     ), "the open edges are exactly the border"
 
     # The bent triangle angles around every vertex add up as on the flat sheet: 2π inside,
@@ -265,13 +268,16 @@ def assert_same_surface(fine: SheetMesh, coarse: SheetMesh) -> None:
     assert fine.rulings == coarse.rulings and fine.fold_lines == coarse.fold_lines
     tri = coarse.flat[coarse.faces]  # (F, 3, 2)
     twice_area = signed_flat_areas(coarse.flat, coarse.faces) * 2
-    weights = np.stack(
-        [
-            orientation(tri[:, (k + 1) % 3].T[:, None], tri[:, (k + 2) % 3].T[:, None], fine.flat.T[:, :, None])
-            for k in range(3)
-        ],
-        axis=2,
-    ) / twice_area[None, :, None]  # (V, F, 3) barycentric coordinates
+    weights = (
+        np.stack(
+            [
+                orientation(tri[:, (k + 1) % 3].T[:, None], tri[:, (k + 2) % 3].T[:, None], fine.flat.T[:, :, None])
+                for k in range(3)
+            ],
+            axis=2,
+        )
+        / twice_area[None, :, None]
+    )  # (V, F, 3) barycentric coordinates
     holding = np.argmax(weights.min(axis=2), axis=1)
     assert np.all(weights.min(axis=2).max(axis=1) > -1e-9), "a vertex lies outside the coarse sheet"
     chosen = weights[np.arange(len(fine.flat)), holding]
@@ -325,9 +331,26 @@ def test_the_draws_are_pinned():
         ((0.21, 0.2746665017093413), (0.1747085448156295, 0.297), 0.724122784863628),
     ]
     assert mesh.faces.tolist() == [
-        [7, 5, 4], [7, 4, 6], [6, 8, 9], [6, 9, 7], [11, 9, 8], [11, 8, 1], [11, 1, 10], [10, 12, 13], [10, 13, 11],
-        [12, 14, 15], [12, 15, 13], [17, 3, 15], [17, 15, 14], [17, 14, 16], [16, 18, 19], [16, 19, 17],
-        [18, 20, 21], [18, 21, 19], [20, 2, 21], [5, 0, 4],
+        [7, 5, 4],
+        [7, 4, 6],
+        [6, 8, 9],
+        [6, 9, 7],
+        [11, 9, 8],
+        [11, 8, 1],
+        [11, 1, 10],
+        [10, 12, 13],
+        [10, 13, 11],
+        [12, 14, 15],
+        [12, 15, 13],
+        [17, 3, 15],
+        [17, 15, 14],
+        [17, 14, 16],
+        [16, 18, 19],
+        [16, 19, 17],
+        [18, 20, 21],
+        [18, 21, 19],
+        [20, 2, 21],
+        [5, 0, 4],
     ]
 
 
@@ -508,8 +531,10 @@ def test_flaps_folded_through_each_other_are_a_self_intersection():
     # cross-section the left flap runs from (0.4W, 0) to (0.537W, 0.376W) and the right one
     # from (0.6W, 0) to (0.463W, 0.376W), so they cross above x = 0.5 W. The bends along the
     # sheet add up to 220°, below the 270° curl limit: only the geometric test can see it.
-    rulings = [((0.4 * width, 0.0), (0.4 * width, height), math.radians(110)),
-               ((0.6 * width, 0.0), (0.6 * width, height), math.radians(110))]
+    rulings = [
+        ((0.4 * width, 0.0), (0.4 * width, height), math.radians(110)),
+        ((0.6 * width, 0.0), (0.6 * width, height), math.radians(110)),
+    ]
     with pytest.raises(SelfIntersection, match="pass through") as caught:
         build_sheet(width, height, rulings, smooth_steps=1)
     assert "regions" in caught.value.reason
@@ -519,15 +544,19 @@ def test_flaps_folded_through_each_other_are_a_self_intersection():
     apart = [rulings[0], (rulings[1][0], rulings[1][1], -rulings[1][2])]
     assert_valid_sheet(build_sheet(width, height, apart, smooth_steps=1))
     # Less folded (70°), the flaps lean outwards and never meet.
-    assert_valid_sheet(build_sheet(width, height, [(p0, p1, math.radians(70)) for p0, p1, _ in rulings], smooth_steps=1))
+    assert_valid_sheet(
+        build_sheet(width, height, [(p0, p1, math.radians(70)) for p0, p1, _ in rulings], smooth_steps=1)
+    )
 
 
 def test_layers_closer_than_the_clearance_count_as_touching():
     width, height = A4
     # A flap folded flat back (179°) over a strip tilted by 1°: it lies parallel to the fixed
     # region, 0.05 W * sin(1°) ~ 0.18 mm above it, without crossing it.
-    rulings = [((0.25 * width, 0.0), (0.25 * width, height), math.radians(179)),
-               ((0.3 * width, 0.0), (0.3 * width, height), math.radians(1))]
+    rulings = [
+        ((0.25 * width, 0.0), (0.25 * width, height), math.radians(179)),
+        ((0.3 * width, 0.0), (0.3 * width, height), math.radians(1)),
+    ]
     with pytest.raises(SelfIntersection, match="within 0.001"):
         build_sheet(width, height, rulings, smooth_steps=1, clearance=1e-3)
     assert_valid_sheet(build_sheet(width, height, rulings, smooth_steps=1, clearance=0.0))
@@ -548,8 +577,12 @@ def test_bends_add_up_along_paths_through_a_tree_of_regions():
     # Four corner flaps around an octagon: the path between two flaps crosses both their
     # rulings, so opposite flaps folded the same way (2 x 2.5 rad) curl past 270°; flaps folded
     # opposite ways cancel.
-    cuts = [((0.03, 0.0), (0.0, 0.04)), ((0.21, 0.05), (0.17, 0.0)), ((0.16, 0.297), (0.21, 0.25)),
-            ((0.0, 0.24), (0.05, 0.297))]
+    cuts = [
+        ((0.03, 0.0), (0.0, 0.04)),
+        ((0.21, 0.05), (0.17, 0.0)),
+        ((0.16, 0.297), (0.21, 0.25)),
+        ((0.0, 0.24), (0.05, 0.297)),
+    ]
     with pytest.raises(SelfIntersection, match="add up to 286 degrees"):
         build_sheet(width, height, [(p0, p1, a) for (p0, p1), a in zip(cuts, (2.5, -2.5, 2.5, -2.5))], smooth_steps=1)
     # The worst sum may be negative: flaps at -2.5 and -0.5 rad (3.0 rad, 172°) beat the largest

@@ -9,8 +9,6 @@ from collections import Counter
 import pytest
 
 from foldwise.conditions import load_condition_table
-from foldwise.theta import SIGNED_PARAMETERS
-from workers.render.assets import load_assets
 from foldwise.sampling import (
     canonical_values,
     check_theta,
@@ -19,6 +17,8 @@ from foldwise.sampling import (
     resample_theta,
     resolve_condition,
 )
+from foldwise.theta import SIGNED_PARAMETERS
+from workers.render.assets import load_assets
 
 TABLE = load_condition_table()
 CANONICAL = canonical_values(TABLE)

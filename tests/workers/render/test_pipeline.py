@@ -9,10 +9,10 @@ import cv2
 import numpy as np
 import pytest
 
+from foldwise.sampling import derive_seed, generate_parameters
 from workers.render import compositing, pipeline
 from workers.render.annotation import tight_box
 from workers.render.assets import AssetError, load_assets
-from foldwise.sampling import derive_seed, generate_parameters
 from workers.render.pipeline import RenderRejected, render_theta, render_with_resample
 
 SIZE = 64
@@ -115,8 +115,11 @@ def test_self_intersection_is_a_rejection(monkeypatch):
     def intersecting(*args, **kwargs):
         raise paper_model.SelfIntersection("regions 1 and 3 cross")
 
-    monkeypatch.setattr(pipeline, "_paper_model", lambda: types.SimpleNamespace(
-        sample_sheet=intersecting, SelfIntersection=paper_model.SelfIntersection))
+    monkeypatch.setattr(
+        pipeline,
+        "_paper_model",
+        lambda: types.SimpleNamespace(sample_sheet=intersecting, SelfIntersection=paper_model.SelfIntersection),
+    )
     with pytest.raises(RenderRejected) as caught:
         render_theta(one("de", "hard"))
     assert "self-intersecting" in caught.value.reason
@@ -191,8 +194,11 @@ def test_user_asset_folders(tmp_path):
     star = np.zeros((30, 30, 4), np.uint8)
     star[8:22, 8:22] = (0, 0, 255, 255)  # an opaque red square in a transparent frame (BGRA)
     _write(tmp_path / "occluders" / "square.png", star)
-    assets = load_assets(AssetsConfig(objects=tmp_path / "objects", backgrounds=tmp_path / "backgrounds",
-                                      occluders=tmp_path / "occluders"))
+    assets = load_assets(
+        AssetsConfig(
+            objects=tmp_path / "objects", backgrounds=tmp_path / "backgrounds", occluders=tmp_path / "occluders"
+        )
+    )
     assert assets.classes == ["label_a", "label_b"]
     assert [a.name for a in assets.backgrounds] == ["sub/wall.png"]
     rgb, alpha = assets.occluder("square.png")
@@ -201,7 +207,9 @@ def test_user_asset_folders(tmp_path):
     theta = generate_parameters("eo", "medium", 1, seed=0, image_size=SIZE, assets=assets)[0]
     result = render_theta(theta, assets=assets)
     assert result.visible_fraction == pytest.approx(theta.visible_fraction, abs=0.05)
-    assert load_assets(AssetsConfig(objects=tmp_path / "objects")) is load_assets(AssetsConfig(objects=tmp_path / "objects"))
+    assert load_assets(AssetsConfig(objects=tmp_path / "objects")) is load_assets(
+        AssetsConfig(objects=tmp_path / "objects")
+    )
 
 
 def test_an_occluder_that_cannot_hide_enough_is_a_rejection(tmp_path):

@@ -147,8 +147,10 @@ def test_nearest_surface_wins_whatever_the_face_order():
     texture[0, 1] = (0, 0, 255)  # right half: blue
     back_v, back_f, back_uv = quad(z=0.0, uv_box=(0.0, 0.0, 0.5, 1.0))
     front_v, front_f, front_uv = quad(width=1.0, height=1.0, z=0.5, uv_box=(0.5, 0.0, 1.0, 1.0))
-    for first, second in (((back_v, back_f, back_uv), (front_v, front_f, front_uv)),
-                          ((front_v, front_f, front_uv), (back_v, back_f, back_uv))):
+    for first, second in (
+        ((back_v, back_f, back_uv), (front_v, front_f, front_uv)),
+        ((front_v, front_f, front_uv), (back_v, back_f, back_uv)),
+    ):
         vertices = np.vstack([first[0], second[0]])
         faces = np.vstack([first[1], second[1] + 4])
         uv = np.vstack([first[2], second[2]])
@@ -323,7 +325,9 @@ def ray_cast_reference(scene, rows, cols):
     return (top * (1 - fy) + bottom * fy) * radiance[:, None], np.isfinite(best_t)
 
 
-@pytest.mark.parametrize("pose", [dict(roll=0.3, pitch=0.2, yaw=0.4), dict(pitch=1.3, scale=2.0), dict(yaw=-1.1, roll=2.0)])
+@pytest.mark.parametrize(
+    "pose", [dict(roll=0.3, pitch=0.2, yaw=0.4), dict(pitch=1.3, scale=2.0), dict(yaw=-1.1, roll=2.0)]
+)
 def test_shading_matches_a_ray_cast_reference_on_a_bent_sheet(pose):
     texture = np.random.default_rng(1).integers(0, 256, (48, 64, 3), dtype=np.uint8)
     # Two triangles not in one plane, each textured with its own perspective: a crude bend.

@@ -28,13 +28,34 @@ def test_render_writes_a_coco_dataset_pycocotools_can_load(app, tmp_path):
     from pycocotools.coco import COCO
 
     out = tmp_path / "data"
-    result = invoke(app, "render", "--condition", "pose,eo", "--difficulty", "hard", "-n", 3,
-                    "--backend", "raster", "--out", out, "--seed", 5, "--image-size", 48)
+    result = invoke(
+        app,
+        "render",
+        "--condition",
+        "pose,eo",
+        "--difficulty",
+        "hard",
+        "-n",
+        3,
+        "--backend",
+        "raster",
+        "--out",
+        out,
+        "--seed",
+        5,
+        "--image-size",
+        48,
+    )
     assert result.exit_code == 0, result.output
     coco = COCO(str(out / "annotations.json"))
     assert len(coco.getImgIds()) == 6
     assert [c["name"] for c in coco.loadCats(coco.getCatIds())] == [
-        "astronaut", "coffee", "chelsea", "rocket", "motorcycle_left"]
+        "astronaut",
+        "coffee",
+        "chelsea",
+        "rocket",
+        "motorcycle_left",
+    ]
     for image in coco.loadImgs(coco.getImgIds()):
         assert image["file_name"].startswith("images/")
         pixels = cv2.imread(str(out / image["file_name"]))
@@ -58,8 +79,20 @@ def test_render_writes_a_coco_dataset_pycocotools_can_load(app, tmp_path):
 
 
 def test_render_accepts_names_and_the_canonical_difficulty(app, tmp_path):
-    result = invoke(app, "render", "--condition", "focus_blur", "--difficulty", "canonical,easy", "-n", 1,
-                    "--out", tmp_path, "--image-size", 32)
+    result = invoke(
+        app,
+        "render",
+        "--condition",
+        "focus_blur",
+        "--difficulty",
+        "canonical,easy",
+        "-n",
+        1,
+        "--out",
+        tmp_path,
+        "--image-size",
+        32,
+    )
     assert result.exit_code == 0, result.output
     data = json.loads((tmp_path / "annotations.json").read_text())
     assert [(i["condition"], i["difficulty"]) for i in data["images"]] == [("fb", "canonical"), ("fb", "easy")]
@@ -103,9 +136,9 @@ def test_preview_shows_every_variant_of_a_condition_in_a_row_of_its_own(app, tmp
     assert sheet.shape[0] == header + 2 * (cell + caption + pad)
     # Same objects and backgrounds in both rows: at hard, the dark cell is far darker than the bright one.
     x = label + 3 * (cell + pad)
-    dark = sheet[header:header + cell, x:x + cell].astype(float).mean()
+    dark = sheet[header : header + cell, x : x + cell].astype(float).mean()
     y = header + cell + caption + pad
-    bright = sheet[y:y + cell, x:x + cell].astype(float).mean()
+    bright = sheet[y : y + cell, x : x + cell].astype(float).mean()
     assert bright > dark + 20
 
 
@@ -114,9 +147,9 @@ def test_mesh_writes_an_obj(app, tmp_path):
     result = invoke(app, "mesh", "--rulings", 3, "--seed", 2, "--out", out)
     assert result.exit_code == 0, result.output
     lines = out.read_text().splitlines()
-    vertices = [l for l in lines if l.startswith("v ")]
-    uvs = [l for l in lines if l.startswith("vt ")]
-    faces = [l for l in lines if l.startswith("f ")]
+    vertices = [line for line in lines if line.startswith("v ")]
+    uvs = [line for line in lines if line.startswith("vt ")]
+    faces = [line for line in lines if line.startswith("f ")]
     assert vertices and len(uvs) == len(vertices) and faces
     indices = np.array([[int(p.split("/")[0]) for p in f.split()[1:]] for f in faces])
     assert indices.min() == 1 and indices.max() == len(vertices)
@@ -131,10 +164,29 @@ def test_images_that_fail_every_resample_are_recorded_and_fail_the_command(app, 
     def intersecting(*args, **kwargs):
         raise paper_model.SelfIntersection("always")
 
-    monkeypatch.setattr(pipeline, "_paper_model", lambda: types.SimpleNamespace(
-        sample_sheet=intersecting, SelfIntersection=paper_model.SelfIntersection))
-    result = CliRunner().invoke(app, ["render", "-c", "de", "-d", "hard", "-n", "2", "--max-resamples", "1",
-                                      "--out", str(tmp_path), "--image-size", "32"])
+    monkeypatch.setattr(
+        pipeline,
+        "_paper_model",
+        lambda: types.SimpleNamespace(sample_sheet=intersecting, SelfIntersection=paper_model.SelfIntersection),
+    )
+    result = CliRunner().invoke(
+        app,
+        [
+            "render",
+            "-c",
+            "de",
+            "-d",
+            "hard",
+            "-n",
+            "2",
+            "--max-resamples",
+            "1",
+            "--out",
+            str(tmp_path),
+            "--image-size",
+            "32",
+        ],
+    )
     assert result.exit_code == 1
     data = json.loads((tmp_path / "annotations.json").read_text())
     assert data["images"] == [] and len(data["failures"]) == 2

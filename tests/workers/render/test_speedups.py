@@ -97,7 +97,7 @@ def test_random_crop_mirrors_like_the_mirrored_crop():
         y0, x0 = int(rng.integers(0, 90 - side + 1)), int(rng.integers(0, 120 - side + 1))
         flip = rng.random() < 0.5
         mirrored += flip
-        source = image[y0:y0 + side, x0:x0 + side]
+        source = image[y0 : y0 + side, x0 : x0 + side]
         source = np.ascontiguousarray(source[:, ::-1]) if flip else source
         import cv2
 
@@ -135,7 +135,10 @@ def _composite_case(seed: int, height: int = 40, width: int = 50):
     occluder_alpha[15:35, 20:45] = rng.choice(np.float32([0.0, 0.3, 0.7, 1.0]), (20, 25))
     occlusion = compositing.Occlusion(
         rgb=rng.random((height, width, 3), dtype=np.float32) * (occluder_alpha > 0)[..., None],
-        alpha=occluder_alpha, mask=occluder_alpha >= 0.5, target_fraction=0.5, achieved_fraction=0.5,
+        alpha=occluder_alpha,
+        mask=occluder_alpha >= 0.5,
+        target_fraction=0.5,
+        achieved_fraction=0.5,
     )
     return background, linear, alpha, occlusion
 
@@ -163,7 +166,10 @@ def test_unblurred_images_composite_only_the_drawn_box_with_the_same_bytes():
         assert np.array_equal(compositing.composite_to_uint8(background, linear, np.zeros_like(alpha)), background)
         only_occluder = compositing.composite_to_uint8(background, linear, np.zeros_like(alpha), occlusion)
         as_float = np.multiply(background, np.float32(1.0 / 255.0), dtype=np.float32)
-        assert np.array_equal(only_occluder, compositing.to_uint8(_composite_as_written(as_float, linear, np.zeros_like(alpha), occlusion)))
+        assert np.array_equal(
+            only_occluder,
+            compositing.to_uint8(_composite_as_written(as_float, linear, np.zeros_like(alpha), occlusion)),
+        )
 
 
 def test_every_level_survives_the_float_round_trip_and_zero_weight_blends():

@@ -26,7 +26,9 @@ def test_the_cases_cover_every_table_3_condition_at_every_difficulty():
     assert all("version" not in c["theta"] or c["theta"]["version"] == 1 for c in CASES)
 
 
-@pytest.mark.parametrize("case", CASES, ids=[f"{c['theta']['condition']}-{c['theta']['difficulty']}-{i}" for i, c in enumerate(CASES)])
+@pytest.mark.parametrize(
+    "case", CASES, ids=[f"{c['theta']['condition']}-{c['theta']['difficulty']}-{i}" for i, c in enumerate(CASES)]
+)
 def test_a_version_1_theta_renders_to_the_same_bytes_and_boxes(case):
     result = render_theta(case["theta"])
     assert hashlib.sha256(result.image.tobytes()).hexdigest() == case["sha256"]

@@ -330,7 +330,9 @@ def test_per_pixel_shading_equals_per_face_shading_under_the_papers_light(condit
         yaw=theta.yaw, scale=theta.scale, offset_m=theta.position_offset_m, offset_angle=theta.position_offset_angle,
     )  # fmt: skip
     per_face = raster.render_scene(scene)
-    per_pixel = raster.render_scene(dataclasses.replace(scene, lights=(Light(scene.light_direction, scene.irradiance),)))
+    per_pixel = raster.render_scene(
+        dataclasses.replace(scene, lights=(Light(scene.light_direction, scene.irradiance),))
+    )
     assert not dataclasses.replace(scene, lights=(Light(scene.light_direction, 1.0),)).plain
     assert np.array_equal(per_face.mask, per_pixel.mask)
     assert np.abs(per_face.rgb - per_pixel.rgb)[per_face.mask].max() < 1e-4

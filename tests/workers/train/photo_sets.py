@@ -83,11 +83,17 @@ def write_coco(folder: Path, items: list[Photo], classes: list[str] = CLASSES) -
     """A labelling tool's COCO export: ``folder/annotations.json`` (image sizes as displayed,
     category ids from 1), photos under ``folder/images/``; returns the JSON file."""
     (folder / "images").mkdir(parents=True, exist_ok=True)
-    document: dict = {"images": [], "annotations": [], "categories": [{"id": k + 1, "name": n} for k, n in enumerate(classes)]}
+    document: dict = {
+        "images": [],
+        "annotations": [],
+        "categories": [{"id": k + 1, "name": n} for k, n in enumerate(classes)],
+    }
     for image_id, photo in enumerate(items, start=1):
         (folder / "images" / f"{photo.name}.jpg").write_bytes(jpeg_bytes(photo))
         height, width = photo.pixels.shape[:2]
-        document["images"].append({"id": image_id, "file_name": f"images/{photo.name}.jpg", "width": width, "height": height})
+        document["images"].append(
+            {"id": image_id, "file_name": f"images/{photo.name}.jpg", "width": width, "height": height}
+        )
         for box, label in zip(photo.boxes, photo.labels):
             x0, y0, x1, y1 = (float(v) for v in box)
             document["annotations"].append(

@@ -7,6 +7,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from test_training import CLASSES, config, synthetic_samples  # noqa: E402  (tests/workers/train is on sys.path)
 
 from foldwise.config import AugmentationConfig, load_config
 from foldwise.settings import REPO_ROOT
@@ -14,8 +15,6 @@ from workers.train import training
 from workers.train.augment import ZOOM_FILL, augmented, build_augmentation
 from workers.train.checkpoint import read_checkpoint
 from workers.train.training import train_detector
-
-from test_training import CLASSES, config, synthetic_samples  # noqa: E402  (tests/workers/train is on sys.path)
 
 torch.set_num_threads(1)
 CPU = torch.device("cpu")
@@ -33,7 +32,9 @@ def test_off_by_default_and_in_the_papers_config_on_in_quick():
 
 
 def test_boxes_follow_the_crop_and_a_box_cut_away_is_dropped_with_its_label():
-    transform = build_augmentation(AugmentationConfig(enabled=True, crop=1.0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0), (64, 64))
+    transform = build_augmentation(
+        AugmentationConfig(enabled=True, crop=1.0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0), (64, 64)
+    )
     image = np.zeros((64, 64, 3), np.uint8)
     image[10:30, 20:50] = 255  # a white box: wherever the crop puts it, the box must frame it
     boxes = np.array([[20, 10, 50, 30]], np.float32)
@@ -60,7 +61,8 @@ def test_boxes_follow_the_crop_and_a_box_cut_away_is_dropped_with_its_label():
 
 def test_a_quarter_turn_turns_the_frame_and_keeps_each_box_exact():
     transform = build_augmentation(
-        AugmentationConfig(enabled=True, quarter_turn=1.0, crop=0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0), (64, 64)
+        AugmentationConfig(enabled=True, quarter_turn=1.0, crop=0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0),
+        (64, 64),
     )
     image = np.zeros((40, 60, 3), np.uint8)
     image[10:30, 5:15] = 255  # a white block, its box exactly
@@ -76,12 +78,18 @@ def test_a_quarter_turn_turns_the_frame_and_keeps_each_box_exact():
         assert white.sum().item() == 200 and target["labels"].tolist() == [1]
         seen.add((tuple(out.shape[1:]), tuple(box)))
     # Three turns, none the identity: a quarter (frame 60 x 40), a half, three quarters.
-    assert seen == {((60, 40), (10.0, 45.0, 30.0, 55.0)), ((40, 60), (45.0, 10.0, 55.0, 30.0)), ((60, 40), (10.0, 5.0, 30.0, 15.0))}
+    assert seen == {
+        ((60, 40), (10.0, 45.0, 30.0, 55.0)),
+        ((40, 60), (45.0, 10.0, 55.0, 30.0)),
+        ((60, 40), (10.0, 5.0, 30.0, 15.0)),
+    }
 
 
 def test_the_crop_keeps_the_objects_shape():
     """A square object stays square whatever the frame's aspect (no anisotropic resize)."""
-    transform = build_augmentation(AugmentationConfig(enabled=True, crop=1.0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0), (64, 64))
+    transform = build_augmentation(
+        AugmentationConfig(enabled=True, crop=1.0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0), (64, 64)
+    )
     image = np.zeros((64, 64, 3), np.uint8)
     image[24:40, 24:40] = 255
     boxes = np.array([[24, 24, 40, 40]], np.float32)
@@ -99,7 +107,9 @@ def test_the_crop_keeps_the_objects_shape():
 
 
 def test_photometric_steps_change_pixels_not_boxes_and_the_seed_fixes_them():
-    transform = build_augmentation(AugmentationConfig(enabled=True, crop=0, photometric=1, blur=1, noise=1, jpeg=1), (64, 64))
+    transform = build_augmentation(
+        AugmentationConfig(enabled=True, crop=0, photometric=1, blur=1, noise=1, jpeg=1), (64, 64)
+    )
     boxes = np.array([[5, 5, 40, 40]], np.float32)
     outputs = []
     for seed in (3, 3, 4):
@@ -115,7 +125,10 @@ def test_photometric_steps_change_pixels_not_boxes_and_the_seed_fixes_them():
 def test_the_object_zoom_fills_the_frame_with_the_target_and_never_cuts_it_out():
     """The target's long side spans ZOOM_FILL of the frame (a larger one is cut by the frame),
     its box still frames the object's pixels, and it is never zoomed out of the frame."""
-    transform = build_augmentation(AugmentationConfig(enabled=True, zoom=1.0, crop=0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0), (64, 64))
+    transform = build_augmentation(
+        AugmentationConfig(enabled=True, zoom=1.0, crop=0, photometric=0, grayscale=0, blur=0, noise=0, jpeg=0),
+        (64, 64),
+    )
     image = np.zeros((256, 256, 3), np.uint8)
     image[100:124, 60:108] = 255  # 48 x 24: a small sheet in a large frame
     boxes = np.array([[60, 100, 108, 124]], np.float32)
@@ -178,7 +191,17 @@ def test_bad_settings_name_the_key(bad):
 
 
 def _all_steps(**changes) -> AugmentationConfig:
-    steps = dict(enabled=True, quarter_turn=0.5, zoom=0.5, crop=0.5, photometric=0.5, grayscale=0.2, blur=0.2, noise=0.2, jpeg=0.2)
+    steps = dict(
+        enabled=True,
+        quarter_turn=0.5,
+        zoom=0.5,
+        crop=0.5,
+        photometric=0.5,
+        grayscale=0.2,
+        blur=0.2,
+        noise=0.2,
+        jpeg=0.2,
+    )
     return AugmentationConfig(**{**steps, **changes})
 
 
@@ -194,7 +217,10 @@ def test_non_square_images_with_and_without_boxes_pass_every_step(shape):
             out, target = augmented(transform, image, boxes, np.zeros(len(boxes), np.int64), CPU)
             assert out.shape[0] == 3 and target["boxes"].shape[1] == 4
             if len(target["boxes"]):
-                assert float(target["boxes"][:, 2].max()) <= out.shape[2] and float(target["boxes"][:, 3].max()) <= out.shape[1]
+                assert (
+                    float(target["boxes"][:, 2].max()) <= out.shape[2]
+                    and float(target["boxes"][:, 3].max()) <= out.shape[1]
+                )
 
 
 @pytest.mark.parametrize("turns", [1, 2, 3])
@@ -228,5 +254,7 @@ def test_training_on_portrait_and_landscape_images_with_every_step(tmp_path):
             clipped = np.array([[2, 2, width / 2, height / 2]], np.float32)
         samples.append(training.Sample(sample.image_path, clipped, sample.labels))
     samples.append(training.Sample(samples[0].image_path, np.zeros((0, 4), np.float32), np.zeros(0, np.int64)))
-    stats = train_detector(samples, None, 4, config(augmentation=_all_steps(quarter_turn=1.0), batch_size=3), CLASSES, tmp_path / "m.pt")
+    stats = train_detector(
+        samples, None, 4, config(augmentation=_all_steps(quarter_turn=1.0), batch_size=3), CLASSES, tmp_path / "m.pt"
+    )
     assert stats.iterations == 4 and not stats.nonfinite_steps

@@ -55,7 +55,9 @@ def _page(seed: int, letterhead_seed: int = 0) -> np.ndarray:
         x, y = int(body.integers(10, 390)), int(body.integers(90, 480))
         w, h = int(body.integers(3, 20)), int(body.integers(3, 12))
         colour = tuple(int(v) for v in body.integers(0, 200, 3))
-        cv2.rectangle(page, (x, y), (x + w, y + h), colour, -1) if body.random() < 0.5 else cv2.circle(page, (x, y), w // 2 + 2, colour, -1)
+        cv2.rectangle(page, (x, y), (x + w, y + h), colour, -1) if body.random() < 0.5 else cv2.circle(
+            page, (x, y), w // 2 + 2, colour, -1
+        )
     return page
 
 
@@ -111,7 +113,9 @@ def _iou(a, b) -> float:
     import torch
     from torchvision.ops import box_iou
 
-    return float(box_iou(torch.as_tensor(np.asarray(a, np.float32))[None], torch.as_tensor(np.asarray(b, np.float32))[None]))
+    return float(
+        box_iou(torch.as_tensor(np.asarray(a, np.float32))[None], torch.as_tensor(np.asarray(b, np.float32))[None])
+    )
 
 
 def test_one_box_per_sheet_drops_a_piece_and_another_name_inside_a_confirmed_sheet():

@@ -223,11 +223,16 @@ def test_detection_at_several_sizes_merges_each_sizes_detections(trained, tmp_pa
     assert detector.model.transform.min_size == (64,) and detector.model.transform.max_size == 64
     assert any(not np.array_equal(single[64][i]["scores"], single[128][i]["scores"]) for i in range(len(paths)))
     for index, result in enumerate(merged):
-        pool = [(tuple(box), score, label) for size in sizes for box, score, label in zip(
-            single[size][index]["boxes"], single[size][index]["scores"], single[size][index]["labels"])]
+        pool = [
+            (tuple(box), score, label)
+            for size in sizes
+            for box, score, label in zip(
+                single[size][index]["boxes"], single[size][index]["scores"], single[size][index]["labels"]
+            )
+        ]
         assert len(result["scores"]) <= detector.config.detections_per_image
         for box, score, label in zip(result["boxes"], result["scores"], result["labels"]):
-            assert any(np.allclose(box, b) and score == s and label == l for b, s, l in pool)
+            assert any(np.allclose(box, b) and score == s and label == lab for b, s, lab in pool)
         assert result["scores"][0] == max(score for _, score, _ in pool)
         for size in sizes:
             best = single[size][index]
@@ -283,7 +288,9 @@ def test_a_detector_whose_views_vote_scores_by_their_vote_and_pairs_combine_so(t
         expected = merge_detections([runs[index] for runs in single], 0.5, limit, vote=0.7)
         for key in ("boxes", "scores", "labels"):
             np.testing.assert_allclose(result[key], expected[key], rtol=0, atol=1e-6)
-    assert not all(np.allclose(a["scores"], b["scores"]) for a, b in zip(voted, detect_object(plain, paths, test_sizes=sizes)))
+    assert not all(
+        np.allclose(a["scores"], b["scores"]) for a, b in zip(voted, detect_object(plain, paths, test_sizes=sizes))
+    )
     pair = load_detector(save_ensemble([tmp_path / "voting.pt", tmp_path / "voting.pt"], tmp_path / "pair.pt"))
     assert pair.model.vote == 1.0
     # Two training steps leave every score under the vote's floor: lowered, so that they vote.
@@ -324,10 +331,15 @@ def test_detection_on_quarter_turns_merges_each_turns_detections_mapped_back(tra
         np.testing.assert_array_equal(a["scores"], b["scores"])
     assert any(not np.array_equal(single[0][i]["scores"], single[1][i]["scores"]) for i in range(len(paths)))
     for index, result in enumerate(merged):
-        pool = [(box, score, label) for turn in turns for box, score, label in zip(
-            single[turn][index]["boxes"], single[turn][index]["scores"], single[turn][index]["labels"])]
+        pool = [
+            (box, score, label)
+            for turn in turns
+            for box, score, label in zip(
+                single[turn][index]["boxes"], single[turn][index]["scores"], single[turn][index]["labels"]
+            )
+        ]
         for box, score, label in zip(result["boxes"], result["scores"], result["labels"]):
-            assert any(np.allclose(box, b, atol=1e-4) and score == s and label == l for b, s, l in pool)
+            assert any(np.allclose(box, b, atol=1e-4) and score == s and label == lab for b, s, lab in pool)
             assert 0 <= box[0] < box[2] <= 64 and 0 <= box[1] < box[3] <= 64  # in the image's own pixels
         assert result["scores"][0] == max(score for _, score, _ in pool)
 
@@ -351,16 +363,28 @@ def test_detection_on_quarter_turns_merges_each_turns_detections_mapped_back(tra
 @pytest.mark.parametrize(
     "changes, problem",
     [
-        ({"family": "yolo", "backbone": "mobilenet_v3_large", "test_sizes": [64, 96]}, "test_sizes: only read by the R-CNN families"),
+        (
+            {"family": "yolo", "backbone": "mobilenet_v3_large", "test_sizes": [64, 96]},
+            "test_sizes: only read by the R-CNN families",
+        ),
         ({"test_sizes": [64, 64]}, "sizes repeat"),
         ({"test_sizes": [16, 64]}, "greater than or equal to 32"),
-        ({"family": "yolo", "backbone": "mobilenet_v3_large", "test_turns": [0, 1]}, "test_turns: only read by the R-CNN families"),
+        (
+            {"family": "yolo", "backbone": "mobilenet_v3_large", "test_turns": [0, 1]},
+            "test_turns: only read by the R-CNN families",
+        ),
         ({"test_turns": [1, 1]}, "turns repeat"),
         ({"test_turns": [0, 4]}, "Input should be 0, 1, 2 or 3"),
         ({"view_vote": 0.0}, "view_vote\n  Input should be greater than 0"),
         ({"view_vote": 1.5}, "view_vote\n  Input should be less than or equal to 1"),
-        ({"family": "yolo", "backbone": "mobilenet_v3_large", "view_vote": 0.7}, "view_vote: only read by the R-CNN families"),
-        ({"texture_search": True}, "texture_search: searches with the texture check's textures; set texture_check: true too"),
+        (
+            {"family": "yolo", "backbone": "mobilenet_v3_large", "view_vote": 0.7},
+            "view_vote: only read by the R-CNN families",
+        ),
+        (
+            {"texture_search": True},
+            "texture_search: searches with the texture check's textures; set texture_check: true too",
+        ),
     ],
 )
 def test_bad_test_views_are_refused_with_the_reason(changes, problem):
@@ -399,15 +423,22 @@ def test_an_ensemble_file_detects_as_its_members_merged(trained, tmp_path):
     assert payload["format"] == ENSEMBLE_FORMAT and len(payload["members"]) == 2
     ensemble = load_detector(moved)
     assert ensemble.classes == CLASSES and [m["family"] for m in ensemble.meta["members"]] == [trained[0]] * 2
-    members = [load_detector(path), load_detector(save_checkpoint(ensemble.model.members[1], payload["members"][1]["meta"], tmp_path / "m2.pt"))]
+    members = [
+        load_detector(path),
+        load_detector(save_checkpoint(ensemble.model.members[1], payload["members"][1]["meta"], tmp_path / "m2.pt")),
+    ]
     alone = [detect_object(member, arrays) for member in members]
     together = detect_object(ensemble, arrays)
     assert all(len(result["boxes"]) <= 10 for result in together)  # the first member's cap (detections_per_image)
     for index, result in enumerate(together):
-        pool = [(b, s, l) for run in alone for b, s, l in zip(run[index]["boxes"], run[index]["scores"], run[index]["labels"])]
+        pool = [
+            (b, s, lab)
+            for run in alone
+            for b, s, lab in zip(run[index]["boxes"], run[index]["scores"], run[index]["labels"])
+        ]
         assert len(result["boxes"]) > 0 and result["scores"][0] == max(s for _, s, _ in pool)
         for box, score, label in zip(result["boxes"], result["scores"], result["labels"]):
-            assert any(np.allclose(box, b) and score == s and label == l for b, s, l in pool)
+            assert any(np.allclose(box, b) and score == s and label == lab for b, s, lab in pool)
     listed = detect_ensemble(members, paths)  # a list of detectors: the same ensemble
     assert same_detections(together, listed)
     turned = detect_object(ensemble, arrays, test_turns=(0, 2))
@@ -425,7 +456,14 @@ def test_an_ensemble_is_refused_where_one_network_is_needed_and_with_other_class
     with pytest.raises(CheckpointError, match="is an ensemble of 2 detectors.*start from one of the checkpoints"):
         read_checkpoint(ensemble_path)  # warm starts and fine-tuning read one network
     with pytest.raises(CheckpointError, match="is an ensemble of 2 detectors"):
-        train_detector([Sample(paths[0], [[12, 10, 50, 40]], [0])], ensemble_path, 1, config(family=trained[0]), CLASSES, tmp_path / "w.pt")
+        train_detector(
+            [Sample(paths[0], [[12, 10, 50, 40]], [0])],
+            ensemble_path,
+            1,
+            config(family=trained[0]),
+            CLASSES,
+            tmp_path / "w.pt",
+        )
     payload = read_checkpoint(path)
     payload["meta"]["classes"] = CLASSES[::-1]
     reordered = tmp_path / "reordered.pt"
@@ -478,7 +516,15 @@ def test_a_texture_checked_detector_carries_its_textures_and_checks_what_the_net
     textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}
     checked_config = config(family="faster_rcnn", texture_check=True)
     with pytest.raises(ValueError, match=r"texture_check needs each class's texture; none for \['coffee'\]"):
-        train_detector(samples, None, 1, checked_config, CLASSES, tmp_path / "refused.pt", textures={"astronaut": textures["astronaut"]})
+        train_detector(
+            samples,
+            None,
+            1,
+            checked_config,
+            CLASSES,
+            tmp_path / "refused.pt",
+            textures={"astronaut": textures["astronaut"]},
+        )
     path = tmp_path / "checked.pt"
     train_detector(samples, None, 2, checked_config, CLASSES, path, seed=0, textures=textures)
     warm = tmp_path / "warm.pt"  # a warm start keeps ω_in's textures
@@ -494,13 +540,19 @@ def test_a_texture_checked_detector_carries_its_textures_and_checks_what_the_net
     for image, alone, checked in zip(arrays, network, detect_object(detector, arrays)):
         for key, value in reference.apply(image, alone).items():
             np.testing.assert_array_equal(checked[key], value)
-    unchecked = load_detector(save_checkpoint(detector.model, {**detector.meta, "config": config().model_dump(mode="json")}, tmp_path / "off.pt"))
+    unchecked = load_detector(
+        save_checkpoint(
+            detector.model, {**detector.meta, "config": config().model_dump(mode="json")}, tmp_path / "off.pt"
+        )
+    )
     assert unchecked.textures is None and unchecked.texture_check() is None
     assert detector.texture_check().search is False
     # detector.texture_search: the check also searches the whole image with the same textures.
     searching_config = config(family="faster_rcnn", texture_check=True, texture_search=True).model_dump(mode="json")
     searching = load_detector(
-        save_checkpoint(detector.model, {**detector.meta, "config": searching_config}, tmp_path / "search.pt", textures=textures)
+        save_checkpoint(
+            detector.model, {**detector.meta, "config": searching_config}, tmp_path / "search.pt", textures=textures
+        )
     )
     assert searching.texture_check().search is True
     reference = TextureCheck(searching.textures, CLASSES, search=True)

@@ -150,7 +150,9 @@ def test_portrait_landscape_and_exif_turned_photos_load_with_exact_boxes(tmp_pat
     by_name = {s.image_path.stem: s for s in samples}
     for photo in photos:
         sample = by_name[photo.name]
-        np.testing.assert_array_equal(read_image_rgb(sample.image_path), photo_sets.decoded(photo))  # as displayed, exactly
+        np.testing.assert_array_equal(
+            read_image_rgb(sample.image_path), photo_sets.decoded(photo)
+        )  # as displayed, exactly
         np.testing.assert_array_equal(sample.boxes, photo.boxes)
         assert [classes[i] for i in sample.labels] == [photo_sets.CLASSES[i] for i in photo.labels]
 

@@ -233,6 +233,7 @@ def test_views_that_vote_rank_a_box_most_views_find_over_one_a_single_view_is_su
     run's best box it suppressed (a run's second box on the same place adds nothing, a run under
     VOTE_FLOOR abstains, a box no run scores at the floor keeps its score); the kept boxes are
     NMS's; one run keeps its scores; votes of members at α then 1 are all runs at α."""
+
     def run(*rows):
         return {
             "boxes": np.array([r[0] for r in rows], np.float32).reshape(-1, 4),

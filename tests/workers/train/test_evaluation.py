@@ -44,7 +44,10 @@ def reference_ap(predictions, ground_truth, k, score_threshold=0.0, iou_threshol
             per_image = sorted(per_image, key=lambda d: -d[0])[:100]
         detections.extend(per_image)
     detections = sorted(detections, key=lambda d: -d[0])  # Python's sort is stable
-    boxes = {i: [list(map(float, b)) for b, lab in zip(g["boxes"], g["labels"]) if int(lab) == k] for i, g in enumerate(ground_truth)}
+    boxes = {
+        i: [list(map(float, b)) for b, lab in zip(g["boxes"], g["labels"]) if int(lab) == k]
+        for i, g in enumerate(ground_truth)
+    }
     num_gt = sum(len(v) for v in boxes.values())
     if num_gt == 0:
         return float("nan")
@@ -466,7 +469,9 @@ def test_breakdown_hand_made():
 
 def test_accepts_lists_and_torch_tensors():
     torch = pytest.importorskip("torch")
-    as_lists = evaluate([{"boxes": [[0, 0, 10, 10]], "scores": [0.9], "labels": [0]}], [{"boxes": [[0, 0, 10, 10]], "labels": [0]}])
+    as_lists = evaluate(
+        [{"boxes": [[0, 0, 10, 10]], "scores": [0.9], "labels": [0]}], [{"boxes": [[0, 0, 10, 10]], "labels": [0]}]
+    )
     as_tensors = evaluate(
         [{"boxes": torch.tensor([[0.0, 0, 10, 10]]), "scores": torch.tensor([0.9]), "labels": torch.tensor([0])}],
         [{"boxes": torch.tensor([[0.0, 0, 10, 10]]), "labels": torch.tensor([0])}],
@@ -479,8 +484,16 @@ def test_accepts_lists_and_torch_tensors():
 @pytest.mark.parametrize(
     "prediction, truth, message",
     [
-        ({"boxes": [[0, 0, 10, 10]], "scores": [float("nan")], "labels": [0]}, None, r"predictions\[0\]\.scores: contains NaN"),
-        ({"boxes": [[0, 0, float("nan"), 10]], "scores": [0.9], "labels": [0]}, None, r"predictions\[0\]\.boxes: contains NaN"),
+        (
+            {"boxes": [[0, 0, 10, 10]], "scores": [float("nan")], "labels": [0]},
+            None,
+            r"predictions\[0\]\.scores: contains NaN",
+        ),
+        (
+            {"boxes": [[0, 0, float("nan"), 10]], "scores": [0.9], "labels": [0]},
+            None,
+            r"predictions\[0\]\.boxes: contains NaN",
+        ),
         ({"boxes": [[0, 0, float("inf"), 10]], "scores": [0.9], "labels": [0]}, None, r"NaN or infinite"),
         ({"boxes": [[10, 0, 0, 10]], "scores": [0.9], "labels": [0]}, None, r"boxes\[0\]: x1 < x0"),
         ({"boxes": [[0, 0, 10, 10]], "scores": [0.9], "labels": [3]}, None, r"class index 3 outside 0\.\.0"),
@@ -538,11 +551,23 @@ def test_evaluate_detector_maps_labels_by_class_name(monkeypatch, tmp_path):
 
     detector_classes = ["a", "b"]
     outputs = {  # the detector's answers per image, in its own class indices
-        "0.png": {"boxes": np.array([[0, 0, 10, 10]], np.float32), "scores": np.array([0.9], np.float32), "labels": np.array([0])},
-        "1.png": {"boxes": np.array([[5, 5, 20, 20]], np.float32), "scores": np.array([0.95], np.float32), "labels": np.array([1])},
+        "0.png": {
+            "boxes": np.array([[0, 0, 10, 10]], np.float32),
+            "scores": np.array([0.9], np.float32),
+            "labels": np.array([0]),
+        },
+        "1.png": {
+            "boxes": np.array([[5, 5, 20, 20]], np.float32),
+            "scores": np.array([0.95], np.float32),
+            "labels": np.array([1]),
+        },
     }
     fake = types.ModuleType("workers.train.checkpoint")
-    fake.detect_ensemble = lambda detectors, images, batch_size=8, on_batch=None, test_sizes=None, test_turns=None, texture_check=True: [outputs[Path(p).name] for p in images]
+    fake.detect_ensemble = (
+        lambda detectors, images, batch_size=8, on_batch=None, test_sizes=None, test_turns=None, texture_check=True: [
+            outputs[Path(p).name] for p in images
+        ]
+    )
     monkeypatch.setitem(sys.modules, "workers.train.checkpoint", fake)
     detector = types.SimpleNamespace(meta={"classes": detector_classes})
     dataset_classes = ["b", "a"]  # category order of the dataset differs
@@ -564,7 +589,11 @@ from workers.train.evaluation import NO_OBJECT, precision_recall_at  # noqa: E40
 
 
 def _dets(boxes, scores, labels):
-    return {"boxes": np.asarray(boxes, float).reshape(-1, 4), "scores": np.asarray(scores, float), "labels": np.asarray(labels, int)}
+    return {
+        "boxes": np.asarray(boxes, float).reshape(-1, 4),
+        "scores": np.asarray(scores, float),
+        "labels": np.asarray(labels, int),
+    }
 
 
 def _truth(boxes, labels):
@@ -590,7 +619,9 @@ def test_precision_and_recall_count_only_the_boxes_kept_at_the_threshold():
 
 def test_the_confusion_names_the_class_a_false_box_was_given_and_the_true_one():
     predictions = [
-        _dets([[0, 0, 10, 10], [0, 0, 10, 11], [20, 20, 30, 30], [60, 60, 70, 70]], [0.99, 0.9, 0.95, 0.85], [0, 0, 0, 1])
+        _dets(
+            [[0, 0, 10, 10], [0, 0, 10, 11], [20, 20, 30, 30], [60, 60, 70, 70]], [0.99, 0.9, 0.95, 0.85], [0, 0, 0, 1]
+        )
     ]
     truth = [_truth([[0, 0, 10, 10], [20, 20, 30, 30]], [0, 1])]
     result = precision_recall_at(predictions, truth, ["a", "b"])
@@ -601,7 +632,11 @@ def test_the_confusion_names_the_class_a_false_box_was_given_and_the_true_one():
 
 
 def test_worst_images_rank_by_errors_and_undefined_ratios_are_nan():
-    predictions = [_dets([], [], []), _dets([[0, 0, 5, 5], [9, 9, 12, 12]], [0.9, 0.9], [0, 0]), _dets([[0, 0, 5, 5]], [0.9], [0])]
+    predictions = [
+        _dets([], [], []),
+        _dets([[0, 0, 5, 5], [9, 9, 12, 12]], [0.9, 0.9], [0, 0]),
+        _dets([[0, 0, 5, 5]], [0.9], [0]),
+    ]
     truth = [_truth([[0, 0, 5, 5]], [0]), _truth([], []), _truth([[0, 0, 5, 5]], [0])]
     result = precision_recall_at(predictions, truth, ["a"])
     assert [(item.index, item.errors) for item in result.worst_images(5)] == [(1, 2), (0, 1)]

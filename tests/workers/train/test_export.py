@@ -32,7 +32,17 @@ def rendered(tmp_path_factory):
     from workers.render.cli import render_dataset
 
     out = tmp_path_factory.mktemp("rendered")
-    render_dataset(out, ["fb"], ["easy", "hard"], 3, seed=3, image_size=64, backend="raster", assets=load_assets(), echo=lambda _: None)
+    render_dataset(
+        out,
+        ["fb"],
+        ["easy", "hard"],
+        3,
+        seed=3,
+        image_size=64,
+        backend="raster",
+        assets=load_assets(),
+        echo=lambda _: None,
+    )
     return out
 
 
@@ -59,7 +69,9 @@ def exported(tmp_path_factory, rendered):
         )  # fmt: skip
         assert trained.exit_code == 0, trained.output
         onnx_file = folder / f"{family}.onnx"
-        result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--format", "onnx", "--out", str(onnx_file)])
+        result = runner.invoke(
+            make_app(), ["export", "--model", str(checkpoint), "--format", "onnx", "--out", str(onnx_file)]
+        )
         files[family] = (checkpoint, onnx_file, result)
     return files
 
@@ -150,7 +162,9 @@ def test_a_detector_with_test_turns_exports_its_merged_detections(exported, rend
     model = OnnxDetector.load(export_onnx(detector, tmp_path / "turns.onnx"))
     images = rendered_images(rendered)[:2]
     images.append(cv2.resize(images[0], (96, 80)))
-    for image, expected, upright in zip(images, detect_object(detector, images), detect_object(plain, images, test_sizes=(64, 96))):
+    for image, expected, upright in zip(
+        images, detect_object(detector, images), detect_object(plain, images, test_sizes=(64, 96))
+    ):
         assert_same_detections(model.detect(image), expected)
         assert not np.array_equal(expected["scores"], upright["scores"])
 
@@ -189,9 +203,13 @@ def test_fast_rcnn_cannot_export_and_says_why(exported):
 
 def test_export_refuses_an_unknown_format_or_size(exported, tmp_path):
     checkpoint = exported["yolo"][0]
-    result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--format", "tflite", "--out", str(tmp_path / "m")])
+    result = runner.invoke(
+        make_app(), ["export", "--model", str(checkpoint), "--format", "tflite", "--out", str(tmp_path / "m")]
+    )
     assert result.exit_code == 1 and "unknown export format 'tflite'" in result.output
-    result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--image-size", "big", "--out", str(tmp_path / "m")])
+    result = runner.invoke(
+        make_app(), ["export", "--model", str(checkpoint), "--image-size", "big", "--out", str(tmp_path / "m")]
+    )
     assert result.exit_code == 1 and "expected N or HxW" in result.output
     missing = runner.invoke(make_app(), ["export", "--model", str(tmp_path / "none.pt"), "--out", str(tmp_path / "m")])
     assert missing.exit_code == 1 and "does not exist" in missing.output
@@ -205,14 +223,18 @@ def test_yolo_exported_at_another_size_runs_there_and_not_above_its_input_size(e
 
     checkpoint = exported["yolo"][0]
     target = tmp_path / "yolo-40x48.onnx"
-    result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--image-size", "40x48", "--out", str(target)])
+    result = runner.invoke(
+        make_app(), ["export", "--model", str(checkpoint), "--image-size", "40x48", "--out", str(target)]
+    )
     assert result.exit_code == 0, result.output
     image = cv2.resize(rendered_images(rendered)[1], (48, 40))
     model = OnnxDetector.load(target)
     assert model.image_size == (40, 48)
     assert_same_detections(model.detect(image), detect_object(load_detector(checkpoint, device="cpu"), [image])[0])
 
-    larger = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--image-size", "96", "--out", str(target)])
+    larger = runner.invoke(
+        make_app(), ["export", "--model", str(checkpoint), "--image-size", "96", "--out", str(target)]
+    )
     assert larger.exit_code == 1 and "up to its input size 64 (got 96x96)" in larger.output
 
 
@@ -225,9 +247,8 @@ def test_a_texture_checked_detector_trained_from_the_cli_carries_its_textures_an
     import cv2
     import yaml
 
-    from workers.render.assets import load_assets
-
     from foldwise.settings import REPO_ROOT
+    from workers.render.assets import load_assets
     from workers.train.checkpoint import load_detector
 
     config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
@@ -253,10 +274,20 @@ def test_a_texture_checked_detector_trained_from_the_cli_carries_its_textures_an
     # A photograph of the astronaut sheet: the search finds it whatever the one-step network says.
     texture = load_assets().textures(["astronaut"])["astronaut"]
     photo = np.full((300, 400, 3), 70, np.uint8)
-    photo[40:40 + 220, 80:80 + 220] = cv2.resize(np.ascontiguousarray(texture[:, :, :3]), (220, 220))
+    photo[40 : 40 + 220, 80 : 80 + 220] = cv2.resize(np.ascontiguousarray(texture[:, :, :3]), (220, 220))
     cv2.imwrite(str(tmp_path / "photo.png"), cv2.cvtColor(photo, cv2.COLOR_RGB2BGR))
     found = runner.invoke(
-        make_app(), ["detect", "--model", str(checkpoint), str(tmp_path / "photo.png"), "--out-dir", str(tmp_path / "d"), "--threshold", "0.9"]
+        make_app(),
+        [
+            "detect",
+            "--model",
+            str(checkpoint),
+            str(tmp_path / "photo.png"),
+            "--out-dir",
+            str(tmp_path / "d"),
+            "--threshold",
+            "0.9",
+        ],
     )
     assert found.exit_code == 0, found.output
     assert "astronaut 0.9" in found.output and "(texture confirmed)" in found.output

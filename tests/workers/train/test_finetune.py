@@ -90,9 +90,17 @@ def test_finetune_refuses_an_unknown_class_and_a_folder_that_is_no_set_in_one_li
     other = tmp_path / "no-coffee.pt"
     config = DetectorConfig(family="yolo", input_size=64, batch_size=2, num_threads=1)
     train_detector([], init=None, iterations=0, config=config, classes=["astronaut", "rocket"], out=other)
-    for data, message in ((standin / "voc", "its classes: astronaut, rocket"), (tmp_path, "not a dataset"), (tmp_path / "nowhere", "no such file or folder")):
-        result = CliRunner().invoke(app, ["finetune", "--model", str(other), "--data", str(data), "--out", str(tmp_path / "o")])
-        assert result.exit_code == 2 and message in result.output and result.output.strip().count("\n") == 0, result.output
+    for data, message in (
+        (standin / "voc", "its classes: astronaut, rocket"),
+        (tmp_path, "not a dataset"),
+        (tmp_path / "nowhere", "no such file or folder"),
+    ):
+        result = CliRunner().invoke(
+            app, ["finetune", "--model", str(other), "--data", str(data), "--out", str(tmp_path / "o")]
+        )
+        assert result.exit_code == 2 and message in result.output and result.output.strip().count("\n") == 0, (
+            result.output
+        )
 
 
 def test_evaluate_reads_a_real_set_as_a_voc_folder_or_a_coco_file_alike(standin, tiny_model, tmp_path):
@@ -101,14 +109,18 @@ def test_evaluate_reads_a_real_set_as_a_voc_folder_or_a_coco_file_alike(standin,
     payloads = []
     for name, data in (("voc", standin / "voc"), ("coco", standin / "coco.json")):
         target = tmp_path / f"{name}.json"
-        result = CliRunner().invoke(app, ["evaluate", "--model", str(tiny_model), "--data", str(data), "--json", str(target)])
+        result = CliRunner().invoke(
+            app, ["evaluate", "--model", str(tiny_model), "--data", str(data), "--json", str(target)]
+        )
         assert result.exit_code == 0, result.output
         payloads.append(json.loads(target.read_text()))
     voc, coco = payloads
     assert voc["num_images"] == coco["num_images"] == 12 and voc["num_ground_truth"] == coco["num_ground_truth"] > 0
     assert voc["classes"] == coco["classes"] == MODEL_CLASSES
     assert voc["per_class"]["chelsea"]["num_ground_truth"] == 0  # the model's class the set does not hold
-    assert voc["map_unthresholded"] == pytest.approx(coco["map_unthresholded"], abs=0.02)  # VOC's boxes keep one decimal
+    assert voc["map_unthresholded"] == pytest.approx(
+        coco["map_unthresholded"], abs=0.02
+    )  # VOC's boxes keep one decimal
 
 
 # --------------------------------------------------------------------------- photographs, an ensemble
@@ -123,7 +135,11 @@ from workers.train.checkpoint import load_detector, save_ensemble  # noqa: E402
 def photo_set(tmp_path_factory):
     """Portrait, landscape and EXIF-turned JPEGs, one without any object, as a COCO export."""
     photos = photo_sets.photos(9, seed=4)
-    photos.append(photo_sets.Photo("lookalike", photos[1].pixels[:, ::-1].copy(), np.zeros((0, 4), np.float32), np.zeros(0, np.int64), 6))
+    photos.append(
+        photo_sets.Photo(
+            "lookalike", photos[1].pixels[:, ::-1].copy(), np.zeros((0, 4), np.float32), np.zeros(0, np.int64), 6
+        )
+    )
     return photo_sets.write_coco(tmp_path_factory.mktemp("photos"), photos)
 
 

@@ -30,7 +30,9 @@ def frozen_body():
     return mobilenet_v3_large_075_body(FOLDED_BATCHNORM).eval()
 
 
-@pytest.mark.parametrize(("size", "kernel", "before", "after"), [(128, 3, 0, 1), (127, 3, 1, 1), (128, 5, 1, 2), (9, 5, 2, 2)])
+@pytest.mark.parametrize(
+    ("size", "kernel", "before", "after"), [(128, 3, 0, 1), (127, 3, 1, 1), (128, 5, 1, 2), (9, 5, 2, 2)]
+)
 def test_strided_convolutions_pad_as_tensorflow_same(size, kernel, before, after):
     padded = _SamePad(kernel, 2)(torch.ones(1, 1, size, size))
     assert padded.shape[-1] == size + before + after
@@ -75,7 +77,9 @@ def test_a_coco_started_detector_trains_its_late_stages_only_and_round_trips(fam
     config = DetectorConfig(family=family, pretrained="coco", **SMALL)
     model = build_detector(config, num_classes=2).train()
     body = model.backbone.body
-    assert not any(p.requires_grad for child in list(body.values())[: FEATURE_CHILDREN[0] + 1] for p in child.parameters())
+    assert not any(
+        p.requires_grad for child in list(body.values())[: FEATURE_CHILDREN[0] + 1] for p in child.parameters()
+    )
     assert all(p.requires_grad for p in body[str(FEATURE_CHILDREN[-1])].parameters())
     images = [torch.rand(3, 64, 64) for _ in range(2)]
     targets = [{"boxes": torch.tensor([[8.0, 10.0, 40.0, 50.0]]), "labels": torch.tensor([1])} for _ in range(2)]
@@ -86,7 +90,12 @@ def test_a_coco_started_detector_trains_its_late_stages_only_and_round_trips(fam
     assert body["16"][0].weight.grad is not None
     model.eval()
     path = tmp_path / "model.pt"
-    meta = {"family": family, "backbone": config.backbone, "classes": ["a", "b"], "config": config.model_dump(mode="json")}
+    meta = {
+        "family": family,
+        "backbone": config.backbone,
+        "classes": ["a", "b"],
+        "config": config.model_dump(mode="json"),
+    }
     save_checkpoint(model, meta, path)
     restored = load_detector(path, device="cpu").model  # rebuilt without reading the COCO file
     with torch.no_grad():
@@ -153,7 +162,8 @@ def test_the_converter_maps_every_graph_weight_to_its_layer():
     pointwise = tensors["tower_0/MobilenetV3/expanded_conv_3/project/Conv2D_weights"]  # 1, 1, in, out
     torch.testing.assert_close(body[4].project.conv.weight[5, 9, 0, 0], torch.tensor(pointwise[0, 0, 9, 5]))
     torch.testing.assert_close(
-        body[4].project.norm.bias, torch.from_numpy(tensors["tower_0/MobilenetV3/expanded_conv_3/project/Conv2D_bn_offset"])
+        body[4].project.norm.bias,
+        torch.from_numpy(tensors["tower_0/MobilenetV3/expanded_conv_3/project/Conv2D_bn_offset"]),
     )
 
 
@@ -187,8 +197,12 @@ def test_trainable_backbone_stages_count_from_the_last(stages, first_trained):
 
 
 def test_trainable_backbone_stages_apply_to_torchvisions_backbones_too():
-    mobilenet = build_detector(DetectorConfig(trainable_backbone_stages=1, **{**SMALL, "backbone": "mobilenet_v3_large_fpn"}), 2)
-    assert [i for i, c in enumerate(mobilenet.backbone.body.values()) if any(p.requires_grad for p in c.parameters())] == [16]
+    mobilenet = build_detector(
+        DetectorConfig(trainable_backbone_stages=1, **{**SMALL, "backbone": "mobilenet_v3_large_fpn"}), 2
+    )
+    assert [
+        i for i, c in enumerate(mobilenet.backbone.body.values()) if any(p.requires_grad for p in c.parameters())
+    ] == [16]
     resnet = build_detector(DetectorConfig(trainable_backbone_stages=2, **{**SMALL, "backbone": "resnet50_fpn_v2"}), 2)
     trained = {name.split(".")[0] for name, p in resnet.backbone.body.named_parameters() if p.requires_grad}
     assert trained == {"layer4", "layer3"}

@@ -96,7 +96,10 @@ def test_detect_writes_to_out_and_gives_a_photo_and_its_twin_the_same_boxes(sets
     for folder in sets:
         images = sorted(str(path) for path in (folder / "images").glob("*.jpg"))
         out, target = tmp_path / f"drawn-{folder.name}", tmp_path / f"{folder.name}.json"
-        result = runner.invoke(app, ["detect", "--model", str(model), *images, "--out", str(out), "--threshold", "0.0", "--json", str(target)])
+        result = runner.invoke(
+            app,
+            ["detect", "--model", str(model), *images, "--out", str(out), "--threshold", "0.0", "--json", str(target)],
+        )
         assert result.exit_code == 0, result.output
         assert len(list(out.glob("*.png"))) == len(images)
         document = json.loads(target.read_text())
@@ -113,7 +116,21 @@ def test_detect_reports_a_shrunk_photos_boxes_in_its_own_pixels(sets, model, tmp
     def detect(image, max_side):
         monkeypatch.setattr(data, "PHOTO_MAX_SIDE", max_side)
         target = tmp_path / f"{max_side}.json"
-        result = runner.invoke(app, ["detect", "--model", str(model), str(image), "--out", str(tmp_path / "d"), "--threshold", "0", "--json", str(target)])
+        result = runner.invoke(
+            app,
+            [
+                "detect",
+                "--model",
+                str(model),
+                str(image),
+                "--out",
+                str(tmp_path / "d"),
+                "--threshold",
+                "0",
+                "--json",
+                str(target),
+            ],
+        )
         assert result.exit_code == 0, result.output
         return json.loads(target.read_text())["images"][0]
 
@@ -129,7 +146,22 @@ def test_finetune_gives_the_same_sweep_for_either_set(sets, model, tmp_path):
     curves = []
     for folder in sets:
         out = tmp_path / folder.name
-        result = runner.invoke(app, ["finetune", "--model", str(model), "--data", str(folder), "--sweep", "0,3", "--iterations", "1", "--out", str(out)])
+        result = runner.invoke(
+            app,
+            [
+                "finetune",
+                "--model",
+                str(model),
+                "--data",
+                str(folder),
+                "--sweep",
+                "0,3",
+                "--iterations",
+                "1",
+                "--out",
+                str(out),
+            ],
+        )
         assert result.exit_code == 0, result.output
         curves.append(json.loads((out / "fig11.json").read_text()))
     assert curves[0] == curves[1] and [point["n"] for point in curves[0]] == [0, 3]

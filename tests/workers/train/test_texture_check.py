@@ -12,7 +12,16 @@ import pytest
 import skimage.data
 
 from workers.train import texture_check
-from workers.train.texture_check import CONFIRMED_FLOOR, MIN_AXIS_RATIO, MIN_SCORE, PAPER_CUT, SEARCH_MIN_INLIERS, SIFT_MAX_SIDE, TextureCheck, sift_scale
+from workers.train.texture_check import (
+    CONFIRMED_FLOOR,
+    MIN_AXIS_RATIO,
+    MIN_SCORE,
+    PAPER_CUT,
+    SEARCH_MIN_INLIERS,
+    SIFT_MAX_SIDE,
+    TextureCheck,
+    sift_scale,
+)
 
 CLASSES = ["astronaut", "coffee"]
 
@@ -75,7 +84,9 @@ def test_a_piece_of_the_sheet_becomes_the_outline_and_merges_with_the_whole(chec
     assert _iou(alone["boxes"][0], box) > 0.8  # the whole sheet, not the piece
     found = detections((piece, 0.9, 0), (box, 0.6, 0))
     merged = checker.apply(image, found)
-    assert len(merged["scores"]) == 1 and merged["scores"][0] == pytest.approx(CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * 0.9)
+    assert len(merged["scores"]) == 1 and merged["scores"][0] == pytest.approx(
+        CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * 0.9
+    )
     np.testing.assert_array_equal(found["boxes"][0], piece)  # the caller's arrays are left as they were
 
 
@@ -83,7 +94,9 @@ def _iou(a, b) -> float:
     import torch
     from torchvision.ops import box_iou
 
-    return float(box_iou(torch.as_tensor(np.asarray(a, np.float32))[None], torch.as_tensor(np.asarray(b, np.float32))[None]))
+    return float(
+        box_iou(torch.as_tensor(np.asarray(a, np.float32))[None], torch.as_tensor(np.asarray(b, np.float32))[None])
+    )
 
 
 def test_a_box_named_wrong_is_renamed_to_the_texture_it_matches(checker, scene):
@@ -187,7 +200,9 @@ def test_a_box_is_renamed_only_where_the_other_textures_matches_agree_on_a_map(c
     scattered = np.random.default_rng(1).permutation(agreeing)  # the same places, each matched to another texture point
     found = detections((box, 0.85, 0))  # called astronaut; every match inside is coffee's
     for points, renamed in ((scattered, False), (agreeing, True)):
-        monkeypatch.setattr(checker, "_keypoints_and_matches", lambda gray, p=points: (p, p, np.ones(len(p), np.int64), texture_points))
+        monkeypatch.setattr(
+            checker, "_keypoints_and_matches", lambda gray, p=points: (p, p, np.ones(len(p), np.int64), texture_points)
+        )
         checked = checker.apply(image, found)
         assert checked["labels"].tolist() == [1 if renamed else 0]
         assert checked["confirmed"].tolist() == [renamed]
@@ -214,7 +229,9 @@ def test_without_evidence_boxes_stay_on_their_side_of_the_cut_below_the_confirme
         np.testing.assert_array_equal(unchanged[key], value)
     assert unchanged["confirmed"].tolist() == [False]
     empty = checker.apply(image, detections())
-    assert empty["boxes"].shape == (0, 4) and len(empty["scores"]) == len(empty["labels"]) == len(empty["confirmed"]) == 0
+    assert (
+        empty["boxes"].shape == (0, 4) and len(empty["scores"]) == len(empty["labels"]) == len(empty["confirmed"]) == 0
+    )
 
 
 def test_grayscale_images_and_textures_work_and_a_missing_texture_is_named(textures, scene):
@@ -239,7 +256,9 @@ def test_a_mirrored_or_squashed_fit_is_no_evidence(checker, scene, monkeypatch, 
     squashed = np.stack([upright[:, 0], y0 + texture_points[:, 1] * scale * flatness], axis=1)
     found = detections((box, 0.5, 0))
     for points, raised in ((upright, True), (mirrored, False), (squashed, flatness >= MIN_AXIS_RATIO)):
-        monkeypatch.setattr(checker, "_keypoints_and_matches", lambda gray, p=points: (p, p, np.zeros(len(p), np.int64), texture_points))
+        monkeypatch.setattr(
+            checker, "_keypoints_and_matches", lambda gray, p=points: (p, p, np.zeros(len(p), np.int64), texture_points)
+        )
         assert bool(checker.apply(image, found)["scores"][0] > 0.8) == raised
 
 
@@ -302,7 +321,7 @@ def test_the_search_finds_each_sheet_of_several_and_no_sheet_where_there_is_none
     found = searcher.apply(image, detections())
     assert sorted(found["labels"].tolist()) == [0, 0, 1]
     for box, label in truth:
-        ious = [_iou(b, box) for b, l in zip(found["boxes"], found["labels"]) if l == label]
+        ious = [_iou(b, box) for b, lab in zip(found["boxes"], found["labels"]) if lab == label]
         assert max(ious) > 0.7
     assert np.all(found["scores"] == pytest.approx(SEARCHED)) and found["confirmed"].all()
     noise = cv2.GaussianBlur(np.random.default_rng(6).integers(0, 255, (300, 560, 3)).astype(np.uint8), (0, 0), 3)
@@ -322,8 +341,11 @@ def test_the_search_refuses_a_mirrored_or_squashed_fit(searcher, scene, monkeypa
     squashed = np.stack([upright[:, 0], 40 + texture_points[:, 1] * 0.03], axis=1)
     few = SEARCH_MIN_INLIERS - 1  # fewer matches than the search needs, however well they agree
     for points, sources, sheets in (
-        (upright, texture_points, 1), (mirrored, texture_points, 0), (squashed, texture_points, 0),
-        (upright[:few], texture_points[:few], 0), (upright[: few + 1], texture_points[: few + 1], 1),
+        (upright, texture_points, 1),
+        (mirrored, texture_points, 0),
+        (squashed, texture_points, 0),
+        (upright[:few], texture_points[:few], 0),
+        (upright[: few + 1], texture_points[: few + 1], 1),
     ):
         matches = (points, np.zeros(len(points), np.int64), sources)
         monkeypatch.setattr(searcher, "_keypoints_and_matches", lambda gray, m=matches: (m[0], *m))
@@ -374,7 +396,9 @@ def _soft_sheet(textures, width: int, blur: float, quality: int) -> np.ndarray:
 
 
 @pytest.mark.parametrize("width,blur", [(150, 1.0), (100, 1.5), (70, 1.0)])
-def test_a_soft_sheet_matches_its_texture_more_often_with_the_image_sharpened(checker, textures, monkeypatch, width, blur):
+def test_a_soft_sheet_matches_its_texture_more_often_with_the_image_sharpened(
+    checker, textures, monkeypatch, width, blur
+):
     """Sharpening the image before SIFT (amount 1, the one measured in bench/README.md) brings back
     the fine detail a soft sheet lost: its own texture's matches rise by half or more, and the
     other texture's stay a few."""
@@ -444,11 +468,17 @@ def test_a_torn_or_mismatched_cache_is_made_again(textures, scene, tmp_path, cap
 
     trees.write_bytes(trees.read_bytes()[: trees.stat().st_size // 2])  # torn: its digest no longer matches
     stored = texture_check._CheckCache(tmp_path, features.stem).load()
-    assert texture_check._CheckCache(tmp_path, features.stem).load_index(stored.features.descriptors, stored.index_digest) is None
+    assert (
+        texture_check._CheckCache(tmp_path, features.stem).load_index(stored.features.descriptors, stored.index_digest)
+        is None
+    )
     rebuilt = TextureCheck(textures, CLASSES, cache_dir=tmp_path)
     _assert_same_outputs(_checked(rebuilt, image, box), reference)
     stored = texture_check._CheckCache(tmp_path, features.stem).load()
-    assert texture_check._CheckCache(tmp_path, features.stem).load_index(stored.features.descriptors, stored.index_digest) is not None
+    assert (
+        texture_check._CheckCache(tmp_path, features.stem).load_index(stored.features.descriptors, stored.index_digest)
+        is not None
+    )
 
 
 def test_other_textures_order_or_settings_are_filed_apart(textures, monkeypatch):

@@ -106,7 +106,17 @@ def test_empty_dataset_is_a_clear_error(tmp_path):
     )
     result = runner.invoke(
         make_app(),
-        ["train", "--detector", "faster_rcnn", "--data", str(tmp_path), "--iterations", "1", "--out", str(tmp_path / "m.pt")],
+        [
+            "train",
+            "--detector",
+            "faster_rcnn",
+            "--data",
+            str(tmp_path),
+            "--iterations",
+            "1",
+            "--out",
+            str(tmp_path / "m.pt"),
+        ],
     )
     assert result.exit_code == 1
     assert "is empty" in result.output
@@ -125,8 +135,17 @@ def test_missing_init_checkpoint_is_a_clear_error(tmp_path, dataset):
     result = runner.invoke(
         make_app(),
         [
-            "train", "--detector", "yolo", "--data", str(dataset), "--iterations", "1",
-            "--init", str(tmp_path / "absent.pt"), "--out", str(tmp_path / "m.pt"),
+            "train",
+            "--detector",
+            "yolo",
+            "--data",
+            str(dataset),
+            "--iterations",
+            "1",
+            "--init",
+            str(tmp_path / "absent.pt"),
+            "--out",
+            str(tmp_path / "m.pt"),
         ],
     )
     assert result.exit_code == 1
@@ -178,8 +197,10 @@ def test_draw_detections_draws_texture_confirmed_boxes_solid_and_the_others_dash
     drawn = {}
     for confirmed in (True, False):
         found = {
-            "boxes": np.array([box], np.float32), "scores": np.array([0.95], np.float32),
-            "labels": np.array([0], np.int64), "confirmed": np.array([confirmed]),
+            "boxes": np.array([box], np.float32),
+            "scores": np.array([0.95], np.float32),
+            "labels": np.array([0], np.int64),
+            "confirmed": np.array([confirmed]),
         }
         drawn[confirmed] = draw_detections(image, found, CLASSES, score_threshold=0.8)
     bottom_solid, bottom_dashed = drawn[True][180, 20:181].any(1), drawn[False][180, 20:181].any(1)
@@ -225,8 +246,23 @@ def trained(tmp_path_factory, dataset) -> dict[str, Path]:
         result = runner.invoke(
             make_app(),
             [
-                "train", "--detector", family, "--data", str(dataset), "--iterations", "1",
-                "--input-size", "64", "--batch-size", "1", "--seed", "1", "--threads", "2", "--out", str(path),
+                "train",
+                "--detector",
+                family,
+                "--data",
+                str(dataset),
+                "--iterations",
+                "1",
+                "--input-size",
+                "64",
+                "--batch-size",
+                "1",
+                "--seed",
+                "1",
+                "--threads",
+                "2",
+                "--out",
+                str(path),
             ],
         )
         assert result.exit_code == 0, result.output
@@ -252,8 +288,21 @@ def test_train_warm_start_from_checkpoint(trained, dataset, tmp_path):
     result = runner.invoke(
         make_app(),
         [
-            "train", "--detector", "yolo", "--data", str(dataset), "--iterations", "1", "--input-size", "64",
-            "--init", str(trained["checkpoints"]["yolo"]), "--threads", "2", "--out", str(tmp_path / "next.pt"),
+            "train",
+            "--detector",
+            "yolo",
+            "--data",
+            str(dataset),
+            "--iterations",
+            "1",
+            "--input-size",
+            "64",
+            "--init",
+            str(trained["checkpoints"]["yolo"]),
+            "--threads",
+            "2",
+            "--out",
+            str(tmp_path / "next.pt"),
         ],
     )
     assert result.exit_code == 0, result.output
@@ -264,10 +313,27 @@ def test_evaluate_prints_tables_and_writes_json(trained, dataset, tmp_path):
     target = tmp_path / "eval" / "result.json"
     result = runner.invoke(
         make_app(),
-        ["evaluate", "--model", str(trained["checkpoints"]["faster_rcnn"]), "--data", str(dataset), "--json", str(target), "--threads", "2"],
+        [
+            "evaluate",
+            "--model",
+            str(trained["checkpoints"]["faster_rcnn"]),
+            "--data",
+            str(dataset),
+            "--json",
+            str(target),
+            "--threads",
+            "2",
+        ],
     )
     assert result.exit_code == 0, result.output
-    for text in ("Per class", "Per condition", "Per difficulty", "mAP (paper protocol", "mAP (unthresholded)", *CLASSES):
+    for text in (
+        "Per class",
+        "Per condition",
+        "Per difficulty",
+        "mAP (paper protocol",
+        "mAP (unthresholded)",
+        *CLASSES,
+    ):
         assert text in result.output
     assert "evaluating: 6/6 images (100%)" in result.output and "\x1b" not in result.output
     payload = json.loads(target.read_text())
@@ -285,7 +351,16 @@ def test_detect_writes_annotated_copies(trained, dataset, tmp_path):
     out_dir = tmp_path / "drawn"
     result = runner.invoke(
         make_app(),
-        ["detect", "--model", str(trained["checkpoints"]["yolo"]), *map(str, images), "--out-dir", str(out_dir), "--threshold", "0.0"],
+        [
+            "detect",
+            "--model",
+            str(trained["checkpoints"]["yolo"]),
+            *map(str, images),
+            "--out-dir",
+            str(out_dir),
+            "--threshold",
+            "0.0",
+        ],
     )
     assert result.exit_code == 0, result.output
     for image in images:
@@ -299,7 +374,9 @@ def test_detect_at_chosen_sizes_and_bad_sizes_named(trained, dataset, tmp_path):
     app, model = make_app(), ["--model", str(trained["checkpoints"]["faster_rcnn"])]
     lines = {}
     for sizes in ("64", "64,96,128"):
-        result = runner.invoke(app, ["detect", *model, *images, "--out-dir", str(tmp_path / sizes), "--threshold", "0.0", "--sizes", sizes])
+        result = runner.invoke(
+            app, ["detect", *model, *images, "--out-dir", str(tmp_path / sizes), "--threshold", "0.0", "--sizes", sizes]
+        )
         assert result.exit_code == 0, result.output
         lines[sizes] = result.output
     assert lines["64"] != lines["64,96,128"]  # more sizes, other (merged) detections
@@ -308,7 +385,10 @@ def test_detect_at_chosen_sizes_and_bad_sizes_named(trained, dataset, tmp_path):
         assert result.exit_code == 1 and f"--sizes {bad!r}" in result.output
     yolo = runner.invoke(app, ["detect", "--model", str(trained["checkpoints"]["yolo"]), *images, "--sizes", "64"])
     assert yolo.exit_code == 1 and "only the R-CNN families" in yolo.output
-    turned = runner.invoke(app, ["detect", *model, *images, "--out-dir", str(tmp_path / "turns"), "--threshold", "0.0", "--turns", "0,1,2,3"])
+    turned = runner.invoke(
+        app,
+        ["detect", *model, *images, "--out-dir", str(tmp_path / "turns"), "--threshold", "0.0", "--turns", "0,1,2,3"],
+    )
     assert turned.exit_code == 0, turned.output
     assert turned.output != lines["64"]  # four views merged, other detections
     for bad, problem in (("0,0", "turns repeat"), ("4", "0, 1, 2 or 3"), ("left", "not whole numbers")):
@@ -331,7 +411,9 @@ def test_detect_with_several_models_merges_them_and_refuses_other_classes(traine
 
     def detect(*models: str, out: str) -> str:
         arguments = [part for model in models for part in ("--model", model)]
-        result = runner.invoke(app, ["detect", *arguments, *images, "--out-dir", str(tmp_path / out), "--threshold", "0.0"])
+        result = runner.invoke(
+            app, ["detect", *arguments, *images, "--out-dir", str(tmp_path / out), "--threshold", "0.0"]
+        )
         assert result.exit_code == 0, result.output
         return result.output.replace(out, "OUT")
 
@@ -343,7 +425,9 @@ def test_detect_with_several_models_merges_them_and_refuses_other_classes(traine
     checkpoint["meta"]["classes"] = checkpoint["meta"]["classes"][::-1]
     reordered = tmp_path / "reordered.pt"
     torch.save(checkpoint, reordered)
-    result = runner.invoke(app, ["detect", "--model", faster, "--model", str(reordered), *images, "--out-dir", str(tmp_path / "bad")])
+    result = runner.invoke(
+        app, ["detect", "--model", faster, "--model", str(reordered), *images, "--out-dir", str(tmp_path / "bad")]
+    )
     assert result.exit_code == 1 and "one class list" in result.output
 
 
@@ -358,14 +442,18 @@ def test_ensemble_joins_checkpoints_into_one_file_that_detects_as_they_do_togeth
     assert result.exit_code == 0 and "an ensemble of 2 detectors" in result.output, result.output
 
     def detect(*arguments: str, out: str) -> str:
-        result = runner.invoke(app, ["detect", *arguments, *images, "--out-dir", str(tmp_path / out), "--threshold", "0.0"])
+        result = runner.invoke(
+            app, ["detect", *arguments, *images, "--out-dir", str(tmp_path / out), "--threshold", "0.0"]
+        )
         assert result.exit_code == 0, result.output
         return result.output.replace(out, "OUT")
 
     assert detect("--model", str(joined), out="file") == detect("--model", yolo, "--model", faster, out="listed")
     exported = runner.invoke(app, ["export", "--model", str(joined), "--out", str(tmp_path / "e.onnx")])
     assert exported.exit_code == 1 and "several detector families (faster_rcnn, yolo)" in exported.output
-    tuned = runner.invoke(app, ["finetune", "--model", str(joined), "--data", str(dataset), "--sweep", "0", "--out", str(tmp_path / "ft")])
+    tuned = runner.invoke(
+        app, ["finetune", "--model", str(joined), "--data", str(dataset), "--sweep", "0", "--out", str(tmp_path / "ft")]
+    )
     assert tuned.exit_code == 0 and "an ensemble of 2 detectors, each fine-tuned" in tuned.output, tuned.output
     for arguments, problem in (
         (["--model", faster], "two or more checkpoints"),
@@ -386,7 +474,18 @@ def test_detect_writes_the_drawn_detections_as_json(trained, dataset, tmp_path):
     target = tmp_path / "out" / "detections.json"
     result = runner.invoke(
         make_app(),
-        ["detect", "--model", str(model), *map(str, images), "--out-dir", str(tmp_path / "drawn"), "--threshold", "0.05", "--json", str(target)],
+        [
+            "detect",
+            "--model",
+            str(model),
+            *map(str, images),
+            "--out-dir",
+            str(tmp_path / "drawn"),
+            "--threshold",
+            "0.05",
+            "--json",
+            str(target),
+        ],
     )
     assert result.exit_code == 0, result.output
     assert f"detections: {target}" in result.output
@@ -399,7 +498,9 @@ def test_detect_writes_the_drawn_detections_as_json(trained, dataset, tmp_path):
         assert [d["score"] for d in entry["detections"]] == pytest.approx(found["scores"][keep].tolist())
         assert [d["label"] for d in entry["detections"]] == found["labels"][keep].tolist()
         assert [d["class"] for d in entry["detections"]] == [CLASSES[label] for label in found["labels"][keep]]
-        np.testing.assert_allclose([d["box"] for d in entry["detections"]] or np.zeros((0, 4)), found["boxes"][keep], atol=0.006)
+        np.testing.assert_allclose(
+            [d["box"] for d in entry["detections"]] or np.zeros((0, 4)), found["boxes"][keep], atol=0.006
+        )
         assert all(d["confirmed"] is None for d in entry["detections"])  # this detector has no texture check
     assert sum(len(entry["detections"]) for entry in document["images"]) > 0
 
@@ -410,7 +511,16 @@ def test_detect_names_a_json_file_it_cannot_write(trained, dataset, tmp_path):
     blocked.write_text("not a folder")
     result = runner.invoke(
         make_app(),
-        ["detect", "--model", str(trained["checkpoints"]["faster_rcnn"]), image, "--out-dir", str(tmp_path / "d"), "--json", str(blocked / "d.json")],
+        [
+            "detect",
+            "--model",
+            str(trained["checkpoints"]["faster_rcnn"]),
+            image,
+            "--out-dir",
+            str(tmp_path / "d"),
+            "--json",
+            str(blocked / "d.json"),
+        ],
     )
     assert result.exit_code == 1 and f"cannot write {blocked / 'd.json'}" in result.output
     assert (tmp_path / "d" / Path(image).with_suffix(".png").name).is_file()  # the drawn copies are kept
@@ -423,10 +533,14 @@ def test_calibrate_refuses_a_model_without_textures_and_a_recorded_calibration_i
     from workers.train.checkpoint import load_detector, save_ensemble, write_calibration
 
     faster = trained["checkpoints"]["faster_rcnn"]
-    result = runner.invoke(make_app(), ["calibrate", "--model", str(faster), "--data", str(dataset), "--out", str(tmp_path / "c.pt")])
+    result = runner.invoke(
+        make_app(), ["calibrate", "--model", str(faster), "--data", str(dataset), "--out", str(tmp_path / "c.pt")]
+    )
     assert result.exit_code == 1 and "carries no textures" in result.output and "Traceback" not in result.output
     assert not (tmp_path / "c.pt").exists()
-    calibration = Calibration(weights=tuple(float(i) for i in range(len(FEATURES))), bias=-1.0, fitted_on="labelled photographs")
+    calibration = Calibration(
+        weights=tuple(float(i) for i in range(len(FEATURES))), bias=-1.0, fitted_on="labelled photographs"
+    )
     single = write_calibration(faster, calibration, tmp_path / "single.pt")
     assert load_detector(single).calibration == calibration
     assert load_detector(faster).calibration is None  # the source is left as it was

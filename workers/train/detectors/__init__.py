@@ -314,7 +314,9 @@ def merge_detections(outputs: Sequence[dict], iou_threshold: float, limit: int, 
         keep = keep[:limit]
         merged = {"boxes": boxes[keep], "scores": scores[keep], "labels": labels[keep]}
     else:
-        runs = torch.cat([torch.full_like(torch.as_tensor(output["scores"]), index) for index, output in enumerate(outputs)])
+        runs = torch.cat(
+            [torch.full_like(torch.as_tensor(output["scores"]), index) for index, output in enumerate(outputs)]
+        )
         # Each box belongs to the first kept box (best first) of its class it overlaps: the one
         # that suppressed it in the greedy NMS above (a kept box belongs to itself).
         overlaps = (box_iou(boxes[keep], boxes) > iou_threshold) & (labels[keep][:, None] == labels[None, :])

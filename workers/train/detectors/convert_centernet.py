@@ -97,7 +97,9 @@ def backbone_state(tensors: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         block = "expanded_conv" if index == 0 else f"expanded_conv_{index}"
         child = str(index + 1)
         if expanded != cin:
-            conv_norm(f"{child}.expand", conv(f"{tf}/{block}/expand/Conv2D_weights"), f"{tf}/{block}/expand/Conv2D_bn_offset")
+            conv_norm(
+                f"{child}.expand", conv(f"{tf}/{block}/expand/Conv2D_weights"), f"{tf}/{block}/expand/Conv2D_bn_offset"
+            )
         conv_norm(
             f"{child}.depthwise",
             conv(f"{tf}/{block}/depthwise/depthwise_weights", depthwise=True),
@@ -109,7 +111,9 @@ def backbone_state(tensors: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
             state[f"{child}.squeeze_excite.reduce.bias"] = torch.from_numpy(tensors[f"{se}/Conv/biases"])
             state[f"{child}.squeeze_excite.expand.weight"] = conv(f"{se}/Conv_1/weights").contiguous()
             state[f"{child}.squeeze_excite.expand.bias"] = torch.from_numpy(tensors[f"{se}/Conv_1/biases"])
-        conv_norm(f"{child}.project", conv(f"{tf}/{block}/project/Conv2D_weights"), f"{tf}/{block}/project/Conv2D_bn_offset")
+        conv_norm(
+            f"{child}.project", conv(f"{tf}/{block}/project/Conv2D_weights"), f"{tf}/{block}/project/Conv2D_bn_offset"
+        )
         cin = cout
     conv_norm(str(len(BLOCKS) + 1), conv("tower_0/extern1/Conv2D_weights"), "tower_0/extern1/Conv2D_bn_offset")
     return state
@@ -117,16 +121,20 @@ def backbone_state(tensors: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
 
 def _resize_legacy(x: torch.Tensor, size: list[int]) -> torch.Tensor:
     """TensorFlow's ResizeBilinear without half-pixel centres: source = destination × in/out."""
+
     def axis(n_out: int, n_in: int):
         src = torch.arange(n_out, dtype=torch.float32) * (n_in / n_out)
         low = src.floor().long().clamp(max=n_in - 1)
         return low, (low + 1).clamp(max=n_in - 1), src - low
+
     (y0, y1, wy), (x0, x1, wx) = axis(size[0], x.shape[2]), axis(size[1], x.shape[3])
     rows = x[:, :, y0] * (1 - wy.view(-1, 1)) + x[:, :, y1] * wy.view(-1, 1)
     return rows[..., x0] * (1 - wx) + rows[..., x1] * wx
 
 
-def run_graph(graph: dict, tensors: dict[str, np.ndarray], images: torch.Tensor, outputs: list[str]) -> list[torch.Tensor]:
+def run_graph(
+    graph: dict, tensors: dict[str, np.ndarray], images: torch.Tensor, outputs: list[str]
+) -> list[torch.Tensor]:
     """Evaluate graph nodes on NCHW ``images`` (0..255): the ops the CenterNet's outputs need."""
     nodes = {node["name"]: node for node in graph["modelTopology"]["node"]}
     nchw_axis = {0: 0, 1: 2, 2: 3, 3: 1}
@@ -187,7 +195,10 @@ def check(graph: dict, tensors: dict[str, np.ndarray], state: dict[str, torch.Te
         return F.interpolate(x, size=(512, 512), mode="bilinear", align_corners=False)
 
     report = {}
-    for label, image, expected in (("astronaut", skimage.data.astronaut(), COCO_PERSON), ("coffee", skimage.data.coffee(), COCO_CUP)):
+    for label, image, expected in (
+        ("astronaut", skimage.data.astronaut(), COCO_PERSON),
+        ("coffee", skimage.data.coffee(), COCO_CUP),
+    ):
         (heatmap,) = run_graph(graph, tensors, photo(image), ["tower_0/keypoints"])
         best = int(heatmap.amax(dim=(2, 3))[0].argmax())
         report[label] = {"top_coco_class": best, "score": round(float(heatmap.max()), 3)}
@@ -195,7 +206,10 @@ def check(graph: dict, tensors: dict[str, np.ndarray], state: dict[str, torch.Te
             raise AssertionError(f"the graph's top COCO class on {label} is {best}, expected {expected}")
     # The graph's hard-swish and hard-sigmoid multiply by 1/6 stored as float16 (0.166626); with
     # the exact 1/6 the comparison below tests the mapping of weights, not that rounding.
-    exact = {name: (np.array(1 / 6, np.float32) if value.ndim == 0 and abs(value - 1 / 6) < 1e-3 else value) for name, value in tensors.items()}
+    exact = {
+        name: (np.array(1 / 6, np.float32) if value.ndim == 0 and abs(value - 1 / 6) < 1e-3 else value)
+        for name, value in tensors.items()
+    }
     body = mobilenet_v3_large_075_body(FOLDED_BATCHNORM).eval()
     body.load_state_dict(state)
     x = photo(skimage.data.chelsea())

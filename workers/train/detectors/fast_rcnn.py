@@ -65,7 +65,9 @@ class FastRCNN(nn.Module):
 
     def forward(self, images: list[Tensor], targets: list[dict[str, Tensor]] | None = None):
         if not self.training and (self.test_sizes or self.test_turns):
-            return detect_at_views(self, lambda views: self._forward(views, None), images, self.test_sizes, self.test_turns)
+            return detect_at_views(
+                self, lambda views: self._forward(views, None), images, self.test_sizes, self.test_turns
+            )
         return self._forward(images, targets)
 
     def _forward(self, images: list[Tensor], targets: list[dict[str, Tensor]] | None):
@@ -128,6 +130,11 @@ def build_fast_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: b
         min_size=config.input_size, max_size=config.input_size, image_mean=image_mean, image_std=image_std
     )
     return FastRCNN(
-        backbone, transform, roi_heads, max_proposals=config.edge_boxes, test_sizes=config.test_sizes, test_turns=config.test_turns,
+        backbone,
+        transform,
+        roi_heads,
+        max_proposals=config.edge_boxes,
+        test_sizes=config.test_sizes,
+        test_turns=config.test_turns,
         view_vote=config.view_vote,
     )

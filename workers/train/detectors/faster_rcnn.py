@@ -30,7 +30,12 @@ class FasterRCNN(detection.FasterRCNN):
     caller of the model, ONNX export included, gets the detector its config describes."""
 
     def __init__(
-        self, *args, test_sizes: Sequence[int] = (), test_turns: Sequence[int] = (), view_vote: float | None = None, **kwargs
+        self,
+        *args,
+        test_sizes: Sequence[int] = (),
+        test_turns: Sequence[int] = (),
+        view_vote: float | None = None,
+        **kwargs,
     ) -> None:
         super().__init__(*args, **kwargs)
         self.test_sizes = tuple(test_sizes)
@@ -40,7 +45,7 @@ class FasterRCNN(detection.FasterRCNN):
     def forward(self, images, targets=None):
         if self.training or not (self.test_sizes or self.test_turns):
             return super().forward(images, targets)
-        detect = super(FasterRCNN, self).forward
+        detect = super().forward
         return detect_at_views(self, detect, images, self.test_sizes, self.test_turns)
 
 

@@ -165,6 +165,8 @@ def load_coco_weights(body: nn.Sequential, path: Path = WEIGHTS_FILE, sha256: st
     content = path.read_bytes()  # read once: hashed, then loaded
     digest = hashlib.sha256(content).hexdigest()
     if digest != sha256:
-        raise ValueError(f"the COCO weights file {path} is not the one foldwise ships (sha256 {digest[:12]}…, expected {sha256[:12]}…; {rebuild})")
+        raise ValueError(
+            f"the COCO weights file {path} is not the one foldwise ships (sha256 {digest[:12]}…, expected {sha256[:12]}…; {rebuild})"
+        )
     state = torch.load(io.BytesIO(content), map_location="cpu", weights_only=True)
     body.load_state_dict({name: tensor.float() for name, tensor in state.items()})

@@ -79,9 +79,10 @@ def pyramid_roi_align(
 
         inside = (yin[:, :, None] & xin[:, None, :]).to(rows.dtype) / (s * s)
         index = torch.stack([corner(ylo, xlo), corner(ylo, xhi), corner(yhi, xlo), corner(yhi, xhi)], -1)
-        weight = torch.stack(
-            [product(wylo, wxlo), product(wylo, wxhi), product(wyhi, wxlo), product(wyhi, wxhi)], -1
-        ) * inside[..., None]
+        weight = (
+            torch.stack([product(wylo, wxlo), product(wylo, wxhi), product(wyhi, wxlo), product(wyhi, wxhi)], -1)
+            * inside[..., None]
+        )
         n = chosen.numel()
         # (n, out_h, s, out_w, s, 4) -> (n, out_h, out_w, s*s*4): a bin's samples and corners last.
         index = index.view(n, out_h, s, out_w, s, 4).permute(0, 1, 3, 2, 4, 5).reshape(n, out_h * out_w, -1)

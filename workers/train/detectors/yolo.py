@@ -92,7 +92,9 @@ _BATCHNORM_MOMENTUM = 0.1
 
 # Backbone base name -> (torchvision builder, ImageNet weights enum entry): the classifiers
 # foldwise knows the ImageNet files of (foldwise/weights.py).
-_BACKBONES: dict[str, tuple[str, str]] = {name: (name, enum_entry) for name, (enum_entry, _file) in IMAGENET_WEIGHTS.items()}
+_BACKBONES: dict[str, tuple[str, str]] = {
+    name: (name, enum_entry) for name, (enum_entry, _file) in IMAGENET_WEIGHTS.items()
+}
 # Detection-style names ("mobilenet_v3_large_fpn", "mobilenet_v3_large_320_fpn",
 # "resnet50_fpn_v2") name the same feature extractor; the passthrough join plays the FPN's role.
 _BACKBONE_NAME = YOLO_BACKBONE_NAME
