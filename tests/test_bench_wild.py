@@ -378,8 +378,8 @@ def test_the_committed_panoramas_are_what_derive_makes_from_bpys(tmp_path):
     import cv2
 
     for name in panoramas.NAMES:
-        # Pixels, not bytes: the tone mapping's float sums round apart on other CPUs (measured on
-        # one machine of this kind: 0.06% of the values off, by 3 at most).
+        # Pixels, not bytes: the tone mapping's float sums round apart on other CPUs (a few
+        # hundredths of a percent of the values, by 3 at most).
         derived = cv2.imread(str(tmp_path / f"{name}.jpg")).astype(np.int16)
         committed = cv2.imread(str(panoramas.path(name))).astype(np.int16)
         assert derived.shape == committed.shape, name

@@ -231,8 +231,8 @@ def test_without_asset_roots_the_api_takes_no_asset_folder(database_url, monkeyp
 
 
 # --------------------------------------------------------------------------- the sweep
-# Every route's numbers and names, each sent every kind of bad value. Before this sweep,
-# ?stage= and ?k= past 2**31 - 1 were a 500 on PostgreSQL, and past 2**63 - 1 on SQLite too.
+# Every route's numbers and names, each sent every kind of bad value: ?stage= and ?k= past
+# 2**31 - 1 overflow PostgreSQL's integers, and past 2**63 - 1 SQLite's.
 
 OUT_OF_RANGE = ["2147483648", "9223372036854775808", "99999999999999999999999", "-1", "0"]
 NOT_INTEGERS = ["abc", "1.5", "1e3", "0x10", "%00", "1%00", "%0A", "nan"]
