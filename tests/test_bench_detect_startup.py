@@ -21,7 +21,7 @@ CLASSES = ["astronaut", "coffee"]
 
 def test_each_case_runs_in_its_own_process_and_the_cache_changes_the_time_not_the_answer(tmp_path, capsys):
     from tests.test_bench_texture_matching import _sheet_set
-    from tests.workers.train.test_training import config
+    from tests.workers.train.training_helpers import config
     from workers.train.training import train_detector
 
     textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}

@@ -56,7 +56,7 @@ def _sheet_set(folder: Path, n: int, textures: dict) -> list:
 
 
 def test_both_matchers_check_the_same_detections_and_the_report_compares_them(tmp_path, capsys):
-    from tests.workers.train.test_training import config
+    from tests.workers.train.training_helpers import config
     from workers.train.training import train_detector
 
     textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}

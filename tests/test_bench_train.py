@@ -34,7 +34,7 @@ def test_score_times_a_second_pass_and_reports_the_first_beside_it(tmp_path, mon
     """Throughput is a warm pass: a first pass over every image runs untimed (on a GPU it pays
     one-off costs per batch shape), and its own rate is reported apart; the mAP comes from the
     timed pass's detections."""
-    from tests.workers.train.test_training import CLASSES, config, synthetic_samples
+    from tests.workers.train.training_helpers import CLASSES, config, synthetic_samples
     from workers.train import checkpoint as checkpoint_module
     from workers.train.training import train_detector
 

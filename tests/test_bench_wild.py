@@ -430,8 +430,8 @@ def _coco_folder(samples, classes, folder: Path) -> Path:
 def test_several_checkpoints_score_as_one_ensemble(tmp_path):
     """--model given twice scores the detectors as one: each detects, the detections merge by
     per-class NMS. A model with itself is the model; models whose class lists differ are refused."""
-    from tests.workers.train.test_training import CLASSES as COLOURS
-    from tests.workers.train.test_training import config, synthetic_samples
+    from tests.workers.train.training_helpers import CLASSES as COLOURS
+    from tests.workers.train.training_helpers import config, synthetic_samples
     from workers.train.training import train_detector
 
     samples = synthetic_samples(tmp_path / "set" / "images", n=6)

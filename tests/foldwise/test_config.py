@@ -7,6 +7,7 @@ import pytest
 from foldwise.config import ConfigError, load_config, parse_config, parse_config_text
 from foldwise.documents import MAX_NESTING
 from foldwise.settings import REPO_ROOT
+from tests.foldwise.config_fields import NUMERIC_FIELDS
 
 CONFIGS = sorted((REPO_ROOT / "configs").glob("*.yaml"))
 
@@ -277,28 +278,6 @@ def test_the_bounds_are_in_the_schema():
     assert detector["grad_clip_norm"]["maximum"] == 1e6
     per_image = definitions["MixedStageConfig"]["properties"]["conditions_per_image"]["prefixItems"]
     assert [item["maximum"] for item in per_image] == [9, 9]
-
-
-def _numeric_fields(model, prefix=""):
-    """(dotted key, field) of every number in the config schema, sections walked."""
-    from pydantic import BaseModel
-
-    for name, field in model.model_fields.items():
-        sections = [t for t in _types(field.annotation) if isinstance(t, type) and issubclass(t, BaseModel)]
-        if sections:
-            yield from _numeric_fields(sections[0], f"{prefix}{name}.")
-        elif _types(field.annotation) & {int, float}:
-            yield f"{prefix}{name}", field
-
-
-def _types(annotation):
-    from typing import get_args
-
-    arguments = get_args(annotation)
-    return {t for argument in arguments for t in _types(argument)} if arguments else {annotation}
-
-
-NUMERIC_FIELDS = dict(_numeric_fields(__import__("foldwise.config", fromlist=["ExperimentConfig"]).ExperimentConfig))
 
 
 def test_every_number_in_the_config_has_an_upper_bound_in_the_schema():

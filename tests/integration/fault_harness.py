@@ -447,3 +447,29 @@ def audit_done_once(stack: Stack, rows: Rows, recovery: Recovery) -> Audit:
         thetas=list(thetas),
         models=list(models),
     )
+
+
+TERMINAL = ("finished", "failed", "cancelled")
+
+
+def summary(api, experiment_id: int) -> dict:
+    response = api.get(f"/experiments/{experiment_id}")
+    response.raise_for_status()
+    return response.json()
+
+
+def wait_until_finished(stack, api, experiment_id: int) -> dict:
+    def ended() -> dict | None:
+        state = summary(api, experiment_id)
+        return state if state["status"] in TERMINAL else None
+
+    state = stack.wait_for(
+        f"experiment {experiment_id} to end",
+        ended,
+        stack.experiment_timeout_s,
+        interval_s=0.25,
+        state=lambda: summary(api, experiment_id),
+    )
+    if state["status"] != "finished":
+        stack.fail(f"experiment {experiment_id} ended {state['status']}: {state['error']}")
+    return state

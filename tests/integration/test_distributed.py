@@ -20,12 +20,12 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from db.models import Evaluation, Model, ParameterSet, RenderStatus, Split, Stage, StageStatus
 from foldwise import store
+from tests.integration.fault_harness import TERMINAL, summary, wait_until_finished
 from workers.app import RENDER_TASK, TRAIN_TASK
 
 pytestmark = pytest.mark.integration
 
 SMOKE_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "smoke.yaml"
-TERMINAL = ("finished", "failed", "cancelled")
 
 
 @pytest.fixture(scope="session")
@@ -45,29 +45,6 @@ def submit(api, stack) -> int:
     if response.status_code != 201:
         stack.fail(f"POST /experiments answered {response.status_code}: {response.text}")
     return response.json()["id"]
-
-
-def summary(api, experiment_id: int) -> dict:
-    response = api.get(f"/experiments/{experiment_id}")
-    response.raise_for_status()
-    return response.json()
-
-
-def wait_until_finished(stack, api, experiment_id: int) -> dict:
-    def ended() -> dict | None:
-        state = summary(api, experiment_id)
-        return state if state["status"] in TERMINAL else None
-
-    state = stack.wait_for(
-        f"experiment {experiment_id} to end",
-        ended,
-        stack.experiment_timeout_s,
-        interval_s=0.25,
-        state=lambda: summary(api, experiment_id),
-    )
-    if state["status"] != "finished":
-        stack.fail(f"experiment {experiment_id} ended {state['status']}: {state['error']}")
-    return state
 
 
 def check_history(api, experiment_id: int, models: list[Model]) -> list[dict]:

@@ -34,8 +34,8 @@ from tests.integration.fault_harness import (
     kill_train_worker_mid_increment,
     restart_redis_empty,
     stack_on_own_redis,
+    wait_until_finished,
 )
-from tests.integration.test_distributed import wait_until_finished
 
 pytestmark = pytest.mark.integration
 

@@ -12,7 +12,7 @@ from services import queries
 from services.cli import app
 from services.embedded import run_to_completion, start_experiment
 from services.figures import FIGURES, write_figures
-from tests.services.scheduler.test_flow import config, fakes  # noqa: F401  (the fakes fixture)
+from tests.services.flow_helpers import config
 
 
 def _two_runs(fakes):  # noqa: F811

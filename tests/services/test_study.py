@@ -12,7 +12,7 @@ from typer.testing import CliRunner
 from db.models import Experiment
 from db.session import session_scope
 from services.cli import app
-from tests.services.scheduler.test_flow import config, fakes  # noqa: F401  (the fakes fixture)
+from tests.services.flow_helpers import config
 
 
 def _config_file(tmp_path):

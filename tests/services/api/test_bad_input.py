@@ -381,7 +381,7 @@ def _nested(key: str, value) -> dict:
 
 
 def test_every_number_in_the_config_refuses_every_bad_value(client, database_url):
-    from tests.foldwise.test_config import NUMERIC_FIELDS
+    from tests.foldwise.config_fields import NUMERIC_FIELDS
 
     wrong = {}
     for key in NUMERIC_FIELDS:

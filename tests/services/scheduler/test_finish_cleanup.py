@@ -16,8 +16,8 @@ from db.session import session_scope
 from services import queries
 from services.embedded import start_experiment
 from services.scheduler.reconcile import EnqueueTraining, Finish, apply, reconcile_once
-from tests.services.scheduler.test_flow import config
-from tests.services.scheduler.test_plan import NOW, model, plan, snapshot
+from tests.services.flow_helpers import config, in_flight
+from tests.services.scheduler.plans import NOW, model, plan, snapshot
 
 
 def _statuses(experiment_id: int) -> tuple[Counter, Counter]:
@@ -32,22 +32,9 @@ def _statuses(experiment_id: int) -> tuple[Counter, Counter]:
     return thetas, models
 
 
-def _in_flight(experiment_id: int) -> None:
-    """Reconcile until θ are queued and a model is waiting for a worker that never comes."""
-    for _ in range(10):
-        reconcile_once(experiment_id)
-    with session_scope() as session:
-        # The test set and increment 1 rendered, so that a model is created and queued.
-        for row in session.scalars(select(ParameterSet).where(ParameterSet.experiment_id == experiment_id)):
-            if row.split.value == "test" or row.increment == 1:
-                row.status, row.image_path, row.box, row.label = RenderStatus.rendered, "x.png", [1, 1, 9, 9], 0
-    for _ in range(3):
-        reconcile_once(experiment_id)
-
-
 def test_cancel_discards_what_was_queued_and_workers_skip_it(sent):
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     thetas, models = _statuses(experiment_id)
     assert thetas["queued"] > 0 and models["queued"] == 1
 
@@ -73,7 +60,7 @@ def test_cancel_discards_what_was_queued_and_workers_skip_it(sent):
 
 def test_finish_discards_the_renders_sampled_ahead(sent):
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     with session_scope() as session:
         experiment = session.get(Experiment, experiment_id)
         apply(session, experiment, [Finish(None)], config())

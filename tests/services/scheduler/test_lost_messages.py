@@ -18,8 +18,7 @@ from services.embedded import start_experiment
 from services.scheduler import broker_view, reconcile
 from services.scheduler.broker_view import Held, held_messages
 from services.scheduler.reconcile import reconcile_once
-from tests.services.scheduler.test_finish_cleanup import _in_flight
-from tests.services.scheduler.test_flow import config
+from tests.services.flow_helpers import config, in_flight
 from workers.app import RENDER_TASK, TRAIN_TASK
 
 
@@ -53,7 +52,7 @@ def _resent(messages) -> list[int]:
 
 def test_unclaimed_theta_nobody_holds_is_sent_again_once_and_held_ones_are_left(monkeypatch, sent):
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     queued = _age_queued(experiment_id, seconds=40)  # past the grace (30 s of the 60 s lease)
     waiting_in_queue, lost = set(queued[:3]), set(queued[3:])
     asked: list[set[int]] = []
@@ -80,7 +79,7 @@ def test_a_live_claim_is_left_alone_and_a_dead_one_is_sent_again_with_its_claim_
     holder: set[int] = set()
     monkeypatch.setattr(reconcile, "_broker_view", lambda snapshot: Held(frozenset(holder), frozenset()))
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     claimed = _age_queued(experiment_id, seconds=20, claimed=True)  # renewed 20 s ago: a beat missed, no more
     sent.clear()
     reconcile_once(experiment_id)
@@ -104,7 +103,7 @@ def test_a_training_model_whose_worker_is_gone_goes_back_to_queued_and_is_sent_a
 
     monkeypatch.setattr(reconcile, "_broker_view", lambda snapshot: Held(frozenset(), frozenset()))
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     with session_scope() as session:
         model_id = session.scalar(select(Model.id).where(Model.experiment_id == experiment_id))
     assert _claim(model_id, "dead-worker")
@@ -123,7 +122,7 @@ def test_a_training_model_whose_worker_is_gone_goes_back_to_queued_and_is_sent_a
 def test_without_a_broker_view_only_the_hour_old_are_sent_again(monkeypatch, sent):
     monkeypatch.setattr(reconcile, "_broker_view", lambda snapshot: None)  # RabbitMQ, or unreachable
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     queued = _age_queued(experiment_id, seconds=40)
     sent.clear()
     reconcile_once(experiment_id)
@@ -135,7 +134,7 @@ def test_without_a_broker_view_only_the_hour_old_are_sent_again(monkeypatch, sen
 
 def test_a_queued_model_nobody_holds_is_sent_again_and_a_held_one_is_not(monkeypatch, sent):
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     with session_scope() as session:
         model = session.scalar(select(Model).where(Model.experiment_id == experiment_id))
         assert model.status == ModelStatus.queued and model.sends == 1
@@ -227,7 +226,7 @@ def test_a_render_batch_skips_theta_another_live_delivery_holds_and_takes_over_l
 
     monkeypatch.setattr(reconcile, "_send", lambda send: None)
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     with session_scope() as session:
         a, b, c = session.scalars(
             select(ParameterSet.id).where(ParameterSet.status == RenderStatus.queued).order_by(ParameterSet.id).limit(3)
@@ -251,7 +250,7 @@ def test_a_late_duplicate_of_a_rendered_batch_or_a_trained_model_does_nothing(mo
 
     monkeypatch.setattr(reconcile, "_send", lambda send: None)
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     with session_scope() as session:
         theta = session.scalar(select(ParameterSet).where(ParameterSet.status == RenderStatus.rendered))
         theta.image_path = store.image_path(experiment_id, theta.id)

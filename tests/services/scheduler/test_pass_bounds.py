@@ -16,13 +16,12 @@ from services.embedded import start_experiment
 from services.scheduler import service
 from services.scheduler.reconcile import OpenStage
 from services.scheduler.service import MAX_STEPS_PER_PASS, reconcile_until_idle
-from tests.services.scheduler.test_finish_cleanup import _in_flight
-from tests.services.scheduler.test_flow import config
+from tests.services.flow_helpers import config, in_flight
 
 
 def test_a_pass_sends_each_task_at_most_once_even_when_every_step_asks_again(monkeypatch, sent):
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     with session_scope() as session:
         model = session.scalar(select(Model).where(Model.experiment_id == experiment_id))
         model.status, model.task_id = ModelStatus.training, "dead-worker"
@@ -59,7 +58,7 @@ def test_a_pass_stops_after_the_step_bound(monkeypatch):
 def test_a_stored_config_this_version_refuses_fails_the_experiment_once_with_the_reason(sent):
     # Recorded before the bound on m existed: every pass raised, and the experiment stayed live.
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     with session_scope() as session:
         experiment = session.get(Experiment, experiment_id)
         experiment.config = {

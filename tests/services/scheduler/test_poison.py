@@ -14,8 +14,7 @@ from db.session import session_scope
 from services.embedded import start_experiment
 from services.scheduler import reconcile
 from services.scheduler.reconcile import HARD_LIMIT_GRACE_S, reconcile_once
-from tests.services.scheduler.test_finish_cleanup import _in_flight
-from tests.services.scheduler.test_flow import config
+from tests.services.flow_helpers import config, in_flight
 
 
 @pytest.fixture
@@ -34,7 +33,7 @@ def broker(monkeypatch, database):
 def test_every_message_carries_the_time_limits_of_its_kind(broker):
     limits = {"render_time_limit_s": 30, "train_time_limit_s": 7200}
     experiment_id = start_experiment(config(tasks=limits))
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     renders = [(args, options) for name, args, options in broker if name == "foldwise.render_batch"]
     trains = [(args, options) for name, args, options in broker if name == "foldwise.train_increment"]
     assert renders and trains
@@ -53,7 +52,7 @@ def test_a_model_killed_on_every_delivery_fails_after_the_cap(monkeypatch, datab
 
     get_settings.cache_clear()
     experiment_id = start_experiment(config(tasks={"max_deliveries": 2}))
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     with session_scope() as session:
         model_id = session.scalar(select(Model.id).where(Model.experiment_id == experiment_id))
     # Both die mid-increment (each claim left to lapse: the lease is 1 ms).
@@ -137,7 +136,7 @@ def test_a_live_worker_renews_its_lease_and_a_dead_one_lets_it_lapse(monkeypatch
     monkeypatch.setenv("FOLDWISE_LEASE_S", "0.6")
     get_settings.cache_clear()
     experiment_id = start_experiment(config())
-    _in_flight(experiment_id)
+    in_flight(experiment_id)
     with session_scope() as session:
         model_id = session.scalar(select(Model.id).where(Model.experiment_id == experiment_id))
     assert _claim(model_id, "worker-a")

@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from foldwise.config import DetectorConfig
+from tests.workers.train.small_detectors import SMALL
 from workers.train.detectors import (
     DetectorBuildError,
     PretrainedWeightsMissing,
@@ -18,16 +19,6 @@ from workers.train.detectors import (
 from workers.train.detectors.fast_rcnn import tensor_to_uint8
 
 torch.set_num_threads(1)
-
-SMALL = {
-    "input_size": 64,
-    "fpn_channels": 32,
-    "representation_size": 64,
-    "rpn_proposals_train": 40,
-    "rpn_proposals_test": 20,
-    "roi_samples_per_image": 32,
-    "edge_boxes": 30,
-}
 
 
 def batch(size=64, seed=0, empty_second=False):

@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from foldwise.config import DetectorConfig
-from tests.workers.train.test_detectors import SMALL as RCNN_SMALL
+from tests.workers.train.small_detectors import SMALL as RCNN_SMALL
 from workers.train.checkpoint import load_detector, save_checkpoint
 from workers.train.detectors import build_detector, input_normalization
 from workers.train.detectors.convert_centernet import backbone_state, decode_weights
