@@ -118,7 +118,7 @@ def test_experiment_posted_to_the_api_runs_through_the_workers(stack, api, recor
         and found.json()["classes"] == summary(api, experiment_id)["classes"]
     )
     garbage = api.post(f"/models/{final}/detect", content=image[:8] + b"\0" * 64, headers=headers)
-    assert garbage.status_code == 422 and "not an image OpenCV can decode" in garbage.json()["detail"]
+    assert garbage.status_code == 422 and "truncated or damaged image header" in garbage.json()["detail"]
     (detect_worker,) = stack.replicas("detect-worker")
     assert "foldwise.detect" in detect_worker.log()
 
