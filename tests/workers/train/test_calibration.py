@@ -131,3 +131,25 @@ def test_one_box_per_sheet_drops_a_piece_and_another_name_inside_a_confirmed_she
     }
     checked = check.apply(image, found)
     assert len(checked["boxes"]) == 1 and checked["labels"].tolist() == [0]
+
+
+def test_a_detector_trained_with_the_shipped_calibration_records_it_and_scores_by_it(tmp_path):
+    from foldwise.config import ConfigError, parse_config
+    from tests.workers.train.training_helpers import CLASSES, config, synthetic_samples
+    from workers.train.calibration import shipped_calibration
+    from workers.train.checkpoint import load_detector, read_checkpoint
+    from workers.train.training import train_detector
+
+    samples = synthetic_samples(tmp_path / "images", n=3)
+    textures = {name: _page(seed=index) for index, name in enumerate(CLASSES)}
+    out = tmp_path / "model.pt"
+    train_detector(samples, None, 1, config(texture_check=True, calibration="shipped"), CLASSES, out, textures=textures)
+    assert read_checkpoint(out)["meta"]["calibration"] == shipped_calibration().to_dict()
+    detector = load_detector(out)
+    assert detector.calibration == shipped_calibration()
+    assert detector.texture_check().calibration == shipped_calibration()
+    tiers = tmp_path / "tiers.pt"
+    train_detector(samples, None, 1, config(texture_check=True), CLASSES, tiers, textures=textures)
+    assert load_detector(tiers).calibration is None
+    with pytest.raises(ConfigError, match="calibration"):
+        parse_config({"name": "c", "detector": {"calibration": "shipped"}})
