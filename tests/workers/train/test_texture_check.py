@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import skimage.data
 
-from workers.train import texture_check
+from workers.train import texture_cache, texture_check
 from workers.train.texture_check import (
     CONFIRMED_FLOOR,
     MIN_AXIS_RATIO,
@@ -460,23 +460,23 @@ def test_a_torn_or_mismatched_cache_is_made_again(textures, scene, tmp_path, cap
     reference = _checked(TextureCheck(textures, CLASSES), image, box)
 
     features.write_bytes(b"PK\x03\x04 not a zip")
-    with caplog.at_level("WARNING", logger=texture_check.__name__):
+    with caplog.at_level("WARNING", logger=texture_cache.__name__):
         remade = TextureCheck(textures, CLASSES, cache_dir=tmp_path)
     assert "unreadable" in caplog.text and str(features) in caplog.text
     _assert_same_outputs(_checked(remade, image, box), reference)
-    assert texture_check._CheckCache(tmp_path, features.stem).load() is not None
+    assert texture_cache.CheckCache(tmp_path, features.stem).load() is not None
 
     trees.write_bytes(trees.read_bytes()[: trees.stat().st_size // 2])  # torn: its digest no longer matches
-    stored = texture_check._CheckCache(tmp_path, features.stem).load()
+    stored = texture_cache.CheckCache(tmp_path, features.stem).load()
     assert (
-        texture_check._CheckCache(tmp_path, features.stem).load_index(stored.features.descriptors, stored.index_digest)
+        texture_cache.CheckCache(tmp_path, features.stem).load_index(stored.features.descriptors, stored.index_digest)
         is None
     )
     rebuilt = TextureCheck(textures, CLASSES, cache_dir=tmp_path)
     _assert_same_outputs(_checked(rebuilt, image, box), reference)
-    stored = texture_check._CheckCache(tmp_path, features.stem).load()
+    stored = texture_cache.CheckCache(tmp_path, features.stem).load()
     assert (
-        texture_check._CheckCache(tmp_path, features.stem).load_index(stored.features.descriptors, stored.index_digest)
+        texture_cache.CheckCache(tmp_path, features.stem).load_index(stored.features.descriptors, stored.index_digest)
         is not None
     )
 
@@ -504,7 +504,7 @@ def test_a_cache_folder_that_cannot_be_made_only_costs_time(textures, scene, tmp
     image, box = scene
     blocked = tmp_path / "cache"
     blocked.write_text("a file, not a folder")
-    with caplog.at_level("WARNING", logger=texture_check.__name__):
+    with caplog.at_level("WARNING", logger=texture_cache.__name__):
         check = TextureCheck(textures, CLASSES, cache_dir=blocked)
     assert "cannot keep keypoints" in caplog.text
     _assert_same_outputs(_checked(check, image, box), _checked(TextureCheck(textures, CLASSES), image, box))
@@ -515,7 +515,7 @@ def test_the_cache_keeps_the_checks_used_last(tmp_path, monkeypatch):
     together; reading a check makes it the newest."""
     import os
 
-    monkeypatch.setattr(texture_check, "CACHE_KEEP", 2)
+    monkeypatch.setattr(texture_cache, "CACHE_KEEP", 2)
     monkeypatch.setattr(texture_check, "TEXTURE_TILTS", ())  # small checks: the rule, not SIFT, is under test
     rng = np.random.default_rng(0)
     cards = [cv2.GaussianBlur(rng.integers(0, 255, (96, 96)).astype(np.uint8), (0, 0), 1.5) for _ in range(3)]
