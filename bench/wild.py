@@ -140,6 +140,28 @@ class OodRecipe:
 # --------------------------------------------------------------------------- geometry
 
 
+def _flat_grid(width: float, height: float, cells: int):
+    """A flat sheet (z = 0, centred) as a grid: points (N, 2), quad faces and UVs."""
+    grid_x, grid_y = np.meshgrid(
+        np.linspace(-width / 2, width / 2, cells + 1), np.linspace(-height / 2, height / 2, cells + 1)
+    )
+    points = np.stack([grid_x.ravel(), grid_y.ravel()], axis=1)
+    corners = [row * (cells + 1) + col for row in range(cells) for col in range(cells)]
+    faces = [(a, a + 1, a + cells + 2, a + cells + 1) for a in corners]
+    uvs = np.column_stack([(grid_x.ravel() + width / 2) / width, (grid_y.ravel() + height / 2) / height])
+    return points, faces, uvs
+
+
+def _wrapped(points: np.ndarray, direction: np.ndarray, start: float, radius: float) -> np.ndarray:
+    """The flat ``points`` beyond the line ``along == start`` wrapped around a cylinder of
+    ``radius`` tangent there (arc length kept: developable); vertices (N, 3)."""
+    along = points @ direction
+    theta = np.maximum(along - start, 0.0) / radius
+    lifted_along = np.where(along > start, start + radius * np.sin(theta), along)
+    z = np.where(along > start, radius * (1 - np.cos(theta)), 0.0)
+    return np.column_stack([points + np.outer(lifted_along - along, direction), z])
+
+
 def curled_sheet(width: float, height: float, rng: np.random.Generator, cells: int = 24, flat: bool = False):
     """A flat sheet (z = 0, centred) with a cylindrical curl: isometric, unlike foldwise's rulings.
 
@@ -147,40 +169,21 @@ def curled_sheet(width: float, height: float, rng: np.random.Generator, cells: i
     a cylinder of radius ``r`` tangent there: arc length along the sheet is kept, so the curl
     is developable. Returns vertices (N, 3), quad faces and UVs.
     """
-    xs = np.linspace(-width / 2, width / 2, cells + 1)
-    ys = np.linspace(-height / 2, height / 2, cells + 1)
-    grid_x, grid_y = np.meshgrid(xs, ys)
-    points = np.stack([grid_x.ravel(), grid_y.ravel()], axis=1)
+    points, faces, uvs = _flat_grid(width, height, cells)
     angle = rng.uniform(0, 2 * math.pi)
     direction = np.array([math.cos(angle), math.sin(angle)])
-    along = points @ direction
     start = rng.uniform(-0.4, 0.3) * (abs(direction[0]) * width + abs(direction[1]) * height)
     radius = rng.uniform(0.12, 0.8) * max(width, height)
     if rng.random() < 0.2 or flat:  # a flat sheet now and then
         radius = 1e9
-    beyond = np.maximum(along - start, 0.0)
-    theta = beyond / radius
-    lifted_along = np.where(along > start, start + radius * np.sin(theta), along)
-    z = np.where(along > start, radius * (1 - np.cos(theta)), 0.0)
-    xy = points + np.outer(lifted_along - along, direction)
-    vertices = np.column_stack([xy, z])
-    faces = []
-    for row in range(cells):
-        for col in range(cells):
-            a = row * (cells + 1) + col
-            faces.append((a, a + 1, a + cells + 2, a + cells + 1))
-    uvs = np.column_stack([(grid_x.ravel() + width / 2) / width, (grid_y.ravel() + height / 2) / height])
-    return vertices, faces, uvs
+    return _wrapped(points, direction, start, radius), faces, uvs
 
 
 def creased_sheet(width: float, height: float, rng: np.random.Generator, cells: int = 24, angle: float | None = None):
     """A flat sheet folded along a line across it by ``angle`` (radians; drawn from 20-110° when
     None): the part beyond the line turns about it, out of the ground plane. Folding keeps every
     length, so the crease is developable as a real one is. Returns vertices, quad faces, UVs."""
-    xs = np.linspace(-width / 2, width / 2, cells + 1)
-    ys = np.linspace(-height / 2, height / 2, cells + 1)
-    grid_x, grid_y = np.meshgrid(xs, ys)
-    points = np.stack([grid_x.ravel(), grid_y.ravel()], axis=1)
+    points, faces, uvs = _flat_grid(width, height, cells)
     heading = rng.uniform(0, 2 * math.pi)
     direction = np.array([math.cos(heading), math.sin(heading)])
     along = points @ direction
@@ -188,55 +191,20 @@ def creased_sheet(width: float, height: float, rng: np.random.Generator, cells: 
     fold = math.radians(rng.uniform(20, 110)) if angle is None else angle
     beyond = np.maximum(along - start, 0.0)
     new_along = np.where(along > start, start + beyond * math.cos(fold), along)
-    z = beyond * math.sin(fold)
     xy = points + np.outer(new_along - along, direction)
-    vertices = np.column_stack([xy, z])
-    faces = [
-        (
-            row * (cells + 1) + col,
-            row * (cells + 1) + col + 1,
-            (row + 1) * (cells + 1) + col + 1,
-            (row + 1) * (cells + 1) + col,
-        )
-        for row in range(cells)
-        for col in range(cells)
-    ]
-    uvs = np.column_stack([(grid_x.ravel() + width / 2) / width, (grid_y.ravel() + height / 2) / height])
-    return vertices, faces, uvs
+    return np.column_stack([xy, beyond * math.sin(fold)]), faces, uvs
 
 
 def rolled_sheet(width: float, height: float, rng: np.random.Generator, cells: int = 32):
     """A sheet rolled into a tube: flat for a short run, then wrapped around a cylinder by
     180-320° (a sheet left to roll back, a poster in a tube); isometric like ``curled_sheet``."""
-    xs = np.linspace(-width / 2, width / 2, cells + 1)
-    ys = np.linspace(-height / 2, height / 2, cells + 1)
-    grid_x, grid_y = np.meshgrid(xs, ys)
-    points = np.stack([grid_x.ravel(), grid_y.ravel()], axis=1)
+    points, faces, uvs = _flat_grid(width, height, cells)
     across_x = rng.random() < 0.5  # roll along the sheet's width or its height
     direction = np.array([1.0, 0.0]) if across_x else np.array([0.0, 1.0])
     length = width if across_x else height
-    along = points @ direction
     start = -length / 2 + rng.uniform(0.0, 0.25) * length
     wrap = math.radians(rng.uniform(180, 320))
-    radius = (length / 2 - start) / wrap
-    beyond = np.maximum(along - start, 0.0)
-    theta = beyond / radius
-    new_along = np.where(along > start, start + radius * np.sin(theta), along)
-    z = np.where(along > start, radius * (1 - np.cos(theta)), 0.0)
-    xy = points + np.outer(new_along - along, direction)
-    vertices = np.column_stack([xy, z])
-    faces = [
-        (
-            row * (cells + 1) + col,
-            row * (cells + 1) + col + 1,
-            (row + 1) * (cells + 1) + col + 1,
-            (row + 1) * (cells + 1) + col,
-        )
-        for row in range(cells)
-        for col in range(cells)
-    ]
-    uvs = np.column_stack([(grid_x.ravel() + width / 2) / width, (grid_y.ravel() + height / 2) / height])
-    return vertices, faces, uvs
+    return _wrapped(points, direction, start, (length / 2 - start) / wrap), faces, uvs
 
 
 def bent_sheet(width: float, height: float, rng: np.random.Generator, hard: bool, flat: bool = False):

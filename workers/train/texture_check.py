@@ -530,17 +530,7 @@ class TextureCheck:
                 continue
             corners = np.concatenate([cells + half * sign for sign in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
             mapped.append(corners @ affine[:, :2].T + affine[:, 2])
-        corners = np.concatenate(mapped)
-        outline = np.array(
-            [
-                max(corners[:, 0].min(), 0.0),
-                max(corners[:, 1].min(), 0.0),
-                min(corners[:, 0].max(), float(width)),
-                min(corners[:, 1].max(), float(height)),
-            ],
-            np.float32,
-        )
-        return outline if outline[2] > outline[0] and outline[3] > outline[1] else None
+        return _clipped_extent(np.concatenate(mapped), width, height)
 
     def _coverage(self, texture_points: np.ndarray, label: int) -> float:
         """The share of ``label``'s keypoint-bearing cells (``COVER_GRID``) that ``texture_points`` fall in."""
@@ -560,16 +550,7 @@ class TextureCheck:
             @ affine[:, :2].T
             + affine[:, 2]
         )
-        outline = np.array(
-            [
-                max(corners[:, 0].min(), 0.0),
-                max(corners[:, 1].min(), 0.0),
-                min(corners[:, 0].max(), float(width)),
-                min(corners[:, 1].max(), float(height)),
-            ],
-            np.float32,
-        )
-        return outline if outline[2] > outline[0] and outline[3] > outline[1] else None
+        return _clipped_extent(corners, width, height)
 
     def _search(
         self, image_points, match_labels, texture_points, width: int, height: int
@@ -675,6 +656,20 @@ def _one_per_sheet(boxes: np.ndarray, scores: np.ndarray, confirmed: np.ndarray)
         if not inside:
             kept.append(int(index))
     return np.array(sorted(kept), np.int64)
+
+
+def _clipped_extent(corners: np.ndarray, width: int, height: int) -> np.ndarray | None:
+    """The extent (xyxy) of points in the image, clipped to its frame; None where nothing of it is inside."""
+    outline = np.array(
+        [
+            max(corners[:, 0].min(), 0.0),
+            max(corners[:, 1].min(), 0.0),
+            min(corners[:, 0].max(), float(width)),
+            min(corners[:, 1].max(), float(height)),
+        ],
+        np.float32,
+    )
+    return outline if outline[2] > outline[0] and outline[3] > outline[1] else None
 
 
 def _inside(points: np.ndarray, box) -> np.ndarray:
