@@ -68,6 +68,12 @@ def main(argv=None) -> dict:
     )
     parser.add_argument("--data", type=Path, required=True, action="append", help="a COCO folder (out-of-domain set)")
     parser.add_argument("--cache", type=Path, default=ROOT / "var/bench/calibration-cache")
+    parser.add_argument(
+        "--lookalikes",
+        type=Path,
+        default=None,
+        help="a folder of lookalike sheets given to the texture check (foldwise lookalikes): its matches on them are no evidence",
+    )
     parser.add_argument("--threshold", type=float, default=0.8)
     parser.add_argument("--iou", type=float, default=0.5)
     parser.add_argument("--out", type=Path)
@@ -88,7 +94,13 @@ def main(argv=None) -> dict:
     detector = combine_detectors([load_detector(path, device="cpu") for path in args.model])
     config = detector.config
     classes = detector.classes
-    check = TextureCheck(detector.textures, classes, search=config.texture_search)
+    given = None
+    if args.lookalikes is not None:
+        from foldwise.asset_check import image_files
+        from workers.train.data import read_image_rgb as read_sheet
+
+        given = {path.stem: read_sheet(path) for path in image_files(args.lookalikes, "lookalikes")}
+    check = TextureCheck(detector.textures, classes, search=config.texture_search, lookalikes=given)
     baseline = KeypointBaseline(detector.textures, classes)
     # The models' paths name their detections in the cache: the same models, the same file, in any process.
     digest = hashlib.sha256("\n".join(str(path.resolve()) for path in args.model).encode()).hexdigest()[:12]
@@ -120,9 +132,16 @@ def main(argv=None) -> dict:
         np.concatenate(labels),
         fitted_on=", ".join(str(d) for d in args.data) + " (even images)",
     )
-    calibrated_check = TextureCheck(detector.textures, classes, search=config.texture_search, calibration=calibration)
+    calibrated_check = TextureCheck(
+        detector.textures, classes, search=config.texture_search, calibration=calibration, lookalikes=given
+    )
 
-    report: dict = {"models": [str(p) for p in args.model], "calibration": calibration.to_dict(), "sets": {}}
+    report: dict = {
+        "models": [str(p) for p in args.model],
+        "lookalikes": sorted(given) if given else None,
+        "calibration": calibration.to_dict(),
+        "sets": {},
+    }
     for data, samples, truth, groups, images, network, checked, network_seconds, check_seconds in sets:
         odd = list(range(1, len(samples), 2))
         pick = lambda items: [items[i] for i in odd]  # noqa: E731

@@ -33,6 +33,7 @@ class KeypointBaseline:
 
         self.classes = list(classes)
         self._sift = cv2.SIFT_create()
+        cv2.setRNGSeed(0)  # FLANN's KD-trees split at random: seeded, every run draws the same boxes
         self._textures = []
         for name in self.classes:
             gray = _gray(np.asarray(textures[name]))

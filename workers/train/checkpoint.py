@@ -63,6 +63,9 @@ class Detector:
     device: torch.device = field(default_factory=lambda: torch.device("cpu"))
     # Grayscale texture per class, where the checkpoint carries them (detector.texture_check).
     textures: dict[str, np.ndarray] | None = None
+    # Grayscale sheets of the classes' kind that are none of them, where the checkpoint carries
+    # them (``write_lookalikes``): the texture check's matches on them are no evidence.
+    lookalikes: dict[str, np.ndarray] | None = None
     _texture_check: Any = field(default=None, init=False, repr=False)
 
     def texture_check(self):
@@ -81,6 +84,7 @@ class Detector:
                 search=self.config.texture_search,
                 cache_dir=None if cache is None else cache / "texture-check",
                 calibration=self.calibration,
+                lookalikes=self.lookalikes,
             )
         return self._texture_check
 
@@ -136,9 +140,10 @@ def save_checkpoint(
     return _write_atomically(payload, path)
 
 
-def payload_textures(payload: dict[str, Any]) -> dict[str, np.ndarray] | None:
-    """The grayscale textures a detector's payload carries (texture check), or None."""
-    textures = payload.get("textures")
+def payload_textures(payload: dict[str, Any], key: str = "textures") -> dict[str, np.ndarray] | None:
+    """The grayscale textures a detector's payload carries (texture check), or None; ``key``
+    "lookalikes": the lookalike sheets it carries."""
+    textures = payload.get(key)
     if not textures:
         return None
     return {str(name): tensor.numpy() for name, tensor in textures.items()}
@@ -236,6 +241,28 @@ def write_calibration(source: str | Path, calibration, path: str | Path) -> Path
     return _write_atomically(payload, path)
 
 
+def write_lookalikes(source: str | Path, lookalikes: Mapping[str, np.ndarray], path: str | Path) -> Path:
+    """The checkpoint or ensemble at ``source`` written to ``path`` (atomically; it may be
+    ``source``) carrying ``lookalikes`` (name to an RGB or grayscale uint8 image; none: it
+    carries none) in grayscale, for its texture check."""
+    from workers.train.texture_check import grayscale
+
+    payload = _load_payload(source)
+    members = payload["members"] if payload["format"] == ENSEMBLE_FORMAT else [payload]
+    stored = {
+        str(name): torch.from_numpy(grayscale(np.asarray(image, dtype=np.uint8)).copy())
+        for name, image in lookalikes.items()
+    }
+    for member in members:
+        if stored:
+            member["lookalikes"] = stored
+        else:
+            member.pop("lookalikes", None)
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    return _write_atomically(payload, path)
+
+
 def check_compatible(meta: dict[str, Any], config: DetectorConfig, classes: Sequence[str], path: str | Path) -> None:
     """Raise CheckpointError when ω_in cannot initialise a detector of ``config`` for ``classes``."""
     problems = []
@@ -310,7 +337,15 @@ def load_detector(path: str | Path, device: str | torch.device | None = None) ->
         model = model_from_meta(member["meta"])
         load_state(model, member["state_dict"], path)
         model.to(target).eval()
-        detectors.append(Detector(model=model, meta=member["meta"], device=target, textures=payload_textures(member)))
+        detectors.append(
+            Detector(
+                model=model,
+                meta=member["meta"],
+                device=target,
+                textures=payload_textures(member),
+                lookalikes=payload_textures(member, "lookalikes"),
+            )
+        )
     if payload["format"] == CHECKPOINT_FORMAT:
         return detectors[0]
     try:
@@ -375,11 +410,13 @@ def combine_detectors(detectors: Sequence[Detector]) -> Detector:
     meta = {**first.meta, "members": [detector.meta for detector in detectors]}
     # One class list, so one set of textures checks the merged detections (the first member's).
     textures = next((d.textures for d in detectors if d.textures), None)
+    lookalikes = next((d.lookalikes for d in detectors if d.lookalikes), None)
     return Detector(
         model=EnsembleModel([d.model for d in detectors], iou, limit, vote=1.0 if first.config.view_vote else None),
         meta=meta,
         device=first.device,
         textures=textures,
+        lookalikes=lookalikes,
     )
 
 

@@ -691,6 +691,39 @@ def calibrate(
     typer.echo(f"wrote {written}: scores calibrated on {len(samples)} images (bias {calibration.bias:+.2f}; {weights})")
 
 
+def lookalikes(
+    model: Annotated[Path, typer.Option("--model", help="The checkpoint or ensemble whose texture check learns them.")],
+    folder: Annotated[
+        Path,
+        typer.Option(
+            "--folder",
+            help="Flat images of sheets of your objects' kind that are none of them: your other forms, covers, labels.",
+        ),
+    ],
+    out: Annotated[Path, typer.Option("--out", help="Where to write the model (may be --model itself).")],
+) -> None:
+    """Give the texture check the lookalikes it must not confirm: a keypoint one of them shares
+    with an object (a letterhead, a table head, a logo) stops counting as evidence for the object.
+    Fewer lookalikes are confirmed, and sheets that show little but what they share are confirmed
+    less often (bench/README.md, "The keypoint recipe, documents and calibrated scores")."""
+    from foldwise.asset_check import AssetError, image_files
+    from workers.train.checkpoint import write_lookalikes
+    from workers.train.data import DatasetError, read_image_rgb
+
+    detector = _load_model(model)
+    if not detector.textures:
+        _fail(
+            f"{model} carries no textures (detector.texture_check off): there is no texture check to give lookalikes to"
+        )
+    try:
+        files = image_files(folder, "lookalikes")
+        sheets = {path.stem: read_image_rgb(path) for path in files}
+    except (AssetError, DatasetError) as error:
+        _fail(str(error))
+    written = write_lookalikes(model, sheets, out)
+    typer.echo(f"wrote {written}: its texture check knows {len(sheets)} lookalike(s) from {folder}")
+
+
 # --------------------------------------------------------------------------- export
 
 
@@ -817,3 +850,4 @@ def register(app: typer.Typer) -> None:
     app.command("export")(export)
     app.command("ensemble")(ensemble)
     app.command("calibrate")(calibrate)
+    app.command("lookalikes")(lookalikes)

@@ -252,6 +252,7 @@ class TextureCheck:
         cache_dir: str | Path | None = None,
         sharpen: float = SHARPEN_AMOUNT,
         calibration=None,
+        lookalikes: Mapping[str, np.ndarray] | None = None,
     ) -> None:
         """``exact``: compare each image keypoint with every texture keypoint (brute force) instead of
         searching FLANN's KD-trees (bench/texture_matching.py measures the two side by side).
@@ -259,7 +260,11 @@ class TextureCheck:
         made here each time). ``sharpen``: the image's unsharp mask before SIFT (0: none;
         bench/texture_matching.py --sharpen measures others). ``calibration``: a
         :class:`~workers.train.calibration.Calibration` that scores each checked detection from
-        the network's score and the texture's evidence (None: the fixed tiers described above)."""
+        the network's score and the texture's evidence (None: the fixed tiers described above).
+        ``lookalikes``: sheets of the classes' kind that are none of them (the user's other forms
+        or covers): their keypoints join the index as no class's, so a keypoint a lookalike shares
+        with a class's texture (a letterhead, a table head) fails the ratio test and is no
+        evidence, and one that matches a lookalike best is none either."""
         import cv2
 
         if not sharpen >= 0:
@@ -272,6 +277,8 @@ class TextureCheck:
         self.classes = list(classes)
         self.search = search
         grays = [grayscale(np.asarray(textures[name], dtype=np.uint8)) for name in self.classes]
+        self.lookalikes = sorted(lookalikes or {})
+        grays += [grayscale(np.asarray(lookalikes[name], dtype=np.uint8)) for name in self.lookalikes]
         cache = texture_cache.CheckCache(Path(cache_dir), cache_key(grays)) if cache_dir is not None else None
         stored = cache.load() if cache is not None else None
         self._features = stored.features if stored is not None else texture_features(grays)
@@ -291,7 +298,7 @@ class TextureCheck:
         self.calibration = calibration
         # Which coverage cells of each texture hold keypoints (a blank margin is no evidence lost).
         self._cells = []
-        for label, (texture_width, texture_height) in enumerate(self._features.sizes):
+        for label, (texture_width, texture_height) in enumerate(self._features.sizes[: len(self.classes)]):
             points = self._features.points[self._features.labels == label]
             self._cells.append(np.unique(_cell_index(points, texture_width, texture_height)))
 
@@ -327,6 +334,9 @@ class TextureCheck:
         rivals[:, 0] = False
         rival_distance = distances[np.arange(len(indices)), rivals.argmax(axis=1)]
         good = found[:, 0] & (~rivals.any(axis=1) | (distances[:, 0] < RATIO * rival_distance))
+        if not good.any():
+            return empty
+        good &= features.labels[nearest[:, 0]] < len(self.classes)  # a lookalike's keypoint is no class's
         if not good.any():
             return empty
         image_index, texture_index = np.flatnonzero(good), indices[good, 0]

@@ -153,3 +153,22 @@ def test_a_detector_trained_with_the_shipped_calibration_records_it_and_scores_b
     assert load_detector(tiers).calibration is None
     with pytest.raises(ConfigError, match="calibration"):
         parse_config({"name": "c", "detector": {"calibration": "shipped"}})
+
+
+def test_lookalikes_given_to_the_check_stop_a_shared_template_from_confirming():
+    """A lookalike of the sheet's template (its letterhead and footer) matches the sheet's texture
+    there; given to the check as a lookalike, those shared keypoints are no evidence: the
+    lookalike is not confirmed, the sheet itself still is."""
+    sheet, lookalike = _page(seed=1), _page(seed=2)
+    plain = TextureCheck({"sheet": sheet}, ["sheet"])
+    knowing = TextureCheck({"sheet": sheet}, ["sheet"], lookalikes={"other form": lookalike})
+    inliers = FEATURES.index("inliers")
+    results = {}
+    for name, page in (("sheet", sheet), ("lookalike", lookalike)):
+        image, box = _placed(page)
+        found = {"boxes": box[None], "scores": np.array([0.9], np.float32), "labels": np.array([0])}
+        results[name] = [check.apply(image, found, with_evidence=True) for check in (plain, knowing)]
+    assert results["lookalike"][0]["evidence"][0][inliers] > 0  # the template alone agrees on a map
+    assert results["lookalike"][1]["confirmed"].tolist() == [False]
+    assert results["lookalike"][1]["evidence"][0][inliers] < results["lookalike"][0]["evidence"][0][inliers]
+    assert results["sheet"][1]["confirmed"].tolist() == [True]

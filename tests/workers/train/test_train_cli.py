@@ -546,3 +546,21 @@ def test_calibrate_refuses_a_model_without_textures_and_a_recorded_calibration_i
     assert load_detector(faster).calibration is None  # the source is left as it was
     pair = write_calibration(save_ensemble([faster, faster], tmp_path / "pair.pt"), calibration, tmp_path / "pair.pt")
     assert load_detector(pair).calibration == calibration
+
+
+def test_lookalikes_are_refused_for_a_model_without_textures_and_written_into_one_that_has_them(
+    trained, dataset, tmp_path
+):
+    from workers.train.checkpoint import load_detector, save_ensemble, write_lookalikes
+
+    faster = trained["checkpoints"]["faster_rcnn"]
+    folder = dataset / "images"
+    result = runner.invoke(
+        make_app(), ["lookalikes", "--model", str(faster), "--folder", str(folder), "--out", str(tmp_path / "l.pt")]
+    )
+    assert result.exit_code == 1 and "carries no textures" in result.output and not (tmp_path / "l.pt").exists()
+    sheets = {"other form": np.full((40, 30, 3), 200, np.uint8)}
+    pair = write_lookalikes(save_ensemble([faster, faster], tmp_path / "pair.pt"), sheets, tmp_path / "pair.pt")
+    loaded = load_detector(pair)
+    assert set(loaded.lookalikes) == {"other form"} and loaded.lookalikes["other form"].shape == (40, 30)
+    assert load_detector(write_lookalikes(pair, {}, tmp_path / "none.pt")).lookalikes is None
