@@ -13,7 +13,8 @@ from db.migrate import upgrade
 from db.session import session_scope
 from foldwise.config import ExperimentConfig
 from services import queries
-from services.scheduler.reconcile import Decision, reconcile_once
+from services.scheduler.plan import Decision
+from services.scheduler.reconcile import reconcile_once
 from services.scheduler.service import TERMINAL, experiment_status
 from workers.app import use_eager
 

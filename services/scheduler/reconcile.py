@@ -1,8 +1,7 @@
-"""One reconcile step: read an experiment's state, decide what happens next, do it.
+"""One reconcile step: read an experiment's state (``snapshot.load_snapshot``), decide what
+happens next (``plan.plan``, a pure function of the snapshot), do it.
 
-``plan`` is a pure function of a :class:`Snapshot` of the database, so a scheduler killed at
-any point and restarted makes the same decisions from the same rows, and the same function
-drives eager tests. ``apply`` writes the decisions in the transaction that read the
+``apply`` writes the decisions in the transaction that read the
 snapshot (the experiment row is locked on PostgreSQL, so two schedulers never decide for
 the same experiment at once) and returns the tasks to send once it has committed.
 
@@ -13,16 +12,13 @@ crash in between re-sends them on restart, which idempotent tasks absorb.
 from __future__ import annotations
 
 import logging
-from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass
-from datetime import datetime, timedelta
 
-from sqlalchemy import func, select, update
+from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from db.models import (
-    Evaluation,
     Experiment,
     ExperimentStatus,
     Model,
@@ -31,7 +27,6 @@ from db.models import (
     RenderStatus,
     Split,
     Stage,
-    StageEndReason,
     StageStatus,
     utcnow,
 )
@@ -39,442 +34,28 @@ from db.session import session_scope
 from foldwise.conditions import load_condition_table
 from foldwise.config import ExperimentConfig
 from foldwise.seeds import derive_seed
-from foldwise.settings import get_settings
 from foldwise.theta import CANONICAL
 from services.scheduler.broker_view import Held
-from services.scheduler.stopping import best_index, stopping_rule
+from services.scheduler.plan import (
+    CloseStage,
+    CreateModel,
+    Decision,
+    EnqueueRender,
+    EnqueueTraining,
+    Fail,
+    Finish,
+    OpenStage,
+    SampleTraining,
+    Start,
+    plan,
+)
+from services.scheduler.snapshot import OPEN_RENDERS, Snapshot, load_snapshot
 
 log = logging.getLogger(__name__)
 
-_OPEN = (RenderStatus.pending, RenderStatus.queued)
-
 
 # ---------------------------------------------------------------------------------------
-# Snapshot: what the decision depends on, and nothing else.
-
-
-@dataclass(frozen=True)
-class StageView:
-    id: int
-    order: int
-    condition: str
-    difficulty: str
-    status: StageStatus
-    init_model_id: int | None
-    best_model_id: int | None
-
-
-@dataclass(frozen=True)
-class ModelView:
-    id: int
-    stage_id: int
-    increment: int
-    parent_id: int | None
-    status: ModelStatus
-    score: float | None  # mAP (paper protocol); None when not evaluated or not finite
-    error: str | None
-    enqueued_at: datetime | None
-    claimed_at: datetime | None
-
-
-@dataclass(frozen=True)
-class Snapshot:
-    experiment_id: int
-    status: ExperimentStatus
-    seed: int
-    config: ExperimentConfig
-    stages: tuple[StageView, ...]
-    models: tuple[ModelView, ...]
-    # (split, stage_id, increment) -> status -> count
-    theta_counts: dict[tuple[str, int | None, int | None], Counter]
-    pending_theta_ids: tuple[int, ...]
-    # Queued θ to send again: those nobody holds (see held_model_ids), or without a broker view
-    # those queued longer than requeue_after.
-    stale_theta_ids: tuple[int, ...]
-    now: datetime
-    requeue_after: timedelta
-    lease: timedelta = timedelta(seconds=60)
-    # Queued θ with no sign of life for a while (see _quiet): what the broker is asked about.
-    quiet_theta_ids: tuple[int, ...] = ()
-    # The models whose message someone holds (in a queue, or in a live worker), from the broker's
-    # view; None when there is none (eager mode, RabbitMQ, broker unreachable, nothing asked).
-    held_model_ids: frozenset[int] | None = None
-
-    def counts(self, split: Split, stage_id: int | None = None, increment: int | None = None) -> Counter:
-        return self.theta_counts.get((split.value, stage_id, increment), Counter())
-
-    def test_counts(self) -> Counter:
-        total: Counter = Counter()
-        for (split, _, _), counts in self.theta_counts.items():
-            if split == Split.test.value:
-                total.update(counts)
-        return total
-
-    def stale(self, when: datetime | None) -> bool:
-        return when is not None and when < self.now - self.requeue_after
-
-    def lapsed(self, model: ModelView) -> bool:
-        """A claimed model whose worker stopped renewing its lease (and that was not re-sent
-        within the lease either): its worker is gone."""
-        return model.claimed_at is not None and _latest(model.claimed_at, model.enqueued_at) < self.now - self.lease
-
-    def quiet(self, model: ModelView) -> bool:
-        """A sent model with no sign of life for a while: the broker is asked whether anyone holds it."""
-        return model.status in (ModelStatus.queued, ModelStatus.training) and _quiet(
-            model.enqueued_at, model.claimed_at, self.now, self.lease
-        )
-
-    def needs_broker_view(self) -> bool:
-        return bool(self.quiet_theta_ids) or any(self.quiet(m) for m in self.models)
-
-    def lost(self, model: ModelView) -> bool:
-        """A sent model whose message nobody holds: send it again."""
-        if self.held_model_ids is not None:
-            return self.quiet(model) and model.id not in self.held_model_ids
-        # No broker view: a lapsed claim still proves its worker gone; an unclaimed message is
-        # called lost only after requeue_after (RabbitMQ redelivers what it loses itself).
-        if model.status == ModelStatus.training:
-            return self.lapsed(model)
-        return model.status == ModelStatus.queued and self.stale(model.enqueued_at)
-
-
-# ---------------------------------------------------------------------------------------
-# Decisions.
-
-
-@dataclass(frozen=True)
-class Start:
-    """Fix the classes, create the stages and sample the standard test set Θ_te."""
-
-
-@dataclass(frozen=True)
-class SampleTraining:
-    """Θ_tr ← generate_parameters(c, δ, m) for (stage, k)."""
-
-    stage_id: int
-    increment: int
-
-
-@dataclass(frozen=True)
-class EnqueueRender:
-    ids: tuple[int, ...]
-    requeue: bool = False
-
-
-@dataclass(frozen=True)
-class OpenStage:
-    stage_id: int
-    init_model_id: int | None
-
-
-@dataclass(frozen=True)
-class CreateModel:
-    """ω_k will be trained from ω_in = parent on (stage, k)."""
-
-    stage_id: int
-    increment: int
-    parent_id: int | None
-
-
-@dataclass(frozen=True)
-class EnqueueTraining:
-    model_id: int
-    requeue: bool = False
-
-
-@dataclass(frozen=True)
-class CloseStage:
-    stage_id: int
-    reason: StageEndReason
-    best_model_id: int
-
-
-@dataclass(frozen=True)
-class Finish:
-    final_model_id: int | None
-
-
-@dataclass(frozen=True)
-class Fail:
-    reason: str
-
-
-Decision = (
-    Start | SampleTraining | EnqueueRender | OpenStage | CreateModel | EnqueueTraining | CloseStage | Finish | Fail
-)
-
-
-def plan(s: Snapshot) -> list[Decision]:
-    """What must happen next for this experiment, from its state alone.
-
-    One plan for every kind: ``learnability`` (Algorithm 2) differs from Algorithm 1 only in
-    when a stage ends (after κ increments, no stopping rule) and in which model opens the next
-    stage (the last of the condition's previous difficulty; at a new condition none, or with
-    ``learnability.start: canonical`` the last model of the shared canonical stage trained
-    first, itself a fixed number of increments). ``canonical_baseline`` (the paper's Table 2) is one stage of canonical θ that ends after its
-    fixed increments, and its final model is the last one trained, not the best scored."""
-    if s.status == ExperimentStatus.pending:
-        return [Start()]
-    if s.status != ExperimentStatus.running:
-        return []
-
-    decisions: list[Decision] = []
-    if s.pending_theta_ids:
-        decisions.append(EnqueueRender(s.pending_theta_ids))
-    if s.stale_theta_ids:
-        decisions.append(EnqueueRender(s.stale_theta_ids, requeue=True))
-
-    test = s.test_counts()
-    test_open = sum(test[status] for status in _OPEN)
-    if test_open == 0 and test[RenderStatus.rendered] == 0:
-        return decisions + [Fail("no image of the standard test set could be rendered (see parameter_sets.error)")]
-    lost = _lost_too_much(s)
-    if lost:
-        return decisions + [Fail(lost)]
-
-    stage = next((st for st in s.stages if st.status != StageStatus.done), None)
-    if stage is None:
-        return decisions + [Finish(_final_model_id(s))]
-    if stage.status == StageStatus.pending:
-        previous = [st for st in s.stages if st.order < stage.order]
-        if s.config.kind == "learnability":
-            return decisions + [OpenStage(stage.id, _learnability_init(s, stage, previous[-1] if previous else None))]
-        init = previous[-1].best_model_id if previous else None
-        return decisions + [OpenStage(stage.id, init)]
-
-    al = s.config.stage_active_learning(stage.condition)
-    models = sorted((m for m in s.models if m.stage_id == stage.id), key=lambda m: m.increment)
-    latest = models[-1] if models else None
-    where = f"stage {stage.order} ({stage.condition}/{stage.difficulty})"
-
-    def ensure_sampled(st: StageView, k: int) -> None:
-        if k <= s.config.stage_increments_cap(st.condition) and not s.counts(Split.train, st.id, k):
-            decisions.append(SampleTraining(st.id, k))
-
-    if latest is not None and latest.status == ModelStatus.failed:
-        return decisions + [Fail(f"model {latest.id} of {where}, increment {latest.increment}, failed: {latest.error}")]
-
-    if latest is None or latest.status == ModelStatus.evaluated:
-        scores = [m.score for m in models]
-        if latest is not None:
-            if s.config.kind == "learnability" and stage.condition == CANONICAL:
-                # start: canonical's shared stage: a fixed length, as the canonical baseline's.
-                stop = len(scores) >= s.config.learnability.canonical_increments
-                reason = StageEndReason.increments
-            elif s.config.kind == "learnability":
-                # Algorithm 2: exactly κ increments and no stopping rule, so that every stage
-                # trains as long as every other (ω_be is still recorded, for Fig. 5 and 8).
-                kappa = s.config.learnability.kappa
-                stop, reason = len(scores) >= kappa, StageEndReason.kappa
-            elif s.config.kind == "canonical_baseline":
-                # Table 2: a fixed training length, as the paper's 20,000 iterations.
-                stop = len(scores) >= s.config.canonical_baseline.increments
-                reason = StageEndReason.increments
-            else:
-                decision = stopping_rule(scores, al.M, al.N, al.tau, al.max_increments)
-                stop, reason = decision.stop, StageEndReason(decision.reason) if decision.stop else None
-            if stop:
-                best = best_index(scores)
-                if best is None:
-                    return decisions + [Fail(f"{where} ended ({reason.value}) without a single finite mAP")]
-                return decisions + [CloseStage(stage.id, reason, models[best].id)]
-        k = latest.increment + 1 if latest else 1
-        counts = s.counts(Split.train, stage.id, k)
-        if not counts:
-            ensure_sampled(stage, k)
-        elif sum(counts[status] for status in _OPEN) == 0 and test_open == 0:
-            if counts[RenderStatus.rendered] == 0:
-                return decisions + [
-                    Fail(f"every training image of {where}, increment {k}, was rejected (see parameter_sets.error)")
-                ]
-            parent = latest.id if latest else stage.init_model_id
-            decisions.append(CreateModel(stage.id, k, parent))
-        # θ does not depend on the model: render increment k+1 while k trains.
-        ensure_sampled(stage, k + 1)
-    else:
-        if latest.status == ModelStatus.pending:
-            decisions.append(EnqueueTraining(latest.id))
-        elif latest.status in (ModelStatus.training, ModelStatus.queued) and s.lost(latest):
-            # Its worker stopped renewing the claim, or its message was lost (a broker restarted
-            # empty), and nobody holds a message for it. The later of claim and re-send counts,
-            # so a re-sent message waiting in the queue is not sent again.
-            decisions.append(EnqueueTraining(latest.id, requeue=True))
-        ensure_sampled(stage, latest.increment + 1)
-
-    # ...and the next stage's first increment too.
-    following = next((st for st in s.stages if st.order > stage.order), None)
-    if following is not None:
-        ensure_sampled(following, 1)
-    return decisions
-
-
-def _final_model_id(s: Snapshot) -> int | None:
-    """The experiment's final model: the last stage's ω_be; for the canonical baseline its last
-    model ω_K, the one Table 2 scores (picking the best test score would fit the test set)."""
-    last = s.stages[-1] if s.stages else None
-    if last is None:
-        return None
-    if s.config.kind == "canonical_baseline":
-        return _last_evaluated_model_id(s, last)
-    return last.best_model_id
-
-
-def _last_evaluated_model_id(s: Snapshot, stage: StageView) -> int | None:
-    trained = [m for m in s.models if m.stage_id == stage.id and m.status == ModelStatus.evaluated]
-    return max(trained, key=lambda m: m.increment).id if trained else None
-
-
-def _learnability_init(s: Snapshot, stage: StageView, previous: StageView | None) -> int | None:
-    """ω_in of a learnability stage: the LAST model ω_κ of the condition's previous difficulty
-    (Algorithm 2: ω_in ← ω_k), or, at a condition's first difficulty, the model every condition
-    starts from alike (config.LearnabilityConfig says why): with ``start: initial`` none, the
-    detector's initial weights; with ``start: canonical`` the LAST model of the shared canonical
-    stage (which itself starts from the initial weights)."""
-    if previous is not None and previous.condition == stage.condition:
-        return _last_evaluated_model_id(s, previous)
-    if stage.condition == CANONICAL or s.config.learnability.start != "canonical":
-        return None
-    canonical = next((st for st in s.stages if st.condition == CANONICAL), None)
-    if canonical is None or canonical.status != StageStatus.done:
-        # The plan opens stages in order, so this cannot happen; never start from a stage half trained.
-        raise RuntimeError(f"learnability stage {stage.order} would open before the canonical stage is done")
-    return _last_evaluated_model_id(s, canonical)
-
-
-# Below this many finished renders a share says little (one failure in four is not a trend).
-MIN_RENDERS_FOR_SHARE = 20
-
-
-def _lost_too_much(s: Snapshot) -> str | None:
-    """The reason to fail when more than render.max_failed_share of the finished renders failed."""
-    done: Counter = Counter()
-    for counts in s.theta_counts.values():
-        done.update(counts)
-    failed, finished = done[RenderStatus.failed], done[RenderStatus.failed] + done[RenderStatus.rendered]
-    limit = s.config.render.max_failed_share
-    if finished >= MIN_RENDERS_FOR_SHARE and failed > limit * finished:
-        return (
-            f"{failed} of {finished} images ({failed / finished:.0%}) failed to render, more than "
-            f"render.max_failed_share = {limit:.0%}; GET /experiments/{s.experiment_id} counts them by reason"
-        )
-    return None
-
-
-def grace(lease: timedelta) -> timedelta:
-    """How long sent work may show no sign of life (not claimed since it was sent, or a claim
-    that missed two beats of lease/4) before the broker is asked whether anyone holds it: half
-    a lease, so that lost work is sent again well within a minute with the default lease."""
-    return lease / 2
-
-
-def _quiet(enqueued_at: datetime | None, claimed_at: datetime | None, now: datetime, lease: timedelta) -> bool:
-    """No sign of life for the grace: neither sent nor claimed or renewed since."""
-    latest = _latest(enqueued_at, claimed_at)
-    return latest is not None and latest < now - grace(lease)
-
-
-def _latest(*moments: datetime | None) -> datetime | None:
-    known = [moment for moment in moments if moment is not None]
-    return max(known) if known else None
-
-
-# ---------------------------------------------------------------------------------------
-# Reading the snapshot and applying decisions.
-
-
-def load_snapshot(
-    session: Session,
-    experiment: Experiment,
-    now: datetime | None = None,
-    held: Held | None = None,
-    config: ExperimentConfig | None = None,
-) -> Snapshot:
-    """The experiment's state; with ``held`` (the broker's view), the quiet θ and models nobody
-    holds are the ones to send again. ``config``: its stored config, when the caller has read it."""
-    settings = get_settings()
-    now = now or utcnow()
-    requeue_after = timedelta(seconds=settings.requeue_after_s)
-    lease = timedelta(seconds=settings.lease_s)
-    stages = tuple(
-        StageView(st.id, st.order, st.condition, st.difficulty, st.status, st.init_model_id, st.best_model_id)
-        for st in session.scalars(select(Stage).where(Stage.experiment_id == experiment.id).order_by(Stage.order))
-    )
-    model_rows = session.execute(
-        select(Model, Evaluation.map)
-        .outerjoin(Evaluation, Evaluation.model_id == Model.id)
-        .where(Model.experiment_id == experiment.id)
-    ).all()
-    models = tuple(
-        ModelView(
-            m.id,
-            m.stage_id,
-            m.increment,
-            m.parent_id,
-            m.status,
-            score if m.status == ModelStatus.evaluated else None,
-            m.error,
-            m.enqueued_at,
-            m.claimed_at,
-        )
-        for m, score in model_rows
-    )
-    theta_counts: dict[tuple[str, int | None, int | None], Counter] = {}
-    for split, stage_id, increment, status, count in session.execute(
-        select(ParameterSet.split, ParameterSet.stage_id, ParameterSet.increment, ParameterSet.status, func.count())
-        .where(ParameterSet.experiment_id == experiment.id)
-        .group_by(ParameterSet.split, ParameterSet.stage_id, ParameterSet.increment, ParameterSet.status)
-    ):
-        theta_counts.setdefault((split.value, stage_id, increment), Counter())[status] += count
-    pending = tuple(
-        session.scalars(
-            select(ParameterSet.id)
-            .where(ParameterSet.experiment_id == experiment.id, ParameterSet.status == RenderStatus.pending)
-            .order_by(ParameterSet.id)
-        )
-    )
-    quiet = tuple(
-        theta_id
-        for theta_id, enqueued_at, claimed_at in session.execute(
-            select(ParameterSet.id, ParameterSet.enqueued_at, ParameterSet.claimed_at)
-            .where(
-                ParameterSet.experiment_id == experiment.id,
-                ParameterSet.status == RenderStatus.queued,
-                ParameterSet.enqueued_at < now - grace(lease),
-            )
-            .order_by(ParameterSet.id)
-        )
-        if _quiet(enqueued_at, claimed_at, now, lease)
-    )
-    if held is not None:
-        stale = tuple(theta_id for theta_id in quiet if theta_id not in held.render)
-    else:
-        stale = tuple(
-            session.scalars(
-                select(ParameterSet.id)
-                .where(
-                    ParameterSet.experiment_id == experiment.id,
-                    ParameterSet.status == RenderStatus.queued,
-                    ParameterSet.enqueued_at < now - requeue_after,
-                )
-                .order_by(ParameterSet.id)
-            )
-        )
-    return Snapshot(
-        experiment_id=experiment.id,
-        status=experiment.status,
-        seed=experiment.seed,
-        config=config or ExperimentConfig.model_validate(experiment.config),
-        stages=stages,
-        models=models,
-        theta_counts=theta_counts,
-        pending_theta_ids=pending,
-        stale_theta_ids=stale,
-        now=now,
-        requeue_after=requeue_after,
-        lease=lease,
-        quiet_theta_ids=quiet,
-        held_model_ids=held.train if held is not None else None,
-    )
+# Applying decisions.
 
 
 # The hard time limit follows the soft one by this much: time to record the failure.
@@ -499,7 +80,6 @@ def _assets(config: ExperimentConfig):
 
 def _sample(config: ExperimentConfig, condition: str, difficulty: str, n: int, seed: int) -> list[dict]:
     from foldwise.sampling import generate_parameters
-    from foldwise.theta import CANONICAL
 
     if difficulty == CANONICAL:
         # The canonical baseline's stage: a canonical θ varies no condition, so any condition of
@@ -649,7 +229,7 @@ def _release_claims(session: Session, table, ids: Sequence[int]) -> None:
     else:
         session.execute(
             update(ParameterSet)
-            .where(ParameterSet.id.in_(ids), ParameterSet.status.in_(_OPEN))
+            .where(ParameterSet.id.in_(ids), ParameterSet.status.in_(OPEN_RENDERS))
             .values(task_id=None, claimed_at=None)
             .execution_options(synchronize_session=False)
         )
@@ -671,7 +251,7 @@ def _mark_sent(session: Session, send: Send) -> None:
     if send.kind == "render":
         session.execute(
             update(ParameterSet)
-            .where(ParameterSet.id.in_(send.ids), ParameterSet.status.in_(_OPEN))
+            .where(ParameterSet.id.in_(send.ids), ParameterSet.status.in_(OPEN_RENDERS))
             .values(status=RenderStatus.queued, enqueued_at=now)
         )
     else:

@@ -16,7 +16,8 @@ from sqlalchemy import select
 from db.models import Experiment, ExperimentStatus
 from db.session import session_scope
 from foldwise.settings import get_settings
-from services.scheduler.reconcile import Decision, reconcile_once
+from services.scheduler.plan import Decision
+from services.scheduler.reconcile import reconcile_once
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ from datetime import UTC, datetime, timedelta
 
 from db.models import ExperimentStatus, ModelStatus, RenderStatus, StageStatus
 from foldwise.config import parse_config
-from services.scheduler.reconcile import ModelView, Snapshot, StageView, plan  # noqa: F401  (plan: for the tests that import it from here)
+from services.scheduler.snapshot import ModelView, Snapshot, StageView
 
 NOW = datetime(2026, 1, 1, tzinfo=UTC)
 CONFIG = parse_config(

@@ -15,9 +15,10 @@ from db.models import Experiment, ExperimentStatus, Model, ModelStatus, Paramete
 from db.session import session_scope
 from services import queries
 from services.embedded import start_experiment
-from services.scheduler.reconcile import EnqueueTraining, Finish, apply, reconcile_once
+from services.scheduler.plan import EnqueueTraining, Finish, plan
+from services.scheduler.reconcile import apply, reconcile_once
 from tests.services.flow_helpers import config, in_flight
-from tests.services.scheduler.plans import NOW, model, plan, snapshot
+from tests.services.scheduler.plans import NOW, model, snapshot
 
 
 def _statuses(experiment_id: int) -> tuple[Counter, Counter]:

@@ -14,7 +14,7 @@ from db.session import session_scope
 from foldwise.settings import get_settings
 from services.embedded import start_experiment
 from services.scheduler import service
-from services.scheduler.reconcile import OpenStage
+from services.scheduler.plan import OpenStage
 from services.scheduler.service import MAX_STEPS_PER_PASS, reconcile_until_idle
 from tests.services.flow_helpers import config, in_flight
 

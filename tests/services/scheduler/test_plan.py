@@ -4,7 +4,7 @@ from collections import Counter
 from datetime import timedelta
 
 from db.models import ExperimentStatus, ModelStatus, RenderStatus, StageStatus
-from services.scheduler.reconcile import (
+from services.scheduler.plan import (
     CloseStage,
     CreateModel,
     EnqueueRender,
@@ -13,10 +13,10 @@ from services.scheduler.reconcile import (
     Finish,
     OpenStage,
     SampleTraining,
-    StageView,
     Start,
     plan,
 )
+from services.scheduler.snapshot import StageView
 from tests.services.scheduler.plans import NOW, RENDERED, model, snapshot
 
 

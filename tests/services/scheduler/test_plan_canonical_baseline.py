@@ -18,16 +18,8 @@ from db.models import (
 )
 from db.session import session_scope
 from foldwise.config import parse_config
-from services.scheduler.reconcile import (
-    CloseStage,
-    CreateModel,
-    Finish,
-    ModelView,
-    SampleTraining,
-    Snapshot,
-    StageView,
-    plan,
-)
+from services.scheduler.plan import CloseStage, CreateModel, Finish, SampleTraining, plan
+from services.scheduler.snapshot import ModelView, Snapshot, StageView
 from tests.services.kinds import kind_config
 
 NOW = datetime(2026, 1, 1, tzinfo=UTC)

@@ -7,16 +7,8 @@ from datetime import UTC, datetime, timedelta
 
 from db.models import ExperimentStatus, ModelStatus, RenderStatus, StageEndReason, StageStatus
 from foldwise.config import parse_config
-from services.scheduler.reconcile import (
-    CloseStage,
-    CreateModel,
-    ModelView,
-    OpenStage,
-    SampleTraining,
-    Snapshot,
-    StageView,
-    plan,
-)
+from services.scheduler.plan import CloseStage, CreateModel, OpenStage, SampleTraining, plan
+from services.scheduler.snapshot import ModelView, Snapshot, StageView
 from tests.services.kinds import kind_config
 
 NOW = datetime(2026, 1, 1, tzinfo=UTC)
