@@ -3,7 +3,7 @@
 Per COCO set (``--data``, any number): the network detects once (its detections without the
 texture check, kept in ``--cache`` so a second run reads them back), the texture check measures
 each detection's evidence, and each detection is labelled true or false against the set's boxes
-(``workers.train.calibration.true_detections``). The images are split by index: even ones
+(``workers.train.evaluation.true_detections``, the mAP's matching). The images are split by index: even ones
 fit the calibration (``workers/train/calibration.fit``), odd ones report it, so no score below
 is measured on images the fit saw. Reported side by side on the odd half of each set, under the
 paper's protocol and as a user drawing boxes at 0.8 sees it:
@@ -86,9 +86,10 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
 
     from bench.keypoint_baseline import KeypointBaseline
-    from workers.train.calibration import fit, true_detections
+    from workers.train.calibration import fit
     from workers.train.checkpoint import combine_detectors, load_detector
     from workers.train.data import load_coco_dataset, read_image_rgb
+    from workers.train.evaluation import true_detections
     from workers.train.texture_check import TextureCheck
 
     detector = combine_detectors([load_detector(path, device="cpu") for path in args.model])

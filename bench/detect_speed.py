@@ -41,7 +41,7 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
 
     from bench.keypoint_baseline import KeypointBaseline
-    from workers.train.checkpoint import detect_object, load_detector
+    from workers.train.checkpoint import Detector, detect_object, load_detector
     from workers.train.data import load_coco_dataset, read_image_rgb
 
     detector = load_detector(args.model, device="cpu")
@@ -51,11 +51,17 @@ def main(argv=None) -> dict:
     truth = [{"boxes": s.boxes, "labels": to_model[np.asarray(s.labels, np.int64)]} for s in samples]
     groups = [{"condition": s.condition, "difficulty": s.difficulty} for s in samples]
     images = [read_image_rgb(s.image_path) for s in samples]
+    # The ensemble's first member as a detector of its own: its network, meta and the shared textures.
     members = getattr(detector.model, "members", None)
     first = None
     if members is not None:
-        first = load_detector(args.model, device="cpu")
-        first.model = first.model.members[0]
+        first = Detector(
+            model=members[0],
+            meta=detector.meta["members"][0],
+            device=detector.device,
+            textures=detector.textures,
+            lookalikes=detector.lookalikes,
+        )
     rows = [
         ("as built", detector, None, None),
         ("upright", detector, None, (0,)),

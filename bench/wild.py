@@ -982,39 +982,19 @@ def class_agnostic(predictions: list[dict], ground_truth: list[dict]) -> tuple[l
     return merged, truth
 
 
-def at_threshold(
-    predictions: list[dict], ground_truth: list[dict], score_threshold: float, iou_threshold: float
-) -> dict:
-    """What a user who draws every box scoring at least ``score_threshold`` sees: precision (the
-    drawn boxes that are true), recall (the targets a drawn box found), and the counts. A drawn
-    box is true where it has a target's class and IoU ≥ ``iou_threshold`` with a target no
-    better-scored drawn box took (greedy by score, per image)."""
-    import torch
-    from torchvision.ops import box_iou
+def _at_threshold(predictions, truth, classes, score_threshold: float, iou_threshold: float) -> dict:
+    """What a user who draws every box scoring at least ``score_threshold`` sees
+    (``precision_recall_at``, the mAP's matching): precision, recall, and the counts."""
+    from workers.train.evaluation import precision_recall_at
 
-    drawn = true = targets = 0
-    for prediction, truth in zip(predictions, ground_truth):
-        keep = np.asarray(prediction["scores"]) >= score_threshold
-        boxes = np.asarray(prediction["boxes"], np.float32).reshape(-1, 4)[keep]
-        labels = np.asarray(prediction["labels"])[keep]
-        order = np.argsort(-np.asarray(prediction["scores"])[keep], kind="stable")
-        target_boxes = np.asarray(truth["boxes"], np.float32).reshape(-1, 4)
-        target_labels = np.asarray(truth["labels"])
-        drawn, targets = drawn + len(boxes), targets + len(target_boxes)
-        if not len(boxes) or not len(target_boxes):
-            continue
-        overlap = box_iou(torch.from_numpy(boxes), torch.from_numpy(target_boxes)).numpy()
-        taken = np.zeros(len(target_boxes), bool)
-        for index in order:
-            candidates = np.flatnonzero((target_labels == labels[index]) & ~taken & (overlap[index] >= iou_threshold))
-            if len(candidates):
-                taken[candidates[np.argmax(overlap[index, candidates])]] = True
-                true += 1
+    result = precision_recall_at(predictions, truth, classes, score_threshold, iou_threshold)
+    drawn = result.true_positives + result.false_positives
+    targets = result.true_positives + result.false_negatives
     return {
-        "precision": true / drawn if drawn else None,
-        "recall": true / targets if targets else None,
+        "precision": result.precision if drawn else None,
+        "recall": result.recall if targets else None,
         "drawn": drawn,
-        "true": true,
+        "true": result.true_positives,
         "targets": targets,
     }
 
@@ -1041,7 +1021,7 @@ def _scores(
         "images": len(truth),
         "map": payload["map"],
         "map_unthresholded": payload["map_unthresholded"],
-        "at_threshold": at_threshold(predictions, truth, score_threshold, iou_threshold),
+        "at_threshold": _at_threshold(predictions, truth, model_classes, score_threshold, iou_threshold),
         "class_agnostic": {"map": agnostic["map"], "map_unthresholded": agnostic["map_unthresholded"]},
         "per_class": {name: entry.get("ap") for name, entry in payload["per_class"].items()},
         "by_kind": by_kind,

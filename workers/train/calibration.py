@@ -126,33 +126,12 @@ def fit(features: np.ndarray, truths: Sequence[bool], fitted_on: str = "", itera
     return Calibration(weights=tuple(float(v) for v in theta[1:]), bias=float(theta[0]), fitted_on=fitted_on)
 
 
-def true_detections(checked: Mapping, truth: Mapping, iou: float = 0.5) -> np.ndarray:
-    """(n,) bool: each detection true where it takes a target of its class at IoU ≥ ``iou`` that
-    no better-scored detection took (greedy by score, as a user's drawn boxes are counted)."""
-    import torch
-    from torchvision.ops import box_iou
-
-    boxes, labels = np.asarray(checked["boxes"], np.float32).reshape(-1, 4), np.asarray(checked["labels"])
-    targets, target_labels = np.asarray(truth["boxes"], np.float32).reshape(-1, 4), np.asarray(truth["labels"])
-    true = np.zeros(len(boxes), bool)
-    if not len(boxes) or not len(targets):
-        return true
-    overlap = box_iou(torch.from_numpy(boxes), torch.from_numpy(targets)).numpy()
-    taken = np.zeros(len(targets), bool)
-    for index in np.argsort(-np.asarray(checked["scores"]), kind="stable"):
-        candidates = np.flatnonzero((target_labels == labels[index]) & ~taken & (overlap[index] >= iou))
-        if len(candidates):
-            taken[candidates[np.argmax(overlap[index, candidates])]] = True
-            true[index] = True
-    return true
-
-
 def calibrate_detector(detector, samples, classes: Sequence[str], iou: float = 0.5, fitted_on: str = "") -> Calibration:
     """A calibration fitted on labelled images (``workers.train.data.Sample``, class names
     ``classes``): the detector's network detects, its texture check measures the evidence, and
     each detection is labelled true or false against the images' boxes."""
     from workers.train.data import read_image_rgb
-    from workers.train.evaluation import detector_predictions
+    from workers.train.evaluation import detector_predictions, true_detections
     from workers.train.texture_check import TextureCheck
 
     if not detector.textures:

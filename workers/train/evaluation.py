@@ -642,6 +642,20 @@ def _ratio(numerator: int, denominator: int) -> float:
     return numerator / denominator if denominator else float("nan")
 
 
+def true_detections(prediction: Mapping[str, Any], truth: Mapping[str, Any], iou_threshold: float = 0.5) -> np.ndarray:
+    """(n,) bool, in ``prediction``'s order: which of one image's detections are true under the
+    VOC matching of ``evaluate_predictions`` (taken best score first, each claiming the object of
+    its class it overlaps most at IoU ≥ ``iou_threshold``, if no better detection claimed it)."""
+    num_classes = int(max(np.max(prediction["labels"], initial=-1), np.max(truth["labels"], initial=-1))) + 1
+    det = _flatten([prediction], "prediction", max(num_classes, 1), with_scores=True)
+    gt = _flatten([truth], "truth", max(num_classes, 1), with_scores=False)
+    assert det.scores is not None
+    order = np.argsort(-det.scores, kind="stable")
+    flags = np.zeros(len(order), dtype=bool)
+    flags[order] = _match(det, gt, order, float(iou_threshold))
+    return flags
+
+
 def precision_recall_at(
     predictions: Sequence[Mapping[str, Any]],
     ground_truth: Sequence[Mapping[str, Any]],

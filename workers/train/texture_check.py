@@ -415,19 +415,15 @@ class TextureCheck:
                     )
                     if outline is not None:
                         break
-                evidence[index, 2:] = (
-                    np.log1p(inliers),
-                    coverage,
-                    np.log1p(keypoints),
-                    counts[label] / max(keypoints, 1),
-                )
+                # ``candidate``: the class the box ends with (its own where no map was found).
+                share = counts[candidate] / max(keypoints, 1)
+                evidence[index, 2:] = (np.log1p(inliers), coverage, np.log1p(keypoints), share)
                 if outline is None:
                     continue
                 labels[index] = candidate
                 boxes[index] = outline
                 confirmed[index] = True
                 evidence[index, 1] = 1.0
-                evidence[index, 5] = counts[candidate] / max(keypoints, 1)
             if self.calibration is not None:
                 scores = self.calibration.probability(evidence)
             else:

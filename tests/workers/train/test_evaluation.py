@@ -646,3 +646,24 @@ def test_worst_images_rank_by_errors_and_undefined_ratios_are_nan():
     assert nothing.to_dict()["precision"] is None
     with pytest.raises(ValueError, match="same images"):
         precision_recall_at([], [_truth([], [])], ["a"])
+
+
+def test_true_detections_flags_each_box_in_its_own_order_by_the_maps_matching():
+    """The mAP's matching, per detection: the better-scored of two boxes on one object is true,
+    the other a duplicate; a box of another class, or too loose, is false; the flags come back
+    in the prediction's order, not the score order."""
+    from workers.train.evaluation import true_detections
+
+    truth = {"boxes": np.array([[0, 0, 10, 10], [20, 20, 30, 30]], np.float32), "labels": np.array([0, 1])}
+    prediction = {
+        "boxes": np.array([[0, 0, 10, 9], [0, 0, 10, 10], [20, 20, 30, 30], [20, 20, 40, 40]], np.float32),
+        "scores": np.array([0.6, 0.9, 0.8, 0.95], np.float32),
+        "labels": np.array([0, 0, 0, 1]),
+    }
+    assert true_detections(prediction, truth, 0.5).tolist() == [False, True, False, False]
+    empty = {"boxes": np.zeros((0, 4), np.float32), "scores": np.zeros(0, np.float32), "labels": np.zeros(0, np.int64)}
+    assert true_detections(empty, truth).tolist() == []
+    assert (
+        true_detections(prediction, {"boxes": np.zeros((0, 4)), "labels": np.zeros(0, np.int64)}).tolist()
+        == [False] * 4
+    )
