@@ -34,7 +34,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.wild import _scores, machine, write_report  # noqa: E402
+from bench.report import machine, write_report  # noqa: E402
+from bench.wild_scoring import _scores  # noqa: E402
 
 
 def network_detections(detector, samples, classes, cache: Path | None) -> tuple[list[dict], float]:

@@ -30,7 +30,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.wild import machine, write_report  # noqa: E402  (light: numpy and paths)
+from bench.report import machine, write_report  # noqa: E402  (light: the standard library)
 
 CASES = ("without_cache", "cache_cold", "cache_warm")
 PHASES = ("import", "load", "texture_check", "detect")

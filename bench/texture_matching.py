@@ -29,7 +29,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.wild import machine, write_report  # noqa: E402  (light: numpy and paths)
+from bench.report import machine, write_report  # noqa: E402  (light: the standard library)
 
 DEFAULT_SETS = ("wild-in-domain-quick", "wild-ood", "wild-ood-b", "wild-ood-apart")
 MATCHERS = {"brute_force": True, "flann": False}  # name: TextureCheck(exact=...)

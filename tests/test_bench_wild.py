@@ -17,7 +17,7 @@ sys.path.insert(0, str(ROOT))
 
 pytest.importorskip("bpy", reason="the out-of-domain set is rendered by Blender (the render extra)")
 
-from bench import wild  # noqa: E402
+from bench import wild, wild_scene, wild_scoring, wild_sets  # noqa: E402
 
 CLASSES = ("astronaut", "coffee")
 
@@ -26,7 +26,7 @@ def test_the_curl_is_isometric():
     """Arc length along the sheet is kept: every mesh edge keeps its flat length."""
     rng = np.random.default_rng(3)
     for _ in range(5):
-        vertices, faces, _ = wild.curled_sheet(1.0, 0.7, rng, cells=16)
+        vertices, faces, _ = wild_scene.curled_sheet(1.0, 0.7, rng, cells=16)
         for face in faces:
             across = np.linalg.norm(vertices[face[1]] - vertices[face[0]])
             up = np.linalg.norm(vertices[face[3]] - vertices[face[0]])
@@ -36,19 +36,19 @@ def test_the_curl_is_isometric():
 
 
 def test_the_ood_set_is_deterministic_and_cached(tmp_path):
-    recipe = wild.OodRecipe(n=4, width=64, height=48, samples=1, seed=11, negatives=0.5, classes=CLASSES)
+    recipe = wild_scene.OodRecipe(n=4, width=64, height=48, samples=1, seed=11, negatives=0.5, classes=CLASSES)
     first = json.loads(
-        (wild.make_ood_set(tmp_path / "a", recipe, echo=lambda *_: None) / "annotations.json").read_text()
+        (wild_sets.make_ood_set(tmp_path / "a", recipe, echo=lambda *_: None) / "annotations.json").read_text()
     )
     second = json.loads(
-        (wild.make_ood_set(tmp_path / "b", recipe, echo=lambda *_: None) / "annotations.json").read_text()
+        (wild_sets.make_ood_set(tmp_path / "b", recipe, echo=lambda *_: None) / "annotations.json").read_text()
     )
     assert first["annotations"] == second["annotations"]
     assert [i["difficulty"] for i in first["images"]] == [i["difficulty"] for i in second["images"]]
     lines = []
-    wild.make_ood_set(tmp_path / "a", recipe, echo=lines.append)
+    wild_sets.make_ood_set(tmp_path / "a", recipe, echo=lines.append)
     assert lines and "reusing" in lines[0]
-    changed = wild.OodRecipe(n=4, width=64, height=48, samples=1, seed=12, negatives=0.5, classes=CLASSES)
+    changed = wild_scene.OodRecipe(n=4, width=64, height=48, samples=1, seed=12, negatives=0.5, classes=CLASSES)
     assert changed.key() != recipe.key()
     for annotation in first["annotations"]:
         x, y, w, h = annotation["bbox"]
@@ -59,8 +59,8 @@ def test_the_ood_set_is_deterministic_and_cached(tmp_path):
 
 def test_a_fully_visible_target_is_boxed_at_its_projected_outline():
     """The index render's box equals the bounding box of the projected mesh (within a pixel)."""
-    recipe = wild.OodRecipe(n=1, width=160, height=120, samples=1, seed=0, classes=CLASSES)
-    scene = wild.OodScene(wild.load_textures(CLASSES), recipe)
+    recipe = wild_scene.OodRecipe(n=1, width=160, height=120, samples=1, seed=0, classes=CLASSES)
+    scene = wild_scene.OodScene(wild_scene.load_textures(CLASSES), recipe)
     from bpy_extras.object_utils import world_to_camera_view  # importable once bpy is
 
     checked = 0
@@ -209,16 +209,16 @@ def test_the_in_domain_set_is_shared_by_configs_that_render_alike(tmp_path):
     config = load_config(ROOT / "configs" / "smoke.yaml")
     out = tmp_path / "in"
     lines: list[str] = []
-    wild.make_in_domain_set(config, out, 1, seed=3, echo=lines.append)
+    wild_sets.make_in_domain_set(config, out, 1, seed=3, echo=lines.append)
     first = (out / "annotations.json").read_text()
     other_detector = config.model_copy(
         update={"detector": config.detector.model_copy(update={"test_sizes": (64, 96), "learning_rate": 0.02})}
     )
-    wild.make_in_domain_set(other_detector, out, 1, seed=3, echo=lines.append)
+    wild_sets.make_in_domain_set(other_detector, out, 1, seed=3, echo=lines.append)
     assert lines[-1] == f"in-domain set: reusing {out}"
     assert (out / "annotations.json").read_text() == first
     larger = config.model_copy(update={"render": config.render.model_copy(update={"image_size": 48})})
-    wild.make_in_domain_set(larger, out, 1, seed=3, echo=lines.append)
+    wild_sets.make_in_domain_set(larger, out, 1, seed=3, echo=lines.append)
     assert not lines[-1].startswith("in-domain set: reusing")
     coco = json.loads((out / "annotations.json").read_text())
     assert {(image["width"], image["height"]) for image in coco["images"]} == {(48, 48)}
@@ -227,8 +227,8 @@ def test_the_in_domain_set_is_shared_by_configs_that_render_alike(tmp_path):
 def test_a_plain_scene_is_a_flat_sheet_seen_from_above_at_half_the_frame():
     """With every factor off the scene is plain: a flat, unrotated sheet straight below a 40°
     camera filling half the frame's width, and nothing else in view."""
-    recipe = wild.OodRecipe(n=1, width=160, height=120, samples=1, seed=0, classes=("coffee",), factors=())
-    scene = wild.OodScene(wild.load_textures(recipe.classes), recipe)
+    recipe = wild_scene.OodRecipe(n=1, width=160, height=120, samples=1, seed=0, classes=("coffee",), factors=())
+    scene = wild_scene.OodScene(wild_scene.load_textures(recipe.classes), recipe)
     image, objects, info = scene.render(3, negative=False)
     assert (
         info["fill"] == 0.5 and info["fov_deg"] == pytest.approx(40.0) and info["elevation_deg"] == pytest.approx(90.0)
@@ -243,7 +243,7 @@ def test_a_plain_scene_is_a_flat_sheet_seen_from_above_at_half_the_frame():
         "wild-target-0",
     ]
     with pytest.raises(ValueError, match="unknown factor"):
-        wild.OodRecipe(factors=("weather",))
+        wild_scene.OodRecipe(factors=("weather",))
 
 
 def test_reframing_pads_to_four_by_three_and_moves_the_boxes(tmp_path):
@@ -263,7 +263,7 @@ def test_reframing_pads_to_four_by_three_and_moves_the_boxes(tmp_path):
         "categories": [{"id": 1, "name": "coffee"}],
     }
     (source / "annotations.json").write_text(json.dumps(document))
-    out = wild.make_reframed_set(source, tmp_path / "framed")
+    out = wild_sets.make_reframed_set(source, tmp_path / "framed")
     framed = json.loads((out / "annotations.json").read_text())
     assert [(i["width"], i["height"]) for i in framed["images"]] == [(64, 48), (48, 64)]
     for image, annotation in zip(framed["images"], framed["annotations"]):
@@ -291,7 +291,7 @@ def test_rotating_turns_each_image_by_quarter_turns_and_its_boxes_exactly(tmp_pa
         "categories": [{"id": 1, "name": "coffee"}],
     }
     (source / "annotations.json").write_text(json.dumps(document))
-    out = wild.make_rotated_set(source, tmp_path / "rotated")
+    out = wild_sets.make_rotated_set(source, tmp_path / "rotated")
     turned = json.loads((out / "annotations.json").read_text())
     assert [(i["width"], i["height"]) for i in turned["images"]] == [(40, 60), (60, 40), (40, 60)]
     boxes = [a["bbox"] for a in turned["annotations"]]
@@ -318,7 +318,7 @@ def test_the_class_agnostic_score_counts_a_found_sheet_whatever_class_it_is_give
     ]
     truth = [{"boxes": target, "labels": np.array([0])}]
     aware = evaluate_predictions(predictions, truth, ["a", "b"], coco=False)
-    merged, merged_truth = wild.class_agnostic(predictions, truth)
+    merged, merged_truth = wild_scoring.class_agnostic(predictions, truth)
     assert len(merged[0]["boxes"]) == 1 and merged[0]["scores"][0] == np.float32(0.9)  # one box per place
     agnostic = evaluate_predictions(merged, merged_truth, ["object"], coco=False)
     assert agnostic.map == 1.0  # found, at the paper's cut
@@ -369,10 +369,10 @@ def test_the_held_apart_photographs_are_none_of_foldwises_training_images():
 
     catalog = load_assets()
     training = {asset.name for asset in catalog.backgrounds + catalog.occluders}
-    ground, clutter = wild.PHOTO_POOLS["held_apart"]
+    ground, clutter = wild_scene.PHOTO_POOLS["held_apart"]
     assert not (set(ground) | set(clutter)) & training
-    assert set(wild.GROUND_PHOTOS) | set(wild.CLUTTER_PHOTOS) <= training
-    held_apart = wild.load_textures((), "held_apart")
+    assert set(wild_scene.GROUND_PHOTOS) | set(wild_scene.CLUTTER_PHOTOS) <= training
+    held_apart = wild_scene.load_textures((), "held_apart")
     training_pixels = {
         asset.name: catalog.occluder(asset.name)[0] if asset in catalog.occluders else asset.load()
         for asset in catalog.backgrounds + catalog.occluders
@@ -381,9 +381,11 @@ def test_the_held_apart_photographs_are_none_of_foldwises_training_images():
     for name, pixels in held_apart.items():
         for other, other_pixels in training_pixels.items():
             assert pixels.shape != other_pixels.shape or not np.array_equal(pixels, other_pixels), (name, other)
-    assert wild.OodRecipe(classes=CLASSES, photos="held_apart").key() != wild.OodRecipe(classes=CLASSES).key()
+    assert (
+        wild_scene.OodRecipe(classes=CLASSES, photos="held_apart").key() != wild_scene.OodRecipe(classes=CLASSES).key()
+    )
     with pytest.raises(ValueError, match="unknown photo pool"):
-        wild.OodRecipe(classes=CLASSES, photos="mine")
+        wild_scene.OodRecipe(classes=CLASSES, photos="mine")
 
 
 def test_the_committed_panoramas_are_what_derive_makes_from_bpys(tmp_path):
@@ -392,7 +394,7 @@ def test_the_committed_panoramas_are_what_derive_makes_from_bpys(tmp_path):
     subprocess.run([sys.executable, "-c", script], check=True, cwd=ROOT, timeout=120)
     from bench import panoramas
 
-    assert panoramas.NAMES == wild.HELD_APART_PANORAMAS
+    assert panoramas.NAMES == wild_scene.HELD_APART_PANORAMAS
     import cv2
 
     for name in panoramas.NAMES:
@@ -428,7 +430,7 @@ def test_an_empty_first_set_is_refused_before_it_can_replace_a_cached_one(tmp_pa
 
 
 def _coco_folder(samples, classes, folder: Path) -> Path:
-    """The samples (images already under ``folder / 'images'``) as a COCO folder wild.score reads."""
+    """The samples (images already under ``folder / 'images'``) as a COCO folder wild_scoring.score reads."""
     document = {
         "images": [
             {"id": i + 1, "file_name": f"images/{s.image_path.name}", "width": 64, "height": 64}
@@ -457,15 +459,15 @@ def test_several_checkpoints_score_as_one_ensemble(tmp_path):
     first, second, other = tmp_path / "a.pt", tmp_path / "b.pt", tmp_path / "other.pt"
     train_detector(samples, None, 2, config(), COLOURS, first, seed=0)
     train_detector(samples, None, 2, config(), COLOURS, second, seed=1)
-    alone = wild.score(first, data, 0.0, 0.5)
-    with_itself = wild.score([first, first], data, 0.0, 0.5)
+    alone = wild_scoring.score(first, data, 0.0, 0.5)
+    with_itself = wild_scoring.score([first, first], data, 0.0, 0.5)
     assert with_itself["map"] == alone["map"] and with_itself["map_unthresholded"] == alone["map_unthresholded"]
-    pair = wild.score([first, second], data, 0.0, 0.5)
+    pair = wild_scoring.score([first, second], data, 0.0, 0.5)
     assert pair["images"] == 6 and 0.0 <= pair["map"] <= 1.0
     # The same classes in another order: its label 0 is another class, so merging would mix them.
     train_detector(samples, None, 1, config(), COLOURS[::-1], other, seed=0)
     with pytest.raises(ValueError, match="an ensemble needs one class list"):
-        wild.score([first, other], data, 0.0, 0.5)
+        wild_scoring.score([first, other], data, 0.0, 0.5)
 
 
 @pytest.mark.parametrize(
@@ -500,7 +502,7 @@ def test_the_hard_sets_creases_and_tubes_keep_every_length_of_the_sheet(bend):
     isometric, as a sheet of paper bends (every mesh edge as long as on the flat sheet)."""
     import numpy as np
 
-    make = wild.creased_sheet if bend == "creased" else wild.rolled_sheet
+    make = wild_scene.creased_sheet if bend == "creased" else wild_scene.rolled_sheet
     for seed in range(5):
         vertices, faces, uvs = make(0.7, 1.0, np.random.default_rng(seed))
         flat = np.column_stack([uvs[:, 0] * 0.7, uvs[:, 1] * 1.0])
