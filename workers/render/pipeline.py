@@ -22,7 +22,7 @@
 11. ``background``: sRGB encoding of the layers and alpha compositing over the background in
     depth order; the occluder goes on top;
 12. ``distortion`` (θ.distortion ≠ 0), ``focus_blur`` then ``motion_blur`` (kernels of at least
-    2 pixels), ``noise`` (θ.noise_sigma > 0): the camera's 2D stages (imaging.py, compositing.py);
+    2 pixels), ``noise`` (θ.noise_sigma > 0): the camera's 2D stages (imaging.py, blur.py);
 13. ``encode``: to uint8, then ``jpeg`` (θ.jpeg_quality < 100). ``total`` covers everything.
     An image with one sheet and none of the float stages composites and encodes only the box
     where the object or occluder is drawn, inside ``background`` (no ``encode`` entry); the
@@ -255,8 +255,8 @@ def _clutter_layers(theta: Theta, scene, shared: dict, assets, render, size: int
     import cv2
 
     from workers.render.assets import random_crop
-    from workers.render.compositing import random_shape
     from workers.render.layers import SheetPlacement, distractor_placements
+    from workers.render.occluders import random_shape
 
     behind: list[tuple[float, _Layer]] = []
     front: list[tuple[float, _Layer]] = []
@@ -294,7 +294,7 @@ def _clutter_layers(theta: Theta, scene, shared: dict, assets, render, size: int
 def render_theta(theta, backend: str = "raster", assets=None, samples: int = 16, device: str = "CPU") -> RenderResult:
     """Render one θ (a Theta or its stored dict of any version); RenderRejected (with a
     reason) when its image cannot be used."""
-    from workers.render import compositing
+    from workers.render import blur, compositing, occluders
     from workers.render.assets import load_assets
     from workers.render.camera import build_scene, frame_shift, with_principal_shift
     from workers.render.raster import amodal_extent, silhouette
@@ -398,7 +398,7 @@ def render_theta(theta, backend: str = "raster", assets=None, samples: int = 16,
         # placement draws a random target pixel, and a one-pixel difference between the
         # backends' anti-aliased edges would otherwise put it somewhere else entirely.
         placement_mask = first.mask if backend == "raster" else silhouette(first.scene)
-        occlusion = compositing.place_occluder(
+        occlusion = occluders.place_occluder(
             placement_mask & ~hidden[0],
             amodal[0][0],
             float(theta.visible_fraction),
@@ -421,8 +421,8 @@ def render_theta(theta, backend: str = "raster", assets=None, samples: int = 16,
     lap("annotation")
 
     background = assets.background(theta.background, size, _rng(theta, _BACKGROUND))
-    focus_blur = compositing.odd_kernel_size(theta.focus_blur_pct, size) > 0
-    motion_blur = compositing.motion_kernel_pixels(theta.motion_blur_pct, size) > 1
+    focus_blur = blur.odd_kernel_size(theta.focus_blur_pct, size) > 0
+    motion_blur = blur.motion_kernel_pixels(theta.motion_blur_pct, size) > 1
     distorted = theta.distortion != 0
     float_stages = focus_blur or motion_blur or distorted or theta.noise_sigma > 0
     if len(layers) == 1 and not float_stages:
@@ -447,10 +447,10 @@ def render_theta(theta, backend: str = "raster", assets=None, samples: int = 16,
             annotations = [distorted_annotation(a, mask, theta.distortion) for a, mask in zip(annotations, visible)]
             lap("distortion")
         if focus_blur:
-            image = compositing.focus_blur(image, theta.focus_blur_pct, size)
+            image = blur.focus_blur(image, theta.focus_blur_pct, size)
             lap("focus_blur")
         if motion_blur:
-            image = compositing.motion_blur(image, theta.motion_blur_pct, theta.motion_blur_angle, size)
+            image = blur.motion_blur(image, theta.motion_blur_pct, theta.motion_blur_angle, size)
             lap("motion_blur")
         if theta.noise_sigma > 0:
             from workers.render.imaging import add_noise
@@ -509,11 +509,12 @@ def compile_kernels() -> None:
     from foldwise.conditions import load_condition_table
     from foldwise.sampling import generate_parameters
     from foldwise.theta import MIXED
-    from workers.render import compositing, raster
+    from workers.render import compositing, occluders, raster
     from workers.render.assets import procedural_background
 
     raster.compile_kernels()
     compositing.compile_kernels()
+    occluders.compile_kernels()
     procedural_background("checker", 16, np.random.default_rng(0))  # gradient, stripes and checker share one kernel
     table = load_condition_table()
     for index, condition in enumerate(table.codes + (MIXED,)):

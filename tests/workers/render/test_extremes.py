@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from foldwise.sampling import generate_parameters
-from workers.render import compositing
+from workers.render import blur
 from workers.render.annotation import MIN_BOX_SIDE, MIN_VISIBLE_PIXELS, tight_box
 from workers.render.pipeline import render_theta, render_with_resample
 
@@ -122,9 +122,9 @@ def test_motion_blur_hardest(angle):
 
 
 def test_motion_kernel_direction_and_normalisation():
-    horizontal = compositing.motion_kernel(4.7, 0.0)
-    vertical = compositing.motion_kernel(4.7, math.pi / 2)
-    diagonal = compositing.motion_kernel(6.2, math.pi / 4)
+    horizontal = blur.motion_kernel(4.7, 0.0)
+    vertical = blur.motion_kernel(4.7, math.pi / 2)
+    diagonal = blur.motion_kernel(6.2, math.pi / 4)
     for kernel in (horizontal, vertical, diagonal):
         assert kernel.shape[0] == kernel.shape[1] and kernel.shape[0] % 2 == 1
         assert kernel.sum() == pytest.approx(1.0, abs=1e-6)
@@ -135,8 +135,8 @@ def test_motion_kernel_direction_and_normalisation():
     np.testing.assert_allclose(diagonal, diagonal.T, atol=1e-7)
     np.testing.assert_allclose(diagonal, diagonal[::-1, ::-1], atol=1e-7)
     assert diagonal[1, -2] > 0.05 and diagonal[1, 1] == 0
-    assert compositing.motion_kernel(0.4, 1.0).size == 0
-    assert compositing.motion_kernel(1.49, 1.0).size == 0
+    assert blur.motion_kernel(0.4, 1.0).size == 0
+    assert blur.motion_kernel(1.49, 1.0).size == 0
 
 
 def test_focus_blur_hardest_keeps_the_geometric_box():
@@ -162,13 +162,13 @@ def test_focus_blur_hardest_keeps_the_geometric_box():
     ],
 )
 def test_kernel_sizes_are_odd_or_skipped(percent, size, expected):
-    assert compositing.odd_kernel_size(percent, size) == expected
+    assert blur.odd_kernel_size(percent, size) == expected
 
 
 def test_a_kernel_rounding_to_nothing_skips_the_stage_without_a_copy():
     image = np.random.default_rng(0).random((32, 32, 3), dtype=np.float32)
-    assert compositing.focus_blur(image, 0.39, 128) is image
-    assert compositing.motion_blur(image, 0.39, 1.0, 128) is image
+    assert blur.focus_blur(image, 0.39, 128) is image
+    assert blur.motion_blur(image, 0.39, 1.0, 128) is image
     theta = canonical(condition="fb", difficulty="easy", focus_blur_pct=0.39, size=128)
     result = render_theta(theta)
     assert "focus_blur" not in result.timings

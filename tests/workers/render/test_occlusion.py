@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from workers.render import compositing
+from workers.render import occluders
 
 
 def _target(seed: int, size: int = 128) -> np.ndarray:
@@ -37,7 +37,7 @@ def _real_scales(shape, shape_mask, offsets, angle, model):
     """Each pixel's critical scale on the drawn shape, bisected over a wide bracket."""
     cos, sin = np.float32(math.cos(angle)), np.float32(math.sin(angle))
     rotated = np.stack([cos * offsets[0] - sin * offsets[1], sin * offsets[0] + cos * offsets[1]], axis=1)
-    return compositing._real_critical_scales(
+    return occluders._real_critical_scales(
         shape_mask, shape.pivot[0], shape.pivot[1], rotated, model * np.float32(0.5), model * np.float32(2.0), 30
     )
 
@@ -48,7 +48,7 @@ def test_random_shape_models_are_right_within_their_tolerance(size):
     kinds = set()
     for seed in range(24):
         rng = np.random.default_rng(seed)
-        shape = compositing._random_outline(rng, height, width)
+        shape = occluders._random_outline(rng, height, width)
         kinds.add(type(shape).__name__)
         shape_mask = shape.draw(height, width)
         points = np.stack(np.meshgrid(np.arange(-60, 61, 3), np.arange(-60, 61, 3)), axis=0).reshape(2, -1)
@@ -62,8 +62,8 @@ def test_random_shape_models_are_right_within_their_tolerance(size):
 
 def test_random_shape_draws_its_outline():
     for seed in range(10):
-        shape = compositing._random_outline(np.random.default_rng(seed), 120, 160)
-        assert np.array_equal(compositing.random_shape(np.random.default_rng(seed), 120, 160), shape.draw(120, 160))
+        shape = occluders._random_outline(np.random.default_rng(seed), 120, 160)
+        assert np.array_equal(occluders.random_shape(np.random.default_rng(seed), 120, 160), shape.draw(120, 160))
 
 
 def test_coverage_sampling_is_opencvs_remap():
@@ -80,7 +80,7 @@ def test_coverage_sampling_is_opencvs_remap():
     def sample_all(mask, xs, ys):
         out = np.empty(xs.size, np.int64)
         for i in range(xs.size):
-            out[i] = compositing._coverage_at(mask, xs[i], ys[i])
+            out[i] = occluders._coverage_at(mask, xs[i], ys[i])
         return out
 
     assert np.array_equal(sample_all(mask, xs.ravel(), ys.ravel()), expected.ravel())
@@ -91,7 +91,7 @@ def test_placement_hides_the_asked_share_to_a_pixel(visible):
     for seed in range(12):
         target = _target(seed)
         amodal = target.sum() * 1.1  # some of the sheet lies outside the image
-        occlusion = compositing.place_occluder(target, amodal, visible, OCCLUDER_RGB, None, np.random.default_rng(seed))
+        occlusion = occluders.place_occluder(target, amodal, visible, OCCLUDER_RGB, None, np.random.default_rng(seed))
         hidden = np.count_nonzero(occlusion.mask & target)
         assert occlusion.achieved_fraction == (target.sum() - hidden) / amodal  # measured on the mask returned
         assert abs(occlusion.achieved_fraction - visible) * amodal <= 2.0, seed  # within 2 pixels of the ask
@@ -104,16 +104,16 @@ def test_placement_hides_the_asked_share_to_a_pixel(visible):
 
 def test_placement_is_deterministic_and_keeps_to_the_warped_box():
     target = _target(3)
-    first = compositing.place_occluder(target, target.sum(), 0.4, OCCLUDER_RGB, None, np.random.default_rng(9))
-    again = compositing.place_occluder(target, target.sum(), 0.4, OCCLUDER_RGB, None, np.random.default_rng(9))
+    first = occluders.place_occluder(target, target.sum(), 0.4, OCCLUDER_RGB, None, np.random.default_rng(9))
+    again = occluders.place_occluder(target, target.sum(), 0.4, OCCLUDER_RGB, None, np.random.default_rng(9))
     for name in ("rgb", "alpha", "mask"):
         assert np.array_equal(getattr(first, name), getattr(again, name))
     # The shape is warped inside the box its outline reaches: a warp of the whole image is zero outside it.
     rng = np.random.default_rng(4)
-    shape = compositing._random_outline(rng, 150, 200)
+    shape = occluders._random_outline(rng, 150, 200)
     shape_mask = shape.draw(150, 200)
     for scale in (0.05, 0.3, 1.0, 2.5):
-        placement = compositing._warp_shape(shape, shape_mask, target, (60.0, 70.0), 0.7, scale)
+        placement = occluders._warp_shape(shape, shape_mask, target, (60.0, 70.0), 0.7, scale)
         whole = cv2.warpAffine(shape_mask, placement.matrix, (128, 128), flags=cv2.INTER_LINEAR)
         r0, r1, c0, c1 = placement.box
         outside = whole.copy()
@@ -129,24 +129,24 @@ def test_the_scale_is_as_good_as_bisecting_the_real_count():
     points_f = points.T.astype(np.float32)
     for seed in range(8):
         rng = np.random.default_rng(seed)
-        shape = compositing._random_outline(rng, 150, 200)
+        shape = occluders._random_outline(rng, 150, 200)
         shape_mask = shape.draw(150, 200)
         k = int(rng.integers(len(points)))
         centre, angle = (float(points[k, 0]), float(points[k, 1])), float(rng.uniform(-math.pi, math.pi))
         offsets = points_f - points_f[:, k : k + 1]
         need = 0.3 * len(points) + 0.25
-        fitted = compositing._fit_scale(
+        fitted = occluders._fit_scale(
             shape, shape_mask, target, centre, angle, offsets, shape.critical_scales(offsets, angle), need, 50.0, 4
         )
         low, high = 0.0, 50.0
         for _ in range(40):
             middle = 0.5 * (low + high)
-            if compositing._warp_shape(shape, shape_mask, target, centre, angle, middle).hidden < need:
+            if occluders._warp_shape(shape, shape_mask, target, centre, angle, middle).hidden < need:
                 low = middle
             else:
                 high = middle
         bisected = min(
-            (compositing._warp_shape(shape, shape_mask, target, centre, angle, s).hidden for s in (low, high)),
+            (occluders._warp_shape(shape, shape_mask, target, centre, angle, s).hidden for s in (low, high)),
             key=lambda hidden: abs(hidden - need),
         )
         assert abs(fitted.hidden - need) <= abs(bisected - need) + 1.0, seed
@@ -167,17 +167,17 @@ def test_own_alpha_occluders():
     square = np.zeros((60, 80), np.uint8)
     square[10:50, 15:65] = 255
     target = _target(2)
-    for alpha, worst in ((square, 2.0 / target.sum()), (_not_star_shaped()["ring"], compositing._GOOD_ENOUGH)):
+    for alpha, worst in ((square, 2.0 / target.sum()), (_not_star_shaped()["ring"], occluders._GOOD_ENOUGH)):
         rgb = _frozen(np.full(alpha.shape + (3,), 90, np.uint8))
         alpha = _frozen(alpha)
         for seed in range(6):
-            occlusion = compositing.place_occluder(target, target.sum(), 0.5, rgb, alpha, np.random.default_rng(seed))
+            occlusion = occluders.place_occluder(target, target.sum(), 0.5, rgb, alpha, np.random.default_rng(seed))
             hidden = np.count_nonzero(occlusion.mask & target)
             assert occlusion.achieved_fraction == (target.sum() - hidden) / target.sum()
             if worst is not None:
                 assert abs(occlusion.achieved_fraction - 0.5) <= worst
     glass = _frozen(np.zeros((20, 20), np.uint8))
-    occlusion = compositing.place_occluder(
+    occlusion = occluders.place_occluder(
         target, target.sum(), 0.5, _frozen(np.zeros((20, 20, 3), np.uint8)), glass, np.random.default_rng(0)
     )
     assert (
@@ -191,7 +191,7 @@ def test_occluders_that_are_not_star_shaped_still_hide_the_share_asked(name):
     # centred on and its hidden count does not grow with its scale: the pivot moves into the
     # shape and a scale the model misses is searched on real warps (50 of 90 rejected before).
     alpha = _frozen(_not_star_shaped()[name])
-    shape = compositing._AlphaShape(alpha)
+    shape = occluders._AlphaShape(alpha)
     x, y = (int(round(v)) for v in shape.pivot)
     assert alpha[y, x] >= 128
     rgb = _frozen(np.full(alpha.shape + (3,), 90, np.uint8))
@@ -202,16 +202,14 @@ def test_occluders_that_are_not_star_shaped_still_hide_the_share_asked(name):
     for seed in range(12):
         target = _target(seed)
         for visible in asks:
-            occlusion = compositing.place_occluder(
-                target, target.sum(), visible, rgb, alpha, np.random.default_rng(seed)
-            )
+            occlusion = occluders.place_occluder(target, target.sum(), visible, rgb, alpha, np.random.default_rng(seed))
             hidden = np.count_nonzero(occlusion.mask & target)
             assert occlusion.achieved_fraction == (target.sum() - hidden) / target.sum()
             errors.append(abs(occlusion.achieved_fraction - visible))
-    assert max(errors) <= compositing._GOOD_ENOUGH, max(errors)
+    assert max(errors) <= occluders._GOOD_ENOUGH, max(errors)
 
 
 def test_nothing_to_do_when_the_border_already_hides_enough():
     target = _target(1)
     amodal = target.sum() / 0.6  # 60% of the sheet is in the image
-    assert compositing.place_occluder(target, amodal, 0.7, OCCLUDER_RGB, None, np.random.default_rng(0)) is None
+    assert occluders.place_occluder(target, amodal, 0.7, OCCLUDER_RGB, None, np.random.default_rng(0)) is None

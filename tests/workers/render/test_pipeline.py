@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from foldwise.sampling import derive_seed, generate_parameters
-from workers.render import compositing, pipeline
+from workers.render import blur, occluders, pipeline
 from workers.render.annotation import tight_box
 from workers.render.assets import AssetError, load_assets
 from workers.render.pipeline import RenderRejected, render_theta, render_with_resample
@@ -87,8 +87,8 @@ def test_canonical_stages_do_no_work(monkeypatch):
     def forbidden(*args, **kwargs):
         raise AssertionError("a canonical stage did work")
 
-    for name in ("focus_blur", "motion_blur", "place_occluder"):
-        monkeypatch.setattr(compositing, name, forbidden)
+    for module, name in ((blur, "focus_blur"), (blur, "motion_blur"), (occluders, "place_occluder")):
+        monkeypatch.setattr(module, name, forbidden)
     monkeypatch.setattr(cv2, "GaussianBlur", forbidden)
     monkeypatch.setattr(cv2, "filter2D", forbidden)
     for condition in ("po", "de", "sc", "li"):  # conditions that need none of the 2D stages

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from workers.render import compositing
+from workers.render import compositing, occluders
 from workers.render.assets import load_assets, procedural_background, random_crop
 
 
@@ -47,16 +47,16 @@ def test_prepared_occluder_cache_matches_a_fresh_conversion_and_skips_writable_a
     frozen_rgb, frozen_alpha = rgb.copy(), alpha.copy()
     frozen_rgb.setflags(write=False)
     frozen_alpha.setflags(write=False)
-    first = compositing._prepared_occluder(frozen_rgb, frozen_alpha, limit=30)
-    cached = compositing._prepared_occluder(frozen_rgb, frozen_alpha, limit=30)
+    first = occluders._prepared_occluder(frozen_rgb, frozen_alpha, limit=30)
+    cached = occluders._prepared_occluder(frozen_rgb, frozen_alpha, limit=30)
     assert cached[0] is first[0]  # a hit: the same converted array
-    fresh = compositing._prepared_occluder(rgb, alpha, limit=30)  # writable: computed anew
+    fresh = occluders._prepared_occluder(rgb, alpha, limit=30)  # writable: computed anew
     assert fresh[0] is not first[0]
     assert np.array_equal(fresh[0], first[0]) and np.array_equal(fresh[1].mask, first[1].mask)
     assert fresh[1].pivot == first[1].pivot  # the alpha's radial profile comes with it
     assert max(first[0].shape[:2]) == 30 and first[0].dtype == np.float32
     rgb[:] = 0  # a writable array may change between calls: nothing stale comes back
-    assert not compositing._prepared_occluder(rgb, alpha, limit=30)[0].any()
+    assert not occluders._prepared_occluder(rgb, alpha, limit=30)[0].any()
 
 
 @pytest.mark.parametrize("size", [1, 17, 48, 256])
@@ -133,7 +133,7 @@ def _composite_case(seed: int, height: int = 40, width: int = 50):
     alpha[14, 10:14] = 0.0  # a hole inside the box
     occluder_alpha = np.zeros((height, width), np.float32)
     occluder_alpha[15:35, 20:45] = rng.choice(np.float32([0.0, 0.3, 0.7, 1.0]), (20, 25))
-    occlusion = compositing.Occlusion(
+    occlusion = occluders.Occlusion(
         rgb=rng.random((height, width, 3), dtype=np.float32) * (occluder_alpha > 0)[..., None],
         alpha=occluder_alpha,
         mask=occluder_alpha >= 0.5,
