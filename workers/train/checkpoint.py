@@ -367,7 +367,7 @@ class EnsembleModel(nn.Module):
         self.iou, self.limit, self.vote = float(iou), int(limit), vote
 
     def forward(self, images):
-        from workers.train.detectors import merge_detections
+        from workers.train.detectors.views import merge_detections
 
         if self.training:
             raise RuntimeError("an ensemble only detects: train each member")

@@ -229,7 +229,7 @@ def test_a_studys_ensemble_detects_as_its_members_merged(served, trained, tmp_pa
 
     from foldwise.config import DetectorConfig
     from workers.train.checkpoint import detect_object, load_detector, save_ensemble
-    from workers.train.detectors import merge_detections
+    from workers.train.detectors.views import merge_detections
     from workers.train.training import train_detector
 
     other = tmp_path / "other.pt"  # a second member: the served model warm-started a few steps

@@ -188,7 +188,7 @@ def test_detection_runs_with_the_configured_thread_count(trained, monkeypatch):
 def test_imagenet_initialised_detector_reloads_and_warm_starts_without_the_weights_file(tmp_path, monkeypatch):
     import torchvision
 
-    from workers.train.detectors import imagenet_weights_path
+    from workers.train.detectors.backbones import imagenet_weights_path
 
     monkeypatch.setattr(torch.hub, "get_dir", lambda: str(tmp_path / "hub"))
     weights, _ = imagenet_weights_path("mobilenet_v3_large")
@@ -271,9 +271,9 @@ def test_detection_at_several_sizes_merges_each_sizes_detections(trained, tmp_pa
 def test_a_detector_whose_views_vote_scores_by_their_vote_and_pairs_combine_so(trained, tmp_path, monkeypatch):
     """detector.view_vote: detect_object gives the single-size runs merged by merge_detections'
     vote, for every caller; an ensemble of such detectors combines the members' votes at 1."""
-    import workers.train.detectors as detectors
+    import workers.train.detectors.views as views
     from workers.train.checkpoint import save_ensemble
-    from workers.train.detectors import merge_detections
+    from workers.train.detectors.views import merge_detections
 
     _, path, paths, _ = trained
     plain = load_detector(path)
@@ -294,7 +294,7 @@ def test_a_detector_whose_views_vote_scores_by_their_vote_and_pairs_combine_so(t
     pair = load_detector(save_ensemble([tmp_path / "voting.pt", tmp_path / "voting.pt"], tmp_path / "pair.pt"))
     assert pair.model.vote == 1.0
     # Two training steps leave every score under the vote's floor: lowered, so that they vote.
-    monkeypatch.setattr(detectors, "VOTE_FLOOR", 0.01)
+    monkeypatch.setattr(views, "VOTE_FLOOR", 0.01)
     voted = detect_object(voting, paths)
     for alone, together in zip(voted, detect_object(pair, paths)):
         np.testing.assert_allclose(together["scores"], 1 - (1 - alone["scores"]) ** 2, rtol=0, atol=1e-6)
@@ -304,7 +304,7 @@ def test_a_detector_whose_views_vote_scores_by_their_vote_and_pairs_combine_so(t
 def test_a_box_found_on_a_turned_image_maps_back_exactly(turn):
     """turn_image turns as torch.rot90 does, and unturn_boxes undoes it on a non-square image: the
     drawn rectangle's box on the turned image comes back as its box on the image as it was."""
-    from workers.train.detectors import turn_image, unturn_boxes
+    from workers.train.detectors.views import turn_image, unturn_boxes
 
     height, width = 30, 50
     image = torch.rand(3, height, width)
@@ -353,7 +353,7 @@ def test_detection_on_quarter_turns_merges_each_turns_detections_mapped_back(tra
     image = arrays[0]
     quarter = np.ascontiguousarray(np.rot90(image, 1))  # numpy's rot90 turns as torch's does here
     on_image, on_quarter = detect_object(turning, [image, quarter])
-    from workers.train.detectors import unturn_boxes
+    from workers.train.detectors.views import unturn_boxes
 
     back = unturn_boxes(torch.as_tensor(on_quarter["boxes"]), 1, *image.shape[:2]).numpy()
     np.testing.assert_allclose(on_quarter["scores"][:3], on_image["scores"][:3], atol=1e-4)

@@ -8,15 +8,10 @@ import torch
 
 from foldwise.config import DetectorConfig
 from tests.workers.train.small_detectors import SMALL
-from workers.train.detectors import (
-    DetectorBuildError,
-    PretrainedWeightsMissing,
-    anchor_sizes,
-    build_detector,
-    imagenet_weights_path,
-    merge_detections,
-)
+from workers.train.detectors import DetectorBuildError, build_detector
+from workers.train.detectors.backbones import PretrainedWeightsMissing, anchor_sizes, imagenet_weights_path
 from workers.train.detectors.fast_rcnn import tensor_to_uint8
+from workers.train.detectors.views import merge_detections
 
 torch.set_num_threads(1)
 

@@ -302,7 +302,7 @@ def test_the_views_vote_exports_as_tensor_operations_right_at_any_number_of_boxe
     import onnxruntime
     import torch
 
-    from workers.train.detectors import merge_detections
+    from workers.train.detectors.views import merge_detections
 
     class Merge(torch.nn.Module):
         def forward(self, *tensors):

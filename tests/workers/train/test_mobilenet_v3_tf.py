@@ -9,7 +9,8 @@ import torch
 from foldwise.config import DetectorConfig
 from tests.workers.train.small_detectors import SMALL as RCNN_SMALL
 from workers.train.checkpoint import load_detector, save_checkpoint
-from workers.train.detectors import build_detector, input_normalization
+from workers.train.detectors import build_detector
+from workers.train.detectors.backbones import input_normalization
 from workers.train.detectors.convert_centernet import backbone_state, decode_weights
 from workers.train.detectors.mobilenet_v3_tf import (
     BLOCKS,

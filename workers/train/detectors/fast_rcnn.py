@@ -18,8 +18,8 @@ import numpy as np
 import torch
 from torch import Tensor, nn
 
-from workers.train.detectors import detect_at_views
 from workers.train.detectors.edge_boxes import ProposalCache, shared_cache
+from workers.train.detectors.views import detect_at_views
 
 if TYPE_CHECKING:
     from foldwise.config import DetectorConfig
@@ -99,7 +99,7 @@ def build_fast_rcnn(config: DetectorConfig, num_classes: int, load_pretrained: b
     from torchvision.models.detection.roi_heads import RoIHeads
     from torchvision.models.detection.transform import GeneralizedRCNNTransform
 
-    from workers.train.detectors import build_backbone, feature_map_names, input_normalization
+    from workers.train.detectors.backbones import build_backbone, feature_map_names, input_normalization
     from workers.train.detectors.roi_align import PyramidRoIAlign
 
     backbone = build_backbone(config, load_pretrained)

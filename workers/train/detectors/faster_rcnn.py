@@ -16,7 +16,7 @@ from typing import TYPE_CHECKING
 
 from torchvision.models import detection
 
-from workers.train.detectors import detect_at_views
+from workers.train.detectors.views import detect_at_views
 
 if TYPE_CHECKING:
     from foldwise.config import DetectorConfig
@@ -54,7 +54,7 @@ def build_faster_rcnn(config: DetectorConfig, num_classes: int, load_pretrained:
     from torchvision.models.detection.anchor_utils import AnchorGenerator
     from torchvision.models.detection.faster_rcnn import FastRCNNConvFCHead, FastRCNNPredictor, RPNHead, TwoMLPHead
 
-    from workers.train.detectors import anchor_sizes, build_backbone, feature_map_names, input_normalization
+    from workers.train.detectors.backbones import anchor_sizes, build_backbone, feature_map_names, input_normalization
     from workers.train.detectors.roi_align import PyramidRoIAlign
 
     backbone = build_backbone(config, load_pretrained)
