@@ -160,6 +160,10 @@ class ParameterSet(Base):
     # What was actually rendered: θ itself, or the resample that replaced a rejected θ.
     rendered_theta: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     rejections: Mapped[list[Any] | None] = mapped_column(JSON)
+    # Why a mixed stage's training θ was drawn: {"sampling": "uniform"} or {"sampling": "failure",
+    # "model_id": the scored model it follows, "cells": {"fb/hard": {"ap": .., "p": ..}}} for
+    # each of its (condition, difficulty) components; None for test and single-condition θ.
+    drawn_for: Mapped[dict[str, Any] | None] = mapped_column(JSON)
     image_path: Mapped[str | None] = mapped_column(String(500))
     # Every target in the image ({object, label, box, amodal_box, visible_fraction} each; an
     # empty list for an image without the object); label, box, amodal_box and visible_fraction

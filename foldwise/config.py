@@ -151,6 +151,11 @@ class MixedStageConfig(_Section):
     always: list[str] = Field(default_factory=list)
     # The share of its images that show no object at all.
     negatives: float = Field(default=0.1, ge=0.0, le=0.9)
+    # How an increment's images draw their (condition, difficulty) cells: "uniform", every cell
+    # alike; "failure", part of the draw (failure_share) in proportion to 1 − AP of the latest
+    # scored model on each cell of the standard test set (foldwise.sampling.cell_probabilities).
+    sampling: Literal["uniform", "failure"] = "uniform"
+    failure_share: float = Field(default=0.5, ge=0.0, le=1.0)
     # m, t, M, N, tau, max_increments for the mixed stages (unset: the experiment's).
     active_learning: StageOverrides = StageOverrides()
 
@@ -195,7 +200,13 @@ class MixedStageConfig(_Section):
     def draw(self):
         from foldwise.sampling import MixedDraw
 
-        return MixedDraw(tuple(self.conditions_per_image), tuple(self.draw_from), self.negatives, tuple(self.always))
+        return MixedDraw(
+            tuple(self.conditions_per_image),
+            tuple(self.draw_from),
+            self.negatives,
+            tuple(self.always),
+            failure_share=self.failure_share,
+        )
 
 
 class CurriculumConfig(_Section):
@@ -203,6 +214,10 @@ class CurriculumConfig(_Section):
     difficulties: list[str] = Field(default_factory=lambda: ["easy", "medium", "hard"], min_length=1)
     # Stages of several conditions at once after the single-condition ones (None: none).
     mixed: MixedStageConfig | None = None
+    # One stage per (condition, difficulty) before the mixed stages, as the paper's Algorithm 1.
+    # false: the mixed stages alone train (they need curriculum.mixed); conditions × difficulties
+    # still make the standard test set, so P keeps measuring every condition.
+    single_condition_stages: bool = True
 
     @model_validator(mode="after")
     def _known(self) -> CurriculumConfig:
@@ -219,6 +234,8 @@ class CurriculumConfig(_Section):
             raise ValueError("conditions: a condition is listed twice")
         if len(set(self.difficulties)) != len(self.difficulties):
             raise ValueError("difficulties: a difficulty is listed twice")
+        if not self.single_condition_stages and self.mixed is None:
+            raise ValueError("single_condition_stages: false leaves no stage to train without curriculum.mixed")
         return self
 
 
@@ -500,6 +517,11 @@ class EvaluationConfig(_Section):
     # a fraction of the cost: at twelve views the loop's evaluation was 60% of quick.yaml's
     # `make run`. The checkpoint keeps its views; bench/wild.py and `foldwise detect` use them.
     views: Literal["detector", "trained"] = "detector"
+    # The score P of each increment that the stopping rule reads and that picks a stage's best
+    # model: "map", the paper's mAP at score_threshold; "map_unthresholded", the VOC mAP over every
+    # detection. A detector a few hundred iterations old ranks its boxes well long before any
+    # scores 0.8: at the cut its P reads 0 and two zeros in a row look like a plateau.
+    loop_score: Literal["map", "map_unthresholded"] = "map"
 
 
 class TaskLimitsConfig(_Section):
@@ -607,6 +629,8 @@ class ExperimentConfig(_Section):
         if self.kind == "canonical_baseline":
             return [(CANONICAL, CANONICAL)]
         stages = [(c, d) for c in self.curriculum.conditions for d in self.curriculum.difficulties]
+        if not self.curriculum.single_condition_stages:
+            stages = []
         if self.starts_from_canonical:
             stages.insert(0, (CANONICAL, CANONICAL))
         if self.curriculum.mixed is not None:
@@ -618,6 +642,10 @@ class ExperimentConfig(_Section):
         if self.test_set.covers == "curriculum" and (self.kind == "canonical_baseline" or self.starts_from_canonical):
             # A canonical stage trains no condition: the curriculum names the conditions it is scored on.
             return [(c, d) for c in self.curriculum.conditions for d in self.curriculum.difficulties]
+        if self.test_set.covers == "curriculum" and not self.curriculum.single_condition_stages:
+            # The mixed stages alone train; every (condition, difficulty) is still scored.
+            singles = [(c, d) for c in self.curriculum.conditions for d in self.curriculum.difficulties]
+            return singles + self.stage_order()
         if self.test_set.covers == "curriculum":
             return self.stage_order()
         table = load_condition_table()

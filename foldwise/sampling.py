@@ -15,12 +15,17 @@ every condition of ``always`` and draws ``conditions_per_image`` more, distinct,
 ``draw_from``, each at a difficulty drawn uniformly among the table's difficulties up to the
 stage's own, and records them in ``θ.components``; where two drawn conditions set the same parameter, the later one's value
 holds. A share ``negatives`` of mixed θ shows no object at all (``instances = 0``).
+
+*Failure-driven* mixed θ (``MixedDraw.failure``) draw their (condition, difficulty) cells with
+probabilities ``cell_probabilities`` gives: a share uniform, so that every cell is still seen,
+the rest in proportion to how badly a scored model does on each cell (1 − its AP there), as
+adversarial domain randomisation draws where the learner fails (Khirodkar et al. 2018).
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -72,6 +77,31 @@ class MixedDraw:
     negatives: float = 0.1
     # Conditions in every image (the wild always has some pose or roll), besides the drawn ones.
     always: tuple[str, ...] = ()
+    # Failure-driven draw: (condition, difficulty, failure in 0-1) of the cells a model was scored
+    # on; empty: every cell alike. failure_share: the part of the draw that follows failure.
+    failure: tuple[tuple[str, str, float], ...] = ()
+    failure_share: float = 0.5
+
+
+def cell_probabilities(
+    conditions: Sequence[str], levels: Sequence[str], failure: Mapping[tuple[str, str], float], share: float
+) -> dict[tuple[str, str], float]:
+    """The probability of each (condition, level) cell: ``1 - share`` spread evenly, ``share`` in
+    proportion to ``failure`` (1 − AP). A cell with no score counts at the mean failure of the
+    scored ones; with none scored, or no failure anywhere, the draw is uniform."""
+    cells = [(c, level) for c in conditions for level in levels]
+    if not cells:
+        return {}
+    if not 0.0 <= share <= 1.0:
+        raise ValueError(f"failure share must be in [0, 1], got {share}")
+    known = [min(max(float(failure[cell]), 0.0), 1.0) for cell in cells if cell in failure]
+    mean = sum(known) / len(known) if known else 0.0
+    values = [min(max(float(failure[cell]), 0.0), 1.0) if cell in failure else mean for cell in cells]
+    total = sum(values)
+    uniform = 1.0 / len(cells)
+    if total <= 0.0:
+        return {cell: uniform for cell in cells}
+    return {cell: (1.0 - share) * uniform + share * value / total for cell, value in zip(cells, values)}
 
 
 def _normalise(name: str) -> str:
@@ -199,11 +229,23 @@ def _draw_components(
     low, high = mixed.conditions_per_image
     count = min(int(rng.integers(low, high + 1)), len(pool))
     reachable = table.difficulties[: table.difficulties.index(difficulty) + 1]
+    cells = None
+    if mixed.failure:
+        failure = {(code, level): value for code, level, value in mixed.failure}
+        cells = cell_probabilities([*mixed.always, *pool], reachable, failure, mixed.failure_share)
+        marginal = np.array([sum(cells[code, level] for level in reachable) for code in pool])
+        drawn = rng.choice(len(pool), size=count, replace=False, p=marginal / marginal.sum())
+    else:
+        drawn = rng.choice(len(pool), size=count, replace=False)
     # The held conditions first, so that a drawn one setting the same parameter has the last word.
-    picked = [*mixed.always, *(pool[int(i)] for i in rng.choice(len(pool), size=count, replace=False))]
+    picked = [*mixed.always, *(pool[int(i)] for i in drawn)]
     components = []
     for code in picked:
-        level = reachable[int(rng.integers(len(reachable)))]
+        if cells is None:
+            level = reachable[int(rng.integers(len(reachable)))]
+        else:
+            weights = np.array([cells[code, level] for level in reachable])
+            level = reachable[int(rng.choice(len(reachable), p=weights / weights.sum()))]
         variant = _draw_condition(values, code, level, table.check(code, level), rng, None)
         components.append(Component(condition=code, difficulty=level, variant=variant).model_dump())
     if rng.random() < mixed.negatives:

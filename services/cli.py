@@ -155,12 +155,16 @@ def _run_experiment(config, report_dir: Path | None, study: str | None = None) -
         def on_step(_experiment_id: int, _decisions) -> None:
             with session_scope() as session:
                 info = queries.summary(session, experiment_id)
-                done, _ = training_progress(config, queries.stages(session, experiment_id))
+                stage_rows = queries.stages(session, experiment_id)
+                done, _ = training_progress(config, stage_rows)
             current = info["current_stage"]
             best = info["best"]["map"] if info["best"] else None
             description = (
                 f"{current['condition']}/{current['difficulty']} k={current['k'] or 0}" if current else info["status"]
             )
+            stage = next((row for row in stage_rows if current and row["order"] == current.get("order")), None)
+            if stage is not None and stage["best_p"] is not None:
+                description += f"  P {stage['best_p']:.3f}"
             if best is not None:
                 description += f"  best mAP {best:.3f}"
             progress.update(done, description=description)
@@ -189,15 +193,21 @@ def _print_stages(experiment_id: int, name: str, status: str) -> dict:
         info = queries.summary(session, experiment_id)
         stage_rows = queries.stages(session, experiment_id)
     table = Table(title=f"experiment {experiment_id} ({name}): {status}")
-    for column in ("c", "δ", "increments", "end reason", "best mAP", "failed images", "time (s)"):
+    p_column = "P start → best" + (" (unthresholded)" if stage_rows and stage_rows[0]["loop_score"] != "map" else "")
+    for column in ("c", "δ", "increments", "end reason", p_column, "best mAP", "failed images", "time (s)"):
         table.add_column(column, justify="right" if column not in ("c", "δ", "end reason") else "left")
+
+    def score(value: float | None) -> str:
+        return "—" if value is None else f"{value:.3f}"
+
     for row in stage_rows:
         table.add_row(
             row["condition"],
             row["difficulty"],
             str(row["increments"]),
             row["end_reason"] or row["status"],
-            "—" if row["best_map"] is None else f"{row['best_map']:.3f}",
+            f"{score(row['start_p'])} → {score(row['best_p'])}",
+            score(row["best_map"]),
             str(row["failed_images"]),
             "—" if row["seconds"] is None else f"{row['seconds']:.1f}",
         )

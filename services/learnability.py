@@ -67,8 +67,11 @@ def spearman_rho(x: Sequence[float], y: Sequence[float]) -> float | None:
     return float(spearmanr(x, y).statistic)
 
 
-def learnability_order(history: Sequence[dict], names: dict[str, str] | None = None) -> LearnabilityOrder:
-    """Score and rank every condition of P (``queries.history`` entries: condition, map)."""
+def learnability_order(
+    history: Sequence[dict], names: dict[str, str] | None = None, score: str = "map"
+) -> LearnabilityOrder:
+    """Score and rank every condition of P (``queries.history`` entries: condition and the
+    ``score`` key, the experiment's ``evaluation.loop_score``)."""
     from foldwise.theta import CANONICAL
 
     by_condition: dict[str, list[float | None]] = {}
@@ -76,7 +79,7 @@ def learnability_order(history: Sequence[dict], names: dict[str, str] | None = N
         if entry["condition"] == CANONICAL:
             # start: canonical's shared stage, where every condition starts: not a condition.
             continue
-        by_condition.setdefault(entry["condition"], []).append(entry["map"])
+        by_condition.setdefault(entry["condition"], []).append(entry[score])
     conditions = list(by_condition)
     # A model whose mAP is not finite (diverged) detected nothing usable: it scores 0.
     scores = [sum(m if m is not None else 0.0 for m in maps) / len(maps) for maps in by_condition.values()]
@@ -105,10 +108,14 @@ def learnability_order(history: Sequence[dict], names: dict[str, str] | None = N
 def experiment_learnability(session, experiment_id: int) -> LearnabilityOrder:
     """The order of an experiment's conditions, from its P as ``session`` reads it."""
     from foldwise.conditions import load_condition_table
+    from foldwise.config import ExperimentConfig
     from services import queries
 
     table = load_condition_table()
-    return learnability_order(queries.history(session, experiment_id), {code: table.name(code) for code in table.codes})
+    experiment = queries.get_experiment(session, experiment_id)
+    score = ExperimentConfig.model_validate(experiment.config).evaluation.loop_score
+    names = {code: table.name(code) for code in table.codes}
+    return learnability_order(queries.history(session, experiment_id), names, score)
 
 
 def write_learnability_csv(order: LearnabilityOrder, path: Path) -> Path:

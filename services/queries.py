@@ -199,15 +199,18 @@ def test_set_render_seconds(session: Session, experiment_id: int) -> float:
 
 
 def stages(session: Session, experiment_id: int) -> list[dict[str, Any]]:
-    get_experiment(session, experiment_id)
+    experiment = get_experiment(session, experiment_id)
+    loop_score = ExperimentConfig.model_validate(experiment.config).evaluation.loop_score
     scores: dict[int, list[tuple[int, float | None, int]]] = {}
-    for model, score in session.execute(
-        select(Model, Evaluation.map)
+    p_of: dict[int, float | None] = {}  # each model's P, the score its loop read
+    for model, score, p in session.execute(
+        select(Model, Evaluation.map, getattr(Evaluation, loop_score))
         .join(Evaluation, Evaluation.model_id == Model.id)
         .where(Model.experiment_id == experiment_id)
         .order_by(Model.increment)
     ):
         scores.setdefault(model.stage_id, []).append((model.increment, score, model.id))
+        p_of[model.id] = p
     failed_images = dict(
         session.execute(
             select(ParameterSet.stage_id, func.count())
@@ -231,6 +234,13 @@ def stages(session: Session, experiment_id: int) -> list[dict[str, Any]]:
                 "init_model_id": stage.init_model_id,
                 "best_model_id": stage.best_model_id,
                 "best_map": best if best is not None else (max(finite) if finite else None),
+                # P (evaluation.loop_score) of the model the stage started from and of its best:
+                # a stage that learned raised it.
+                "loop_score": loop_score,
+                "start_p": p_of.get(stage.init_model_id) if stage.init_model_id is not None else None,
+                "best_p": p_of.get(stage.best_model_id)
+                if stage.best_model_id is not None
+                else max((p_of[m] for _, _, m in entries if p_of.get(m) is not None), default=None),
                 "failed_images": failed_images.get(stage.id, 0),
                 "started_at": _iso(stage.started_at),
                 "finished_at": _iso(stage.finished_at),

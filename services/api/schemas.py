@@ -98,7 +98,13 @@ class StageSummary(_Shape):
         "canonical stage's last ω_k)"
     )
     best_model_id: int | None = Field(description="ω_be")
-    best_map: float | None
+    best_map: float | None = Field(description="ω_be's mAP at the paper's confidence cut")
+    loop_score: str = Field(
+        default="map",
+        description="the score P the stopping rule read (evaluation.loop_score): map or map_unthresholded",
+    )
+    start_p: float | None = Field(default=None, description="P of ω_in, the model the stage started from")
+    best_p: float | None = Field(default=None, description="P of ω_be")
     failed_images: int = Field(default=0, description="θ of this stage that could not be rendered")
     started_at: str | None
     finished_at: str | None
@@ -168,7 +174,7 @@ class Health(BaseModel):
 
 class BrokerState(_Shape):
     status: Literal["ok", "error"]
-    url: str = Field(description="the broker URL without its password")
+    url: str | None = Field(default=None, description="the broker URL without its password; with the token only")
 
 
 class QueueStatus(BaseModel):

@@ -19,6 +19,7 @@ from sqlalchemy import select, update
 from sqlalchemy.orm import Session
 
 from db.models import (
+    Evaluation,
     Experiment,
     ExperimentStatus,
     Model,
@@ -34,7 +35,7 @@ from db.session import session_scope
 from foldwise.conditions import load_condition_table
 from foldwise.config import ExperimentConfig
 from foldwise.seeds import derive_seed
-from foldwise.theta import CANONICAL
+from foldwise.theta import CANONICAL, MIXED
 from services.scheduler.broker_view import Held
 from services.scheduler.plan import (
     CloseStage,
@@ -78,7 +79,10 @@ def _assets(config: ExperimentConfig):
     return asset_names(config.assets)
 
 
-def _sample(config: ExperimentConfig, condition: str, difficulty: str, n: int, seed: int) -> list[dict]:
+def _sample(config: ExperimentConfig, condition: str, difficulty: str, n: int, seed: int, failure=()) -> list[dict]:
+    """n θ as records; ``failure``: (condition, difficulty, 1 − AP) cells a mixed draw follows."""
+    from dataclasses import replace
+
     from foldwise.sampling import generate_parameters
 
     if difficulty == CANONICAL:
@@ -93,15 +97,54 @@ def _sample(config: ExperimentConfig, condition: str, difficulty: str, n: int, s
         image_size=config.render.image_size,
         assets=_assets(config),
         smooth_steps=config.render.smooth_steps,
-        mixed=config.mixed_draw(),
+        mixed=replace(config.mixed_draw(), failure=tuple(failure)),
     )
     return [theta.to_dict() for theta in thetas]
 
 
+def _latest_failure(session: Session, experiment: Experiment) -> tuple[int | None, dict[tuple[str, str], float]]:
+    """The experiment's latest scored model and its failure (1 − unthresholded AP) on each
+    (condition, difficulty) of the standard test set; (None, {}) before any model is scored."""
+    latest = session.execute(
+        select(Model.id, Evaluation.details)
+        .join(Evaluation, Evaluation.model_id == Model.id)
+        .where(Model.experiment_id == experiment.id, Model.status == ModelStatus.evaluated)
+        .order_by(Model.trained_at.desc(), Model.id.desc())
+        .limit(1)
+    ).first()
+    if latest is None:
+        return None, {}
+    cells = (latest.details or {}).get("breakdown", {}).get("condition/difficulty", {})
+    failure = {}
+    for key, group in cells.items():
+        condition, _, difficulty = key.partition("/")
+        ap = group.get("map_unthresholded") if isinstance(group, dict) else None
+        if ap is not None and condition != MIXED:
+            failure[condition, difficulty] = 1.0 - float(ap)
+    return latest.id, failure
+
+
+def _drawn_for(theta: dict, model_id: int | None, failure: dict, config: ExperimentConfig) -> dict:
+    """Why a mixed training θ was drawn (ParameterSet.drawn_for)."""
+    from foldwise.sampling import cell_probabilities
+
+    if model_id is None:
+        return {"sampling": "uniform", "why": "no model scored yet"}
+    table = load_condition_table()
+    mixed = config.curriculum.mixed
+    pool = list(mixed.draw_from or table.codes)
+    levels = table.difficulties[: table.difficulties.index(theta["difficulty"]) + 1]
+    probabilities = cell_probabilities(pool, levels, failure, mixed.failure_share)
+    cells = {}
+    for component in theta.get("components") or ():
+        cell = (component["condition"], component["difficulty"])
+        ap = 1.0 - failure[cell] if cell in failure else None
+        cells["/".join(cell)] = {"ap": None if ap is None else round(ap, 4), "p": round(probabilities[cell], 5)}
+    return {"sampling": "failure", "model_id": model_id, "share": mixed.failure_share, "cells": cells}
+
+
 def _condition_index(table, condition: str) -> int:
     """A stable index for seeding: the table's order; the mixed stage a number of its own."""
-    from foldwise.theta import MIXED
-
     return 1000 if condition == MIXED else table.codes.index(condition)
 
 
@@ -142,9 +185,17 @@ def apply(
             case SampleTraining(stage_id, k):
                 stage = stages[stage_id]
                 seed = derive_seed(experiment.seed, 2, stage.order, k)
-                thetas = _sample(
-                    config, stage.condition, stage.difficulty, config.stage_active_learning(stage.condition).m, seed
-                )
+                m = config.stage_active_learning(stage.condition).m
+                if stage.condition == MIXED and config.curriculum.mixed.sampling == "failure":
+                    # Where the latest scored model fails (θ is drawn while the model before
+                    # trains: the increment follows the last score there is, not waiting for one).
+                    source, failure = _latest_failure(session, experiment)
+                    cells = tuple((c, d, value) for (c, d), value in failure.items())
+                    thetas = _sample(config, stage.condition, stage.difficulty, m, seed, cells)
+                    reasons = [_drawn_for(theta, source, failure, config) for theta in thetas]
+                else:
+                    thetas = _sample(config, stage.condition, stage.difficulty, m, seed)
+                    reasons = [{"sampling": "uniform"} if stage.condition == MIXED else None for _ in thetas]
                 session.add_all(
                     ParameterSet(
                         experiment_id=experiment.id,
@@ -157,8 +208,9 @@ def apply(
                         difficulty=stage.difficulty,
                         seed=int(theta.get("seed", seed)),
                         theta=theta,
+                        drawn_for=reason,
                     )
-                    for i, theta in enumerate(thetas)
+                    for i, (theta, reason) in enumerate(zip(thetas, reasons))
                 )
             case EnqueueRender(ids, requeue):
                 if requeue:

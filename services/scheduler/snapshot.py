@@ -52,7 +52,7 @@ class ModelView:
     increment: int
     parent_id: int | None
     status: ModelStatus
-    score: float | None  # mAP (paper protocol); None when not evaluated or not finite
+    score: float | None  # P (evaluation.loop_score); None when not evaluated or not finite
     error: str | None
     enqueued_at: datetime | None
     claimed_at: datetime | None
@@ -136,8 +136,11 @@ def load_snapshot(
         StageView(st.id, st.order, st.condition, st.difficulty, st.status, st.init_model_id, st.best_model_id)
         for st in session.scalars(select(Stage).where(Stage.experiment_id == experiment.id).order_by(Stage.order))
     )
+    if config is None:
+        config = ExperimentConfig.model_validate(experiment.config)
+    score_column = getattr(Evaluation, config.evaluation.loop_score)
     model_rows = session.execute(
-        select(Model, Evaluation.map)
+        select(Model, score_column)
         .outerjoin(Evaluation, Evaluation.model_id == Model.id)
         .where(Model.experiment_id == experiment.id)
     ).all()
@@ -200,7 +203,7 @@ def load_snapshot(
         experiment_id=experiment.id,
         status=experiment.status,
         seed=experiment.seed,
-        config=config or ExperimentConfig.model_validate(experiment.config),
+        config=config,
         stages=stages,
         models=models,
         theta_counts=theta_counts,

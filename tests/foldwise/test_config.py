@@ -1,5 +1,6 @@
 """Experiment configs: every shipped config loads, and errors name the offending key."""
 
+import re
 from pathlib import Path
 
 import pytest
@@ -71,19 +72,60 @@ def test_config_round_trips_through_json():
     assert parse_config(config.model_dump(mode="json")) == config
 
 
+MIXED_AFTER_SINGLES = {
+    "name": "m",
+    "curriculum": {
+        "conditions": ["fb", "sc"],
+        "difficulties": ["easy", "hard"],
+        "mixed": {"difficulties": ["medium", "hard"], "active_learning": {"t": 7, "max_increments": 2}},
+    },
+}
+
+
 def test_a_mixed_stage_ends_the_curriculum_with_its_own_settings():
-    config = load_config(REPO_ROOT / "configs/quick.yaml")
-    stages = config.stage_order()
-    assert stages[:21] == [
-        (c, d) for c in ("fb", "mb", "po", "de", "eo", "sc", "li") for d in ("easy", "medium", "hard")
-    ]
-    assert stages[21:] == [("mixed", "hard")]
-    assert ("mixed", "hard") in config.test_pairs()
+    config = parse_config(MIXED_AFTER_SINGLES)
+    singles = [("fb", "easy"), ("fb", "hard"), ("sc", "easy"), ("sc", "hard")]
+    assert config.stage_order() == [*singles, ("mixed", "medium"), ("mixed", "hard")]
+    assert config.test_pairs() == config.stage_order()
     # The mixed stage's own settings apply to it alone; every other stage keeps the curriculum's.
     mixed = config.stage_active_learning("mixed")
-    assert mixed != config.active_learning
+    assert (mixed.t, mixed.max_increments) == (7, 2)
+    assert mixed.m == config.active_learning.m
     assert config.stage_active_learning("fb") == config.active_learning
-    assert config.mixed_draw().conditions_per_image[0] >= 2
+
+
+def test_mixed_stages_alone_still_test_every_condition():
+    data = {
+        **MIXED_AFTER_SINGLES,
+        "curriculum": {**MIXED_AFTER_SINGLES["curriculum"], "single_condition_stages": False},
+    }
+    config = parse_config(data)
+    assert config.stage_order() == [("mixed", "medium"), ("mixed", "hard")]
+    singles = [("fb", "easy"), ("fb", "hard"), ("sc", "easy"), ("sc", "hard")]
+    assert config.test_pairs() == [*singles, ("mixed", "medium"), ("mixed", "hard")]
+
+
+def test_no_single_condition_stage_and_no_mixed_stage_leaves_nothing_to_train():
+    with pytest.raises(ConfigError, match="single_condition_stages: false leaves no stage to train"):
+        parse_config({"name": "x", "curriculum": {"single_condition_stages": False}})
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "message"),
+    [
+        ("sampling", "adversarial", "curriculum.mixed.sampling: Input should be 'uniform' or 'failure'"),
+        ("failure_share", 1.5, "curriculum.mixed.failure_share: Input should be less than or equal to 1"),
+    ],
+)
+def test_failure_sampling_settings_are_checked(key, value, message):
+    with pytest.raises(ConfigError, match=re.escape(message)):
+        parse_config({"name": "x", "curriculum": {"mixed": {key: value}}})
+
+
+def test_the_loop_score_is_one_of_the_two_maps():
+    assert parse_config({"name": "x"}).evaluation.loop_score == "map"
+    with pytest.raises(ConfigError, match="evaluation.loop_score"):
+        parse_config({"name": "x", "evaluation": {"loop_score": "recall"}})
 
 
 @pytest.mark.parametrize(

@@ -34,9 +34,12 @@ def config(**overrides):
 class Fakes:
     """Stand-ins for the render and train workers, scripted per (stage order, k)."""
 
-    def __init__(self, scores=None, default=0.5):
+    def __init__(self, scores=None, default=0.5, cell_scores=None):
         self.scores = scores or {}
         self.default = default
+        # AP per "condition/difficulty" written into each evaluation's breakdown, as the real
+        # evaluation does (what failure-driven sampling reads); None: no breakdown.
+        self.cell_scores = cell_scores
         self.rendered: list[int] = []
         self.trained: list[int] = []
 
@@ -74,10 +77,16 @@ class Fakes:
             session.add(
                 Evaluation(
                     model_id=model.id, map=score if finite else None, map_unthresholded=score if finite else None,
-                    details={}, eval_seconds=0.001,
+                    details=self._details(), eval_seconds=0.001,
                 )
             )  # fmt: skip
         return "evaluated"
+
+    def _details(self) -> dict:
+        if self.cell_scores is None:
+            return {}
+        cells = {key: {"map": ap, "map_unthresholded": ap} for key, ap in self.cell_scores.items()}
+        return {"breakdown": {"condition/difficulty": cells}}
 
 
 def stage_models(experiment_id):

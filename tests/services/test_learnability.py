@@ -89,3 +89,16 @@ def test_the_csv_holds_score_rank_paper_rank_and_rho(tmp_path):
     ]  # fmt: skip
     assert {r["spearman_rho"] for r in rows} == {"1.0000"}
     assert rows[0]["score"] == "0.9000" and rows[0]["best_map"] == "0.9000"
+
+
+def test_the_order_reads_the_score_the_loop_read():
+    # At the cut both conditions read 0 (a young detector's boxes score below 0.8); the
+    # unthresholded mAP still tells them apart.
+    history = [
+        {"condition": "fb", "map": 0.0, "map_unthresholded": 0.9},
+        {"condition": "po", "map": 0.0, "map_unthresholded": 0.3},
+    ]
+    assert learnability_order(history).spearman_rho is None
+    order = learnability_order(history, score="map_unthresholded")
+    assert [row.condition for row in order.rows] == ["fb", "po"]
+    assert order.spearman_rho == pytest.approx(1.0)

@@ -234,7 +234,12 @@ def test_create_from_yaml(client, database_url, content_type):
     assert response.status_code == 201, response.text
     stored = stored_experiment(database_url, response.json()["id"])
     assert stored.name == "yaml run" and stored.seed == 5
-    assert stored.config["curriculum"] == {"conditions": ["mb", "po"], "difficulties": ["hard"], "mixed": None}
+    assert stored.config["curriculum"] == {
+        "conditions": ["mb", "po"],
+        "difficulties": ["hard"],
+        "mixed": None,
+        "single_condition_stages": True,
+    }
 
 
 def test_recorded_config_has_the_defaults_filled_in(client, seeded):
@@ -578,7 +583,7 @@ def test_queues_reads_the_broker_it_is_given(client):
     from services.api import deps
 
     client.app.dependency_overrides[deps.get_broker] = FakeBroker
-    body = client.get("/queues").json()
+    body = client.get("/queues", headers=AUTH).json()
     assert body == {
         "broker": {"status": "ok", "url": "redis://fake:6379/0"},
         "queues": {"render": 10, "train": 20},
@@ -587,9 +592,48 @@ def test_queues_reads_the_broker_it_is_given(client):
         "ping_timeout_s": 0.25,
     }
     client.app.dependency_overrides[deps.get_broker] = lambda: FakeBroker(down=True)
-    down = client.get("/queues")
+    down = client.get("/queues", headers=AUTH)
     assert down.status_code == 503 and "fake outage" in down.json()["detail"]
     assert client.get("/health", headers=AUTH).json()["status"] == "degraded"
+
+
+def test_queues_tell_an_anonymous_caller_nothing_of_the_broker_s_whereabouts(client, database_url):
+    """Anyone reads the depths and the workers; the broker's URL, and the error that names its
+    host and port, only a caller with the token (as /health)."""
+    from services.api import deps
+
+    client.app.dependency_overrides[deps.get_broker] = FakeBroker
+    for headers in ({}, {"Authorization": "Bearer not-the-token"}, {"Authorization": f"Basic {TOKEN}"}):
+        anonymous = client.get("/queues", headers=headers)
+        assert anonymous.status_code == 200
+        assert anonymous.json() == {
+            "broker": {"status": "ok"},
+            "queues": {"render": 10, "train": 20},
+            "unacked": 2,
+            "workers": ["render@a", "train@b"],
+            "ping_timeout_s": 0.25,
+        }
+        assert "fake:6379" not in anonymous.text
+    client.app.dependency_overrides[deps.get_broker] = lambda: FakeBroker(down=True)
+    down = client.get("/queues")
+    assert down.status_code == 503
+    assert down.json() == {"detail": "the broker is unreachable", "broker": {"status": "error"}}
+    client.app.dependency_overrides.clear()
+
+    port = closed_port()
+    unreachable = client_with(broker_url=f"redis://:hunter2@127.0.0.1:{port}/0")
+    hidden = unreachable.get("/queues")
+    assert hidden.status_code == 503 and hidden.json()["broker"] == {"status": "error"}
+    assert str(port) not in hidden.text and "127.0.0.1" not in hidden.text
+    shown = unreachable.get("/queues", headers=AUTH)
+    assert shown.status_code == 503 and shown.json()["broker"]["url"].endswith(f"127.0.0.1:{port}/0")
+    assert "hunter2" not in shown.text  # the password never, not even to the token's holder
+
+    amqp = client_with(broker_url=f"amqp://guest:secret@broker.internal:{port}//")
+    assert amqp.get("/queues").json() == {"detail": "queue depth is read from Redis; the broker is not Redis"}
+    with_token = amqp.get("/queues", headers=AUTH)
+    assert with_token.status_code == 501 and "broker.internal" in with_token.json()["detail"]
+    assert "secret" not in with_token.text
 
 
 def test_health_is_503_when_the_schema_check_fails(client):
