@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import shutil
 import subprocess
-import time
 from datetime import timedelta
 
 import pytest
@@ -27,6 +26,7 @@ from foldwise.config import ExperimentConfig
 from foldwise.settings import get_settings
 from services.api.app import create_app
 from tests.services.api.helpers import T0, TOKEN, TestClient, closed_port
+from tests.waiting import poll
 
 
 @pytest.fixture
@@ -189,14 +189,15 @@ def redis_url():
         stderr=subprocess.DEVNULL,
     )
     client = redis.Redis(port=port)
+
+    def answers() -> bool:
+        try:
+            return client.ping()
+        except redis.ConnectionError:
+            return False
+
     try:
-        for _ in range(200):
-            try:
-                client.ping()
-                break
-            except redis.ConnectionError:
-                time.sleep(0.025)
-        else:
+        if not poll(answers, timeout=5, interval=0.025):
             pytest.skip("redis-server did not start")
         yield f"redis://127.0.0.1:{port}/0"
     finally:

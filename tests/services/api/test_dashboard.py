@@ -9,7 +9,6 @@ from __future__ import annotations
 import shutil
 import socket
 import threading
-import time
 import warnings
 from datetime import timedelta
 
@@ -19,6 +18,7 @@ from sqlalchemy import select
 from db.models import Evaluation, Model, ModelStatus, Stage
 from db.session import reset_engines, session_scope
 from foldwise.settings import REPO_ROOT, get_settings
+from tests.waiting import poll, wait_until
 
 with warnings.catch_warnings():
     warnings.simplefilter("ignore")
@@ -151,10 +151,13 @@ def served(smoke, monkeypatch):
     server = uvicorn.Server(uvicorn.Config(create_app(), host="127.0.0.1", port=free_port(), log_level="warning"))
     thread = threading.Thread(target=server.run, daemon=True)
     thread.start()
-    deadline = time.monotonic() + 20
-    while not server.started:
-        assert time.monotonic() < deadline and thread.is_alive(), "the API server did not start"
-        time.sleep(0.05)
+    wait_until(
+        lambda: server.started or not thread.is_alive(),
+        timeout=20,
+        interval=0.05,
+        message="the API server did not start",
+    )
+    assert server.started, "the API server did not start"
     yield f"http://127.0.0.1:{server.config.port}"
     server.should_exit = True
     thread.join(timeout=10)
@@ -183,12 +186,9 @@ def browser():
 
 
 def wait_for(driver, script: str, expected, timeout: float = 15.0):
-    deadline = time.monotonic() + timeout
-    while True:
-        value = driver.execute_script(script)
-        if value == expected or time.monotonic() > deadline:
-            return value
-        time.sleep(0.1)
+    """What ``script`` returns in the page once it returns ``expected``; after ``timeout``
+    seconds, what it returns then (the caller's assertion shows it)."""
+    return poll(lambda: driver.execute_script(script), lambda value: value == expected, timeout, interval=0.1)
 
 
 def land_an_evaluation(experiment_id: int) -> int:

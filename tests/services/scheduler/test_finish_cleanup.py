@@ -4,12 +4,11 @@ other; a re-sent training message is not re-sent again on every pass."""
 from __future__ import annotations
 
 import threading
-import time
 from collections import Counter
 from datetime import timedelta
 
 import pytest
-from sqlalchemy import select
+from sqlalchemy import select, text
 
 from db.models import Experiment, ExperimentStatus, Model, ModelStatus, ParameterSet, RenderStatus
 from db.session import session_scope
@@ -19,6 +18,7 @@ from services.scheduler.plan import EnqueueTraining, Finish, plan
 from services.scheduler.reconcile import apply, reconcile_once
 from tests.services.flow_helpers import config, in_flight
 from tests.services.scheduler.plans import NOW, model, snapshot
+from tests.waiting import poll
 
 
 def _statuses(experiment_id: int) -> tuple[Counter, Counter]:
@@ -98,12 +98,18 @@ def test_cancel_waits_for_a_scheduler_holding_the_row_and_never_overwrites_finis
         session.get(Experiment, experiment_id).status = ExperimentStatus.running
     holding = threading.Event()
     outcome: dict = {}
+    # Lock requests waiting on a lock this session holds, as PostgreSQL's lock manager has them
+    # now (pg_locks is read live; pg_stat_activity would be frozen for the transaction).
+    blocked_by_me = text(
+        "SELECT count(*) FROM pg_locks WHERE NOT granted AND pg_backend_pid() = ANY(pg_blocking_pids(pid))"
+    )
 
     def scheduler() -> None:
         with session_scope() as session:
             experiment = session.scalar(select(Experiment).where(Experiment.id == experiment_id).with_for_update())
             holding.set()
-            time.sleep(0.5)  # the cancel arrives while the scheduler holds the row
+            # The cancel arrives while the scheduler holds the row: it is seen waiting on the lock.
+            outcome["cancel_waited"] = poll(lambda: session.scalar(blocked_by_me) > 0, timeout=10)
             if scheduler_decides == "finish":
                 experiment.status = ExperimentStatus.finished
 
@@ -113,6 +119,7 @@ def test_cancel_waits_for_a_scheduler_holding_the_row_and_never_overwrites_finis
     with session_scope() as session:
         outcome["status"] = queries.cancel_experiment(session, experiment_id).status
     thread.join()
+    assert outcome["cancel_waited"], "the cancel did not wait for the row the scheduler holds"
     expected = ExperimentStatus.finished if scheduler_decides == "finish" else ExperimentStatus.cancelled
     assert outcome["status"] == expected
     with session_scope() as session:

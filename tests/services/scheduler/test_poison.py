@@ -3,8 +3,6 @@ the θ or model fails with its reason instead of being redelivered forever."""
 
 from __future__ import annotations
 
-import time
-
 import pytest
 from celery.exceptions import SoftTimeLimitExceeded
 from sqlalchemy import select
@@ -15,6 +13,7 @@ from services.embedded import start_experiment
 from services.scheduler import reconcile
 from services.scheduler.reconcile import HARD_LIMIT_GRACE_S, reconcile_once
 from tests.services.flow_helpers import config, in_flight
+from tests.waiting import FakeClock, wait_until
 
 
 @pytest.fixture
@@ -44,22 +43,24 @@ def test_every_message_carries_the_time_limits_of_its_kind(broker):
 
 
 def test_a_model_killed_on_every_delivery_fails_after_the_cap(monkeypatch, database):
+    import workers.train.tasks
+    from foldwise.settings import get_settings
     from workers.train.tasks import _claim
 
     monkeypatch.setattr(reconcile, "_send", lambda send: None)
-    monkeypatch.setenv("FOLDWISE_LEASE_S", "0.001")  # every claim lapses at once: the worker died
-    from foldwise.settings import get_settings
-
+    monkeypatch.setenv("FOLDWISE_LEASE_S", "60")
     get_settings.cache_clear()
+    clock = FakeClock()
+    monkeypatch.setattr(workers.train.tasks, "utcnow", clock)  # the time claims are made and judged at
     experiment_id = start_experiment(config(tasks={"max_deliveries": 2}))
     in_flight(experiment_id)
     with session_scope() as session:
         model_id = session.scalar(select(Model.id).where(Model.experiment_id == experiment_id))
-    # Both die mid-increment (each claim left to lapse: the lease is 1 ms).
+    # Both die mid-increment: each claim is left to lapse, the clock moved past the lease.
     assert _claim(model_id, "delivery-1")
-    time.sleep(0.01)
+    clock.advance(61)
     assert _claim(model_id, "delivery-2")
-    time.sleep(0.01)
+    clock.advance(61)
     assert not _claim(model_id, "delivery-3")
     with session_scope() as session:
         model = session.get(Model, model_id)
@@ -125,16 +126,19 @@ def test_a_batch_past_its_soft_limit_fails_that_theta_and_hands_the_rest_back(mo
 
 def test_a_live_worker_renews_its_lease_and_a_dead_one_lets_it_lapse(monkeypatch, database):
     """A task that runs for hours stays claimed while its worker beats; once the beats stop the
-    claim lapses within one lease and the scheduler sends the model again."""
-    import time
+    claim lapses within one lease and the scheduler sends the model again. The time is the
+    test's clock, moved on past the lease while the heartbeat's thread beats."""
     from datetime import timedelta
 
+    import workers.train.tasks
     from foldwise.settings import get_settings
     from workers.train.tasks import Heartbeat, _claim
 
     monkeypatch.setattr(reconcile, "_send", lambda send: None)
-    monkeypatch.setenv("FOLDWISE_LEASE_S", "0.6")
+    monkeypatch.setenv("FOLDWISE_LEASE_S", "60")
     get_settings.cache_clear()
+    clock = FakeClock()
+    monkeypatch.setattr(workers.train.tasks, "utcnow", clock)  # claims and beats
     experiment_id = start_experiment(config())
     in_flight(experiment_id)
     with session_scope() as session:
@@ -145,18 +149,21 @@ def test_a_live_worker_renews_its_lease_and_a_dead_one_lets_it_lapse(monkeypatch
         with session_scope() as session:
             return session.get(Model, model_id).claimed_at
 
+    def snapshot_now():
+        with session_scope() as session:
+            return reconcile.load_snapshot(session, session.get(Experiment, experiment_id), now=clock())
+
     first = claimed_at()
-    with Heartbeat(model_id, "worker-a", interval_s=0.15):
-        time.sleep(1.0)  # longer than the lease: only the beats keep it
+    with Heartbeat(model_id, "worker-a", interval_s=0.02):
+        for _ in range(4):  # two leases in all, longer than one: only the beats keep it
+            clock.advance(30)
+            wait_until(lambda: claimed_at() == clock(), message="no beat renewed the claim at the new time")
         assert claimed_at() > first
         assert not _claim(model_id, "worker-b")  # a live lease is not taken over
-        with session_scope() as session:
-            snapshot = reconcile.load_snapshot(session, session.get(Experiment, experiment_id))
-        assert not any(isinstance(d, reconcile.EnqueueTraining) for d in reconcile.plan(snapshot))
-    time.sleep(0.8)  # the worker died: no beat for more than a lease
-    with session_scope() as session:
-        snapshot = reconcile.load_snapshot(session, session.get(Experiment, experiment_id))
+        assert not any(isinstance(d, reconcile.EnqueueTraining) for d in reconcile.plan(snapshot_now()))
+    clock.advance(61)  # the worker died: no beat for more than a lease
+    snapshot = snapshot_now()
     assert reconcile.EnqueueTraining(model_id, requeue=True) in reconcile.plan(snapshot)
-    assert snapshot.lease == timedelta(seconds=0.6)
+    assert snapshot.lease == timedelta(seconds=60)
     assert _claim(model_id, "worker-b")  # the lapsed claim is taken over
     get_settings.cache_clear()
