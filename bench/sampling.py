@@ -63,9 +63,10 @@ def rule_config(base: dict, rule: str, increments: int, share: float) -> dict:
     return config
 
 
-def read_run(data_dir: Path) -> dict:
-    """P against cumulative CPU seconds, and the final model's checkpoint, from a run's database."""
-    db = sqlite3.connect(data_dir / "foldwise.db")
+def read_run(data_dir: Path, database: Path | None = None) -> dict:
+    """P against cumulative CPU seconds, and the final model's checkpoint, from a run's SQLite
+    database (``foldwise run``'s own in ``data_dir`` unless given)."""
+    db = sqlite3.connect(database or data_dir / "foldwise.db")
     try:
         experiment_id, status, final_model_id, loop_score = db.execute(
             "SELECT id, status, final_model_id, json_extract(config, '$.evaluation.loop_score') FROM experiments"
