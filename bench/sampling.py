@@ -11,7 +11,7 @@ work. Reported for each:
   (``--target``; by default 0.95 of the lower of the two final P);
 * the final model's mAP, precision and recall at the threshold on out-of-domain sets made by
   ``bench/wild_sets.py`` (the default recipe and the held-apart photographs), which the training
-  never renders.
+  never renders (``bench/compare_models.py``'s).
 
     python bench/sampling.py --out bench/results/sampling.json
     python bench/sampling.py --increments 3 --n-ood 60 --n-ood-apart 60   # quicker
@@ -33,6 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 if str(ROOT) not in sys.path:  # run as a script from anywhere
     sys.path.insert(0, str(ROOT))
 
+from bench.compare_models import ood_sets, score_set  # noqa: E402
 from bench.report import machine, write_report  # noqa: E402
 
 RULES = ("uniform", "failure")
@@ -162,11 +163,12 @@ def main(argv=None) -> dict:
     for rule in RULES:
         runs[rule]["seconds_to_target"] = seconds_to(runs[rule]["curve"], target) if target is not None else None
 
-    sets = ood_sets(args)
+    sets = ood_sets(args.config, {"default": args.n_ood, "apart": args.n_ood_apart})
+    threshold = (base.get("evaluation") or {}).get("score_threshold", 0.8)
     for rule in RULES:
         checkpoint = runs[rule]["checkpoint"]
         runs[rule]["out_of_domain"] = {
-            name: score_set(checkpoint, folder, base) for name, folder in sets.items() if checkpoint
+            name: score_set(checkpoint, folder, threshold) for name, folder in sets.items() if checkpoint
         }
 
     report = {
@@ -188,40 +190,6 @@ def main(argv=None) -> dict:
 def _difference(runs: dict, name: str) -> float | None:
     failure, uniform = (runs[rule]["out_of_domain"][name]["map"] for rule in ("failure", "uniform"))
     return None if failure is None or uniform is None else failure - uniform
-
-
-def ood_sets(args) -> dict[str, Path]:
-    """The out-of-domain sets both models are scored on (cached by recipe in var/bench)."""
-    from bench.wild_scene import OodRecipe
-    from bench.wild_sets import make_ood_set
-    from foldwise.config import load_config
-    from foldwise.sampling import asset_names
-
-    config = load_config(args.config)
-    classes = tuple(asset_names(config.assets).classes)
-    sets = {}
-    for name, n, photos, seed in (
-        ("default", args.n_ood, "training", 2026),
-        ("apart", args.n_ood_apart, "held_apart", 11),
-    ):
-        if n:
-            recipe = OodRecipe(n=n, seed=seed, classes=classes, photos=photos)
-            folder = ROOT / f"var/bench/sampling-ood-{name}-{n}"
-            sets[name] = make_ood_set(folder, recipe, echo=lambda *a, **k: None, assets=config.assets)
-    return sets
-
-
-def score_set(checkpoint: str, folder: Path, base: dict) -> dict:
-    from bench.wild_scoring import score
-
-    evaluation = base.get("evaluation") or {}
-    result = score(checkpoint, folder, evaluation.get("score_threshold", 0.8), evaluation.get("iou_threshold", 0.5))
-    return {
-        "map": result["map"],
-        "map_unthresholded": result["map_unthresholded"],
-        "at_threshold": result.get("at_threshold"),
-        "images": result.get("images"),
-    }
 
 
 def headline(report: dict) -> str:

@@ -43,14 +43,15 @@ def _shown(text: str, limit: int = 80) -> str:
     return repr(text if len(text) <= limit else text[: limit - 1] + "…")
 
 
-def asset_path(folder: Path | str, what: str) -> Path:
+def asset_path(folder: Path | str, what: str, key: str | None = None) -> Path:
     """The asset folder a config names, ``~`` expanded: the one check of an asset path before
     any file call, so that a path the system cannot take is an AssetError naming the problem
     (an unknown ``~user``, a path or a name too long, a loop of symbolic links), not an
-    exception from deep inside pathlib."""
+    exception from deep inside pathlib. Messages start with ``key`` (default ``assets.{what}``)."""
+    key = key or f"assets.{what}"
     text = str(folder)
     if len(text) > MAX_PATH_CHARS:
-        raise AssetError(f"assets.{what}: a path of {len(text):,} characters; at most {MAX_PATH_CHARS} are allowed")
+        raise AssetError(f"{key}: a path of {len(text):,} characters; at most {MAX_PATH_CHARS} are allowed")
     path = Path(text)
     if text.startswith("~"):
         try:
@@ -58,24 +59,24 @@ def asset_path(folder: Path | str, what: str) -> Path:
         except RuntimeError:  # pathlib's word for "no such user"
             user = text[1:].split(os.sep, 1)[0]
             raise AssetError(
-                f"assets.{what}: {_shown(text)}: there is no user {user!r} on this server to expand ~{user}"
+                f"{key}: {_shown(text)}: there is no user {user!r} on this server to expand ~{user}"
             ) from None
         if len(str(path)) > MAX_PATH_CHARS:
             raise AssetError(
-                f"assets.{what}: {_shown(text)} is {len(str(path)):,} characters once ~ is expanded; at most {MAX_PATH_CHARS}"
+                f"{key}: {_shown(text)} is {len(str(path)):,} characters once ~ is expanded; at most {MAX_PATH_CHARS}"
             )
     for part in path.parts:
         if len(os.fsencode(part)) > MAX_NAME_BYTES:
             raise AssetError(
-                f"assets.{what}: {_shown(text)}: the name {_shown(part, 40)} is {len(os.fsencode(part)):,} bytes; "
+                f"{key}: {_shown(text)}: the name {_shown(part, 40)} is {len(os.fsencode(part)):,} bytes; "
                 f"at most {MAX_NAME_BYTES} are allowed"
             )
     try:
         path.resolve()
     except RuntimeError:  # pathlib's word for ELOOP
-        raise AssetError(f"assets.{what}: {_shown(text)} is a loop of symbolic links") from None
+        raise AssetError(f"{key}: {_shown(text)} is a loop of symbolic links") from None
     except OSError as error:
-        raise AssetError(f"assets.{what}: {_shown(text)} cannot be resolved ({error.strerror or error})") from None
+        raise AssetError(f"{key}: {_shown(text)} cannot be resolved ({error.strerror or error})") from None
     return path
 
 
@@ -180,3 +181,22 @@ def validate_assets(config) -> None:
             check_class_names(files)
         for path in files:
             check_image_file(path, what)
+
+
+def check_photographs(test_set, roots: list[Path] | None = None) -> Path | None:
+    """The folder (or COCO file) ``test_set.photographs`` names, checked as a path before anything
+    is recorded; with ``roots`` (a server's FOLDWISE_ASSET_ROOTS) it must lie under one of them.
+    Reading it as a dataset is the train worker's (``workers.train.data.load_dataset``)."""
+    folder = getattr(test_set, "photographs", None)
+    if folder is None:
+        return None
+    key = "test_set.photographs"
+    path = asset_path(folder, "photographs", key)
+    if not path.exists():
+        raise AssetError(f"{key}: {_shown(str(folder))} does not exist")
+    if roots is not None:
+        real = path.resolve()
+        if not any(real == root or root in real.parents for root in roots):
+            allowed = ", ".join(str(root) for root in roots) or "none: FOLDWISE_ASSET_ROOTS is not set"
+            raise AssetError(f"{key}: {_shown(str(folder))} is outside the asset roots of this server ({allowed})")
+    return path

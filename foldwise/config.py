@@ -247,6 +247,19 @@ class TestSetConfig(_Section):
     # curriculum's stages ("curriculum", mixed stages included; for kind: canonical_baseline,
     # the curriculum's conditions × difficulties).
     covers: Literal["table3", "all", "curriculum"] = "curriculum"
+    # The user's labelled photographs (a COCO or Pascal VOC export, as `foldwise evaluate` reads;
+    # the detector's classes named as the objects' files): every increment is scored on them too.
+    photographs: Path | None = None
+    # "beside": P stays the renders' score and the photographs' is recorded next to it
+    # (evaluations.details.photographs); "standard": the photographs are the standard test set,
+    # so P, the stopping rule and each stage's best model read them.
+    photographs_role: Literal["beside", "standard"] = "beside"
+
+    @model_validator(mode="after")
+    def _role_needs_photographs(self) -> TestSetConfig:
+        if self.photographs is None and self.photographs_role != "beside":
+            raise ValueError("photographs_role: standard needs test_set.photographs, a folder of labelled photographs")
+        return self
 
 
 class ActiveLearningConfig(_Section):

@@ -42,6 +42,24 @@ def _fail(message: str, code: int = 2) -> None:
     raise typer.Exit(code)
 
 
+def _check_photographs(config) -> None:
+    """test_set.photographs read as the train worker will read it, or an AssetError naming why."""
+    from foldwise.asset_check import AssetError, check_photographs
+
+    path = check_photographs(config.test_set)
+    if path is None:
+        return
+    from workers.train.data import DatasetError, load_dataset
+
+    try:
+        samples, classes = load_dataset(path)
+    except (DatasetError, KeyError, TypeError, ValueError) as error:
+        detail = f"missing field {error}" if isinstance(error, KeyError) else str(error)
+        raise AssetError(f"test_set.photographs: cannot read {path}: {detail}") from None
+    if not samples:
+        raise AssetError(f"test_set.photographs: {path} lists no image")
+
+
 def _load(config_path: Path, preflight: bool = False):
     """The config, or a one-line error (exit 2); with ``preflight`` its asset folders and
     ImageNet weights (when it asks for them) are checked too, before any work starts."""
@@ -53,6 +71,7 @@ def _load(config_path: Path, preflight: bool = False):
         config = load_config(config_path)
         if preflight:
             validate_assets(config.assets)
+            _check_photographs(config)
             if config.detector.pretrained == "imagenet" and (
                 problem := missing_imagenet_weights(config.detector.backbone)
             ):

@@ -269,3 +269,42 @@ def test_foldwise_run_names_an_unknown_user_in_one_line(tmp_path):
         "error: assets.objects: '~nosuchuser-foldwise': there is no user 'nosuchuser-foldwise' on this server to "
         "expand ~nosuchuser-foldwise"
     )
+
+
+@pytest.mark.parametrize(
+    ("photographs", "message"),
+    [
+        ("nowhere", "test_set.photographs: '{tmp}/nowhere' does not exist"),
+        ("not-a-dataset", "test_set.photographs: cannot read {tmp}/not-a-dataset: {tmp}/not-a-dataset: not a dataset"),
+    ],
+)
+def test_foldwise_run_with_unreadable_photographs_is_one_line_and_records_nothing(tmp_path, photographs, message):
+    (tmp_path / "not-a-dataset").mkdir()
+    _png(tmp_path / "not-a-dataset" / "photo.png", 64, 48)
+    config = yaml.safe_load((REPO_ROOT / "configs/smoke.yaml").read_text())
+    config["test_set"] = {**config.get("test_set", {}), "photographs": str(tmp_path / photographs)}
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(config))
+    env = {"FOLDWISE_DATA_DIR": str(tmp_path / "data"), "PATH": "/usr/bin:/bin", "COLUMNS": "400"}
+    done = subprocess.run(
+        [sys.executable, "-m", "services.cli", "run", str(path)], cwd=REPO_ROOT, capture_output=True, text=True, env=env
+    )
+    output = (done.stdout + done.stderr).strip()
+    assert done.returncode == 2, output
+    assert output.startswith("error: " + message.format(tmp=tmp_path)), output
+    assert not (tmp_path / "data").exists()
+
+
+def test_photographs_outside_the_servers_roots_are_refused(tmp_path):
+    from foldwise.asset_check import check_photographs
+    from foldwise.config import TestSetConfig
+
+    (tmp_path / "root").mkdir()
+    (tmp_path / "elsewhere").mkdir()
+    assert check_photographs(TestSetConfig()) is None
+    inside = TestSetConfig(photographs=tmp_path / "root")
+    assert check_photographs(inside, [tmp_path / "root"]) == tmp_path / "root"
+    with pytest.raises(AssetError, match="test_set.photographs: .* is outside the asset roots of this server"):
+        check_photographs(TestSetConfig(photographs=tmp_path / "elsewhere"), [tmp_path / "root"])
+    with pytest.raises(AssetError, match="test_set.photographs: .*there is no user"):
+        check_photographs(TestSetConfig(photographs="~nosuchuser-foldwise/photos"))

@@ -567,11 +567,13 @@ def evaluate_detector(
     batch_size: int = 16,
     coco: bool = True,
     on_batch: Callable[[int], None] | None = None,
+    **views: Any,
 ) -> EvaluationResult:
     """Run ``detect_object`` on the samples' images and score it against their boxes
-    (``samples`` are ``workers.train.data.Sample``; see ``detector_predictions``)."""
+    (``samples`` are ``workers.train.data.Sample``; ``views``: ``test_sizes``, ``test_turns``,
+    ``texture_check`` overrides; see ``detector_predictions``)."""
     predictions, ground_truth, groups, model_classes = detector_predictions(
-        detector, samples, classes, batch_size=batch_size, on_batch=on_batch
+        detector, samples, classes, batch_size=batch_size, on_batch=on_batch, **views
     )
     return evaluate_predictions(
         predictions,

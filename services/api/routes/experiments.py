@@ -178,7 +178,7 @@ def create_experiment(
 ) -> dict[str, Any]:
     """Record a new experiment (status pending); the scheduler starts it on its next pass.
     ``?study=NAME`` groups it with others run side by side (one per detector, say)."""
-    from foldwise.asset_check import AssetError, check_asset_roots, validate_assets  # Pillow only
+    from foldwise.asset_check import AssetError, check_asset_roots, check_photographs, validate_assets  # Pillow only
 
     try:
         from foldwise import store
@@ -187,6 +187,7 @@ def create_experiment(
             config.assets, request.app.state.settings.asset_root_paths, uploads=store.uploaded_assets_root()
         )
         validate_assets(config.assets)  # asset folders on this server, checked once before anything is recorded
+        check_photographs(config.test_set, request.app.state.settings.asset_root_paths)
     except AssetError as error:
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, str(error)) from None
     from foldwise.weights import missing_imagenet_weights  # no torch: file names only
