@@ -35,6 +35,12 @@ def test_the_settings_are_compose_defaults_and_the_services_own():
 
 def test_faults_are_parsed_in_order_and_an_unknown_one_is_refused():
     assert faults.parse_faults("redis, render-worker") == ["render-worker", "redis"]
+    assert faults.parse_faults("train-worker-mid-write,postgres,disk-full,scheduler") == [
+        "scheduler",
+        "postgres",
+        "disk-full",
+        "train-worker-mid-write",
+    ]
     with pytest.raises(argparse.ArgumentTypeError, match="unknown fault worker"):
         faults.parse_faults("redis,worker")
     with pytest.raises(argparse.ArgumentTypeError):
@@ -74,3 +80,42 @@ def test_it_skips_saying_why_without_its_servers(monkeypatch, tmp_path, capsys):
         "reason": "PostgreSQL is not reachable on 127.0.0.1:5432",
     }
     assert "skipped: PostgreSQL" in capsys.readouterr().err
+
+
+def test_every_fault_is_a_harness_fault_the_tests_share():
+    """Each name runs a function of tests/integration/fault_harness.py that takes the stack, the
+    API client, the rows and the recovery timeout: the bench and the fault tests inject alike."""
+    import inspect
+
+    from tests.integration import fault_harness
+
+    assert list(faults.FAULTS) == [
+        "render-worker",
+        "train-worker",
+        "scheduler",
+        "redis",
+        "postgres",
+        "disk-full",
+        "train-worker-mid-write",
+    ]
+    for name, function in faults.FAULTS.items():
+        parameters = inspect.signature(getattr(fault_harness, function)).parameters
+        assert list(parameters)[:3] == ["stack", "api", "rows"], name
+        assert "recovery_timeout_s" in parameters, name
+
+
+def test_the_postgres_fault_says_why_when_it_cannot_start_a_server_of_its_own(monkeypatch, tmp_path, capsys):
+    """The shared servers are there, PostgreSQL's server programs are not: that fault alone
+    reports why (no server of the bench's own, no killing the shared one), and the run fails."""
+    from tests.integration import fault_harness
+
+    monkeypatch.setattr(faults, "missing_service", lambda: None)
+    monkeypatch.setattr(faults, "machine_info", lambda: {"cpus_allowed": 2, "load_average_1min": 0.0})
+    monkeypatch.setattr(fault_harness, "own_postgres_problem", lambda: "initdb is not installed")
+    out = tmp_path / "faults.json"
+    assert faults.main(["--faults", "postgres", "--out", str(out)]) == 1
+    document = json.loads(out.read_text())
+    assert list(document["faults"]) == ["postgres"] and not document["all_met"]
+    (problem,) = document["faults"]["postgres"]["problems"]
+    assert "cannot start a PostgreSQL server of the bench's own: initdb is not installed" in problem
+    capsys.readouterr()

@@ -1,7 +1,8 @@
 """The scheduler service: reconcile every live experiment, forever.
 
 Stateless between passes: everything it knows is read from the database each time, so it
-can be killed (even SIGKILL) and restarted at any point.
+can be killed (even SIGKILL) and restarted at any point, and a database that restarts (or is
+out of reach for a while) only costs the passes it is away.
 """
 
 from __future__ import annotations
@@ -74,7 +75,12 @@ def serve(poll_s: float | None = None, once: bool = False) -> None:
     signal.signal(signal.SIGINT, _stop)
     log.info("scheduler started (poll every %.1fs)", poll_s)
     while not stopping:
-        for experiment_id in live_experiment_ids():
+        try:
+            experiment_ids = live_experiment_ids()
+        except Exception as error:  # the database restarting or unreachable: the next pass reads it again
+            log.warning("cannot read the live experiments; retrying next pass: %s", str(error).splitlines()[0])
+            experiment_ids = []
+        for experiment_id in experiment_ids:
             try:
                 reconcile_until_idle(
                     experiment_id,

@@ -8,11 +8,18 @@ this module starts itself on a free port, so it can kill it), with the tests' sh
 - the scheduler killed mid-run and started again (as compose's restart policy does): the new
   one goes on from the database, and nothing is sent or trained twice;
 - Redis killed and restarted empty with batches waiting: the scheduler finds the messages that
-  nobody holds (no queue has them, no live worker does) and sends each again, once.
+  nobody holds (no queue has them, no live worker does) and sends each again, once;
+- no room on the artifact volume for a checkpoint (the train worker's file size limit lowered
+  under it): the refusal is recorded on the model, nothing torn is left, and the trained
+  increment is written once there is room, not trained again;
+- a whole train worker killed while it writes a checkpoint: no checkpoint the record points
+  at is torn (each loads), and the increment is sent again once and trained by the next worker.
 
-The faults themselves live in fault_harness.py, which bench/faults.py times with compose's
-default settings. Each test prints the seconds from the fault to the lost work running again
-(``-s`` shows them).
+PostgreSQL restarted mid-increment needs a server of its own under a stack of its own, so it
+runs in bench/faults.py only (tests/services/scheduler/test_service_outage.py tests the
+scheduler's side of it). The faults themselves live in fault_harness.py, which bench/faults.py
+times with compose's default settings. Each test prints the seconds from the fault to the lost
+work running again (``-s`` shows them).
 """
 
 from __future__ import annotations
@@ -22,16 +29,19 @@ from collections.abc import Callable, Iterator
 from contextlib import AbstractContextManager
 
 import pytest
-from sqlalchemy import create_engine
+from sqlalchemy import create_engine, select
 from sqlalchemy.orm import Session, sessionmaker
 
+from db.models import Model
 from tests.integration.conftest import scratch_database
 from tests.integration.fault_harness import (
     OwnRedis,
+    artifact_volume_full_at_checkpoint,
     audit_done_once,
     kill_render_worker_mid_batch,
     kill_scheduler,
     kill_train_worker_mid_increment,
+    kill_train_worker_mid_write,
     restart_redis_empty,
     stack_on_own_redis,
     wait_until_finished,
@@ -125,3 +135,32 @@ def test_redis_restarted_empty_mid_run_loses_nothing(fault_stack, fault_api, row
     print(
         f"\nRedis restarted empty: {len(recovery.lost_thetas)} lost θ rendering again {recovery.seconds:.1f} s after the kill"
     )
+
+
+# The checkpoint faults strike at the second increment's write, not inside its training: a few
+# iterations leave the harness (which watches from the moment the model is claimed) ample time.
+WRITE_FAULT_ITERATIONS = 10
+
+
+def test_a_full_artifact_volume_at_a_checkpoint_is_waited_out_and_nothing_trains_twice(fault_stack, fault_api, rows):
+    recovery = artifact_volume_full_at_checkpoint(fault_stack, fault_api, rows, iterations=WRITE_FAULT_ITERATIONS)
+    assert "no room on the volume" in recovery.notes["error_recorded"]
+    assert "File too large" in recovery.notes["error_recorded"]  # EFBIG, from the file size limit
+    # Nobody was killed: nothing was cut off or sent again; every checkpoint loads (the audit).
+    check_done_once(fault_stack, fault_api, rows, recovery)
+    with rows() as session:
+        waited = session.scalars(
+            select(Model).where(Model.experiment_id == recovery.experiment_id).order_by(Model.increment)
+        ).all()[1]
+    assert waited.attempts == 1 and waited.error is None
+    assert waited.train_stats["checkpoint_writes_refused"]["refused"] >= 1
+    print(f"\nfull volume: the checkpoint written {recovery.seconds:.1f} s after the refused write")
+
+
+def test_a_train_worker_killed_mid_checkpoint_write_leaves_nothing_torn(fault_stack, fault_api, rows):
+    recovery = kill_train_worker_mid_write(fault_stack, fault_api, rows, iterations=WRITE_FAULT_ITERATIONS)
+    assert recovery.notes["bytes_written_at_kill"] > 0  # inside the write: begun, never renamed
+    # The audit loads every checkpoint the record points at; the killed write's temporary file
+    # may stay, as its checkpoint was then written whole by the next delivery.
+    check_done_once(fault_stack, fault_api, rows, recovery)
+    print(f"\ntrain worker killed mid-write: increment claimed again {recovery.seconds:.1f} s after the kill")

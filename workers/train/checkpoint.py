@@ -10,7 +10,11 @@ A checkpoint is one ``torch.save`` file holding plain data only (loadable with
      "state_dict": {...}}
 
 ``load_detector(path)`` rebuilds the model from ``meta`` alone. Writes are atomic (a temp file
-in the same folder, then rename), so a crash never leaves a half-written ω behind.
+in the same folder, then rename), so a crash never leaves a half-written ω behind: a writer
+killed mid-write leaves only its temporary file (``.<name>.<random>.tmp``, never read), and a
+write the volume has no room for (full, over quota, past the file size limit) raises
+:class:`NoRoomError` and leaves the file at the path as it was, so that the write can be tried
+again once there is room.
 
 An ensemble (``save_ensemble``: the final models of curricula run with other seeds, say) is one
 file holding its members' checkpoints whole, so it travels alone::
@@ -27,6 +31,8 @@ ensemble by name.
 
 from __future__ import annotations
 
+import errno
+import io
 import os
 import tempfile
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -50,8 +56,22 @@ ARCHITECTURE_FIELDS = ("family", "backbone")
 RCNN_FAMILIES = ("faster_rcnn", "fast_rcnn")
 
 
+# The errors of a write refused for want of room: the volume is full (ENOSPC), the quota spent
+# (EDQUOT), or the file would pass the largest this process may write (EFBIG: the filesystem's
+# limit, or RLIMIT_FSIZE; Python ignores SIGXFSZ, so the write fails instead of the process).
+NO_ROOM_ERRNOS = frozenset({errno.ENOSPC, errno.EDQUOT, errno.EFBIG})
+# Checkpoints are serialised in memory, then written in pieces of this size.
+WRITE_CHUNK_BYTES = 1 << 20
+
+
 class CheckpointError(ValueError):
     """A checkpoint that cannot be read, or that does not fit the requested detector."""
+
+
+class NoRoomError(OSError):
+    """A checkpoint or ensemble write refused for want of room on its volume (``errno`` one of
+    NO_ROOM_ERRNOS). Nothing of it was kept: the file at its path, if any, is the one written
+    before, whole. The same write succeeds once there is room."""
 
 
 @dataclass
@@ -150,17 +170,34 @@ def payload_textures(payload: dict[str, Any], key: str = "textures") -> dict[str
 
 
 def _write_atomically(payload: dict[str, Any], path: Path) -> Path:
-    descriptor, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    """``payload`` to ``path`` through a temporary file beside it, fsynced, then renamed over it."""
+    serialised = io.BytesIO()
+    # Serialised first: a refused write then fails in os.write, with its errno (torch's own
+    # writer turns it into a RuntimeError that no longer says why).
+    torch.save(payload, serialised)
+    data = serialised.getbuffer()
+    temporary = None
     try:
-        with os.fdopen(descriptor, "wb") as handle:
-            torch.save(payload, handle)
-            handle.flush()
-            os.fsync(handle.fileno())
+        descriptor, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            remaining = data
+            while remaining:
+                written = os.write(descriptor, remaining[:WRITE_CHUNK_BYTES])
+                remaining = remaining[written:]
+            os.fsync(descriptor)
+        finally:
+            os.close(descriptor)
         os.chmod(temporary, 0o644)  # mkstemp makes it private; other roles read checkpoints
         os.replace(temporary, path)
-    except BaseException:
-        if os.path.exists(temporary):
+    except BaseException as error:
+        if temporary is not None and os.path.exists(temporary):
             os.unlink(temporary)
+        if isinstance(error, OSError) and error.errno in NO_ROOM_ERRNOS:
+            raise NoRoomError(
+                error.errno,
+                f"no room on the volume for {path} ({len(data) / 1e6:.1f} MB): {error.strerror}; "
+                "the file there is as it was",
+            ) from error
         raise
     return path
 

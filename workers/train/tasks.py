@@ -4,6 +4,12 @@
 P_k ← evaluate_predictions(detect_object(ω_k, I_te), B_te). The model row is claimed by the
 delivering task id, so a duplicate message skips while a redelivery after a lost worker
 takes over; the checkpoint path is derived from the model id, so a retry overwrites it.
+
+A trained increment whose checkpoint the artifact volume has no room for (full, over quota,
+past the file size limit) is not lost: the weights wait in memory, the claim kept renewed, the
+model row's ``error`` says what was refused, and the write is tried again every NO_ROOM_RETRY_S
+until there is room (then the error is cleared and the increment goes on), for NO_ROOM_WAIT_S
+at most; then the model fails with the error.
 """
 
 from __future__ import annotations
@@ -39,6 +45,10 @@ from workers import lease
 from workers.app import TRAIN_TASK, app
 
 log = logging.getLogger(__name__)
+
+# A checkpoint write refused for want of room is tried again this often, for this long at most.
+NO_ROOM_RETRY_S = 5.0
+NO_ROOM_WAIT_S = 1800.0
 
 
 def _claim(model_id: int, task_id: str) -> bool:
@@ -115,13 +125,88 @@ class Heartbeat(lease.Heartbeat):
         super().__init__(f"model-{model_id}", functools.partial(_renew_claim, model_id, task_id), interval_s)
 
 
+class WaitForRoom:
+    """``train_detector``'s ``on_no_room`` in the worker: each refused checkpoint write is
+    recorded on the model row (``error``, which ``GET /models/{id}`` shows) and logged, then it
+    waits ``retry_s`` and has the write tried again. It gives up (raises) once the model is no
+    longer this delivery's (the experiment ended, another delivery took over) or after
+    ``give_up_s`` of refusals."""
+
+    def __init__(
+        self,
+        model_id: int,
+        task_id: str,
+        retry_s: float = NO_ROOM_RETRY_S,
+        give_up_s: float = NO_ROOM_WAIT_S,
+        sleep=time.sleep,
+    ) -> None:
+        self.model_id, self.task_id = model_id, task_id
+        self.retry_s, self.give_up_s, self.sleep = retry_s, give_up_s, sleep
+        self.refusals = 0
+        self.first_refused: float | None = None
+        self.last_error: str | None = None
+
+    def __call__(self, error: OSError) -> None:
+        now = time.monotonic()
+        if self.first_refused is None:
+            self.first_refused = now
+        self.refusals += 1
+        self.last_error = str(error)
+        waited = now - self.first_refused
+        if waited >= self.give_up_s:
+            raise type(error)(
+                error.errno,
+                f"{error.strerror}; {self.refusals} writes refused over {waited:.0f} s, given up",
+            ) from error
+        log.warning("model %s: checkpoint write refused (%s); trying again in %g s", self.model_id, error, self.retry_s)
+        with session_scope() as session:
+            model = session.get(Model, self.model_id)
+            ours = model is not None and model.status == ModelStatus.training and model.task_id == self.task_id
+            if ours:
+                times = "once" if self.refusals == 1 else f"{self.refusals} times"
+                model.error = (
+                    f"waiting for room to write the checkpoint: {error} "
+                    f"(refused {times}; tried again every {self.retry_s:g} s)"
+                )
+        if not ours:
+            raise error
+        self.sleep(self.retry_s)
+
+    def record(self) -> dict | None:
+        """For the model's train_stats: the refused writes, when there were any."""
+        if not self.refusals:
+            return None
+        return {"refused": self.refusals, "last_error": self.last_error}
+
+
 def run_increment(model_id: int, task_id: str = "direct") -> str:
     if not _claim(model_id, task_id):
         return "skipped"
     if app.conf.task_always_eager:  # one process: no other worker to take over, nothing to renew
-        return _run_claimed_increment(model_id)
+        return _run_claimed_increment(model_id, task_id)
     with Heartbeat(model_id, task_id, get_settings().lease_s / 4):
-        return _run_claimed_increment(model_id)
+        return _run_claimed_increment(model_id, task_id)
+
+
+def _score_photographs(detector, config: ExperimentConfig, views: dict):
+    """The increment's model on the user's labelled photographs (``test_set.photographs``), at
+    the loop's views; None without them."""
+    if config.test_set.photographs is None:
+        return None
+    from workers.train.data import load_dataset
+    from workers.train.evaluation import evaluate_detector
+
+    samples, classes = load_dataset(config.test_set.photographs)
+    return evaluate_detector(
+        detector,
+        samples,
+        classes,
+        score_threshold=config.evaluation.score_threshold,
+        iou_threshold=config.evaluation.iou_threshold,
+        batch_size=config.evaluation.batch_size,
+        coco=False,
+        **views,
+    )
 
 
 def loop_views(config: ExperimentConfig) -> dict[str, tuple]:
@@ -136,7 +221,7 @@ def loop_views(config: ExperimentConfig) -> dict[str, tuple]:
     return {"test_sizes": (), "test_turns": (), "texture_check": False}
 
 
-def _run_claimed_increment(model_id: int) -> str:
+def _run_claimed_increment(model_id: int, task_id: str = "direct") -> str:
     from workers.render.assets import load_assets
     from workers.train.checkpoint import detect_object, load_detector
     from workers.train.evaluation import detection_samples, evaluate_predictions
@@ -182,6 +267,7 @@ def _run_claimed_increment(model_id: int) -> str:
         relative = store.checkpoint_path(experiment.id, model.id)
         iterations = model.iterations  # t of this stage (a mixed stage may have its own)
 
+    wait_for_room = WaitForRoom(model_id, task_id)
     try:
         if not train_rows:
             raise RuntimeError(f"no rendered training image for stage {stage.order} increment {model.increment}")
@@ -195,6 +281,7 @@ def _run_claimed_increment(model_id: int) -> str:
             out=store.resolve(relative),
             seed=seed,
             textures=load_assets(config.assets).textures(classes) if config.detector.texture_check else None,
+            on_no_room=wait_for_room,
         )
         train_seconds = time.perf_counter() - started
 
@@ -214,6 +301,7 @@ def _run_claimed_increment(model_id: int) -> str:
             groups=[{"condition": s.condition, "difficulty": s.difficulty} for s in test_samples],
             coco=config.evaluation.coco,
         )
+        photographs = _score_photographs(detector, config, views)
         eval_seconds = time.perf_counter() - started
     except Exception as error:  # recorded, then the scheduler fails the experiment with it
         log.exception("increment of model %s failed", model_id)
@@ -236,14 +324,20 @@ def _run_claimed_increment(model_id: int) -> str:
         model.train_seconds = train_seconds
         # How many images the increment trained on: m, or every increment's so far with "grow".
         model.train_stats = {**stats.to_dict(), "training_images": len(train_rows)}
+        refused = wait_for_room.record()
+        if refused:  # written once there was room: the waiting is over
+            model.train_stats["checkpoint_writes_refused"] = refused
+            model.error = None
         model.trained_at = utcnow()
         model.status = ModelStatus.evaluated
         evaluation = session.scalar(select(Evaluation).where(Evaluation.model_id == model_id))
         if evaluation is None:
             evaluation = Evaluation(model_id=model_id, details={}, eval_seconds=0.0)
             session.add(evaluation)
-        evaluation.map = finite_or_none(result.map)
-        evaluation.map_unthresholded = finite_or_none(result.map_unthresholded)
+        # P: the renders' score, or the user's photographs' when they are the standard test set.
+        standard = photographs if config.test_set.photographs_role == "standard" and photographs else result
+        evaluation.map = finite_or_none(standard.map)
+        evaluation.map_unthresholded = finite_or_none(standard.map_unthresholded)
         # With a few test images' detections, for the dashboard (θ ids: GET /experiments/{id}/images/{θ}).
         sizes = list(views.get("test_sizes", config.detector.test_sizes))
         turns = list(views.get("test_turns", config.detector.test_turns))
@@ -262,6 +356,11 @@ def _run_claimed_increment(model_id: int) -> str:
                 test_ids, predictions, [{"condition": s.condition, "difficulty": s.difficulty} for s in test_samples]
             ),
         }
+        if photographs is not None:
+            evaluation.details["photographs"] = {
+                "role": config.test_set.photographs_role,
+                **{key: value for key, value in photographs.to_dict().items() if key != "per_image"},
+            }
         evaluation.eval_seconds = eval_seconds
     return "evaluated"
 

@@ -26,6 +26,7 @@ from torch import Tensor, nn
 from foldwise.config import DetectorConfig
 from workers.train.augment import augmented, build_augmentation
 from workers.train.checkpoint import (
+    NoRoomError,
     check_compatible,
     load_state,
     payload_textures,
@@ -171,17 +172,21 @@ def train_detector(
     seed: int = 0,
     on_step: Callable[[int], None] | None = None,
     textures: Mapping[str, np.ndarray] | None = None,
+    on_no_room: Callable[[NoRoomError], None] | None = None,
 ) -> TrainStats:
     """Train ``iterations`` steps from ω_in (``init``; None: fresh weights per
     ``config.pretrained``) on ``samples`` and write the checkpoint ω to ``out``.
 
     ``init`` may equal ``out`` (ω_in is read before ω is written). ``on_step(steps_done)`` is
     called after every step (progress display). With ``config.texture_check`` the checkpoint
-    carries the classes' ``textures`` (None: ω_in's, where it has them).
+    carries the classes' ``textures`` (None: ω_in's, where it has them). When the volume has no
+    room for ω (:class:`NoRoomError`; the file at ``out`` is then as it was), ``on_no_room(error)``
+    is called: it returns to have the write tried again (having waited for room), or raises to
+    give up; without it the error is raised, and the trained weights are lost.
     """
     _validate(samples, iterations, classes, config)
     with torch_threads(config.num_threads):
-        return _train(samples, init, iterations, config, list(classes), Path(out), seed, on_step, textures)
+        return _train(samples, init, iterations, config, list(classes), Path(out), seed, on_step, textures, on_no_room)
 
 
 def _train(
@@ -194,6 +199,7 @@ def _train(
     seed: int,
     on_step: Callable[[int], None] | None = None,
     textures: Mapping[str, np.ndarray] | None = None,
+    on_no_room: Callable[[NoRoomError], None] | None = None,
 ) -> TrainStats:
     started = time.perf_counter()
     device = resolve_device(config.device)
@@ -309,7 +315,14 @@ def _train(
         meta["calibration"] = shipped_calibration().to_dict()
     model.eval()
     kept = {name: np.asarray(textures[name]) for name in classes} if config.texture_check and textures else None
-    save_checkpoint(model, meta, out, textures=kept)
+    while True:
+        try:
+            save_checkpoint(model, meta, out, textures=kept)
+            break
+        except NoRoomError as error:
+            if on_no_room is None:
+                raise
+            on_no_room(error)  # waits for room, or raises to give up
     return TrainStats(
         iterations=iterations,
         seconds=time.perf_counter() - started,

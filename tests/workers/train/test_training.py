@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import errno
 import itertools
 import json
 import math
+import os
 
 import cv2
 import numpy as np
@@ -12,8 +14,9 @@ import pytest
 import torch
 
 from tests.workers.train.training_helpers import CLASSES, config, synthetic_samples
+from workers.train import checkpoint as checkpoint_module
 from workers.train import training
-from workers.train.checkpoint import CheckpointError, read_checkpoint
+from workers.train.checkpoint import CheckpointError, NoRoomError, read_checkpoint
 from workers.train.data import Sample
 from workers.train.training import (
     TrainingDiverged,
@@ -261,3 +264,33 @@ def test_loss_falls_from_random_initialisation(tmp_path, family):
     )
     assert stats.nonfinite_steps == []
     assert np.mean(stats.losses[-10:]) < 0.75 * np.mean(stats.losses[:5])
+
+
+def test_training_waits_for_room_and_writes_the_checkpoint_it_trained(tmp_path, monkeypatch):
+    """When the volume has no room for ω, train_detector asks on_no_room to wait and writes the
+    weights it trained once there is room (tests/workers/train/test_checkpoint_writes.py: the
+    write itself and the worker's waiting)."""
+    samples = synthetic_samples(tmp_path / "images", n=2)
+    out = tmp_path / "omega.pt"
+    real_write, refusals = os.write, []
+
+    def full_until_told(descriptor, data):
+        if len(refusals) < 2:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real_write(descriptor, data)
+
+    def wait_for_room(error):
+        assert error.errno == errno.ENOSPC and not out.exists()
+        refusals.append(str(error))
+
+    monkeypatch.setattr(checkpoint_module.os, "write", full_until_told)
+    # No iteration: the network built and written, which is what this is about.
+    train_detector(samples, None, 0, config(), CLASSES, out, on_no_room=wait_for_room)
+    assert len(refusals) == 2 and "no room on the volume" in refusals[0]
+    assert read_checkpoint(out)["meta"]["classes"] == CLASSES
+
+    # Nobody to wait: the refusal is the caller's.
+    refusals.clear()
+    with pytest.raises(NoRoomError):
+        train_detector(samples, None, 0, config(), CLASSES, tmp_path / "lost.pt")
+    assert not (tmp_path / "lost.pt").exists()
