@@ -366,9 +366,9 @@ def _run_members(config, members: int, report_dir: Path | None) -> bool:
 def training_progress(config, stage_rows: list[dict]) -> tuple[int, int]:
     """(training iterations done, planned) for the progress bar and its ETA.
 
-    Training is most of a run's time, and stages differ in it by two orders of magnitude
-    (quick.yaml: 8 iterations per single-condition stage, 1,200 in the mixed stage), so a
-    count of stages made the ETA wrong by minutes. Each stage plans its cap (κ for
+    Training is most of a run's time, and stages may differ in it by two orders of magnitude
+    (a few iterations in a single-condition stage, a thousand in a mixed one), so a count of
+    stages would make the ETA wrong by minutes. Each stage plans its cap (κ for
     learnability) times its t; a stage that ended early counts as planned, so the bar ends at
     100% and the ETA is an upper bound while a stopping rule can still end stages early."""
     rows = {(row["condition"], row["difficulty"]): row for row in stage_rows}

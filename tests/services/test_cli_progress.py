@@ -40,20 +40,31 @@ def test_run_through_a_pipe_prints_a_line_per_increment_as_it_goes(database, tmp
     # no wrapping at 80 columns (COLUMNS=80 is ignored off a terminal): the header stays one line
     header = next(line for _, line in arrivals if line.startswith("foldwise: experiment"))
     assert len(header) > 80 and f"database {database}" in header
-    assert any("plateau" in line and line.count("│") == 8 for line in text.splitlines())  # 7 columns, one row
+    assert any("plateau" in line and line.count("│") == 9 for line in text.splitlines())  # 8 columns, one row
 
 
 def test_progress_counts_planned_training_iterations_not_stages():
-    from foldwise.config import load_config
+    from foldwise.config import parse_config
     from services.cli import training_progress
 
-    config = load_config(REPO_ROOT / "configs/quick.yaml")
-    singles, mixed = 21 * 1 * 8, 5 * 240  # cap x t per stage
+    # Four single-condition stages of 8 iterations, capped at 1; a mixed stage of 240, capped at 5.
+    config = parse_config(
+        {
+            "name": "progress",
+            "curriculum": {
+                "conditions": ["fb", "sc"],
+                "difficulties": ["easy", "hard"],
+                "mixed": {"active_learning": {"t": 240, "max_increments": 5}},
+            },
+            "active_learning": {"t": 8, "max_increments": 1},
+        }
+    )
+    singles, mixed = 4 * 1 * 8, 5 * 240  # cap x t per stage
     assert training_progress(config, []) == (0, singles + mixed)
-    rows = [{"condition": c, "difficulty": d, "status": "done", "increments": 1} for c, d in config.stage_order()[:21]]
+    rows = [{"condition": c, "difficulty": d, "status": "done", "increments": 1} for c, d in config.stage_order()[:4]]
     rows.append({"condition": "mixed", "difficulty": "hard", "status": "running", "increments": 2})
     done, planned = training_progress(config, rows)
-    # 21 of 22 stages are done, but two thirds of the training is still ahead.
+    # 4 of 5 stages are done, but most of the training is still ahead.
     assert (done, planned) == (singles + 2 * 240, singles + mixed) and done / planned < 0.55
     rows[-1] = {**rows[-1], "status": "done", "increments": 3}  # ended early by the stopping rule
     assert training_progress(config, rows) == (planned, planned)
