@@ -3,16 +3,25 @@
 Everything is read from ``request.app.state`` (set by :func:`services.api.app.create_app`), so
 one process can serve several apps with different settings (the tests do) and a test can swap
 any of them with ``app.dependency_overrides[get_session] = ...``.
+
+The dependencies that do no I/O are ``async def``: FastAPI runs a plain ``def`` dependency on a
+worker thread, and each such hand-over (a thread woken, the result handed back to the event
+loop) costs more than the dependency itself. Under load those hand-overs queue behind every
+other request's, so a read route pays for them in latency. What touches the database or the
+broker stays on a thread: the route's reads, and closing the session; a read route hands both
+to one thread with :func:`read_with`.
 """
 
 # No `from __future__ import annotations`: FastAPI resolves these annotations at runtime.
 import secrets
-from collections.abc import Iterator
-from typing import Annotated
+from collections.abc import AsyncIterator, Callable
+from typing import Annotated, Any, TypeVar
 
+import anyio
 from fastapi import Depends, HTTPException, Path, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
 from db.session import get_sessionmaker
 from foldwise.settings import Settings
@@ -24,11 +33,13 @@ from services.queries import MAX_ID
 # a stage or k filter past it is a 422. Either way the database, which would raise, never sees it.
 MAX_INT_COLUMN = MAX_ID
 
+T = TypeVar("T")
+
 ExperimentId = Annotated[int, Path(ge=1, le=MAX_ID, description="experiment id")]
 ModelId = Annotated[int, Path(ge=1, le=MAX_ID, description="model id (ω)")]
 
 
-def get_app_settings(request: Request) -> Settings:
+async def get_app_settings(request: Request) -> Settings:
     """The settings this app was created with."""
     return request.app.state.settings
 
@@ -36,26 +47,56 @@ def get_app_settings(request: Request) -> Settings:
 SettingsDep = Annotated[Settings, Depends(get_app_settings)]
 
 
-def get_session(settings: SettingsDep) -> Iterator[Session]:
-    """A session per request; uncommitted work (a request that failed half way) is rolled back on close."""
+async def get_session(settings: SettingsDep) -> AsyncIterator[Session]:
+    """A session per request; uncommitted work (a request that failed half way) is rolled back on close.
+
+    Creating the session connects nothing (the first query takes a connection from the engine's
+    pool, on the route's thread), so it is created on the event loop; closing it returns the
+    connection and may talk to the database, so it runs on a thread. That thread is not one of
+    the shared pool's (a limiter of its own): with every pooled thread waiting for a database
+    connection, the close that returns one must not wait for a thread. It is shielded from
+    cancellation (a client that hangs up), which would otherwise leave the connection out. A
+    session that holds no transaction (never used, or closed by the route) has nothing to return
+    and is closed here."""
     session = get_sessionmaker(settings.resolved_database_url)()
     try:
         yield session
     finally:
-        session.close()
+        if session.in_transaction():
+            with anyio.CancelScope(shield=True):
+                await anyio.to_thread.run_sync(session.close, limiter=anyio.CapacityLimiter(1))
+        else:
+            session.close()
 
 
 SessionDep = Annotated[Session, Depends(get_session)]
 
 
-def get_broker(request: Request) -> BrokerProbe:
+async def read_with(session: Session, read: Callable[..., T], *args: Any) -> T:
+    """``read(session, *args)`` on a worker thread, the session closed on that thread after it.
+
+    A read route declared ``async def`` that reads through this hands over to a thread once:
+    FastAPI runs a plain ``def`` route on a thread, then validates its answer on another hand-over,
+    and :func:`get_session` would close the session on a third. ``read`` must return plain data
+    (dicts, lists, schema models): the ORM objects it read are detached once it returns."""
+
+    def run() -> T:
+        try:
+            return read(session, *args)
+        finally:
+            session.close()
+
+    return await run_in_threadpool(run)
+
+
+async def get_broker(request: Request) -> BrokerProbe:
     return request.app.state.broker
 
 
 BrokerDep = Annotated[BrokerProbe, Depends(get_broker)]
 
 
-def get_schema_check(request: Request) -> SchemaCheck:
+async def get_schema_check(request: Request) -> SchemaCheck:
     return request.app.state.schema_check
 
 
@@ -65,7 +106,7 @@ SchemaCheckDep = Annotated[SchemaCheck, Depends(get_schema_check)]
 bearer = HTTPBearer(auto_error=False, description="FOLDWISE_API_TOKEN of the API server")
 
 
-def require_token(
+async def require_token(
     request: Request,
     settings: SettingsDep,
     credentials: Annotated[HTTPAuthorizationCredentials | None, Depends(bearer)],

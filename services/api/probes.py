@@ -3,6 +3,12 @@
 Every broker call has a short timeout so that a dead broker makes the API say so instead of
 hanging. Queue depth is read straight from Redis (``LLEN`` on the queue keys) and workers are
 found with a Celery broadcast ping. Nothing connects until a request needs it.
+
+Both probes answer ``GET /health``, which load balancers and dashboards call often, so each
+check is one round trip on a connection kept open: the Redis client is the probe's own, with a
+pool (a new client per call opened a connection and ran redis-py's handshake, several times
+the cost of the PING itself); the schema check reads ``alembic_version`` with one query, and
+asks Alembic only when that row is not the head it expects.
 """
 
 import threading
@@ -10,7 +16,6 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from kombu.utils.url import maybe_sanitize_url
-from sqlalchemy import text
 from sqlalchemy.orm import Session
 
 from foldwise.settings import Settings
@@ -37,6 +42,8 @@ class BrokerProbe:
         self._settings = settings
         self._celery = None
         self._celery_lock = threading.Lock()
+        self._client = None
+        self._client_lock = threading.Lock()
 
     @property
     def display_url(self) -> str:
@@ -57,17 +64,34 @@ class BrokerProbe:
         return self.scheme in ("redis", "rediss")
 
     def _redis(self):
-        import redis
-        from redis.backoff import NoBackoff
-        from redis.retry import Retry
+        """The probe's Redis client, made on first use; its pool keeps the connection between calls
+        (redis-py's pool is thread-safe and opens a new one in a forked process)."""
+        with self._client_lock:
+            if self._client is None:
+                import redis
+                from redis.backoff import NoBackoff
+                from redis.retry import Retry
 
-        # No retries: one refused or timed-out connection is the answer.
-        return redis.Redis.from_url(
-            self.url,
-            socket_connect_timeout=self.timeout_s,
-            socket_timeout=self.timeout_s,
-            retry=Retry(NoBackoff(), 0),
-        )
+                # One retry, on a connection error only: a pooled connection the broker closed
+                # (it restarted) is replaced at once instead of failing one check. A refused
+                # connection fails again at once; a timeout is not retried, so a silent broker
+                # costs one timeout.
+                self._client = redis.Redis.from_url(
+                    self.url,
+                    socket_connect_timeout=self.timeout_s,
+                    socket_timeout=self.timeout_s,
+                    retry=Retry(NoBackoff(), 1, supported_errors=(redis.ConnectionError,)),
+                )
+            return self._client
+
+    def _drop_connections(self) -> None:
+        """After a failed call: the next one starts on a new connection."""
+        client = self._client
+        if client is not None:
+            try:
+                client.connection_pool.disconnect()
+            except Exception:  # nothing to answer for: the connections are being dropped
+                pass
 
     def check(self) -> dict[str, Any]:
         """``{"status": "ok" | "error" | "skipped", ...}``; a silent broker costs about twice ``timeout_s``."""
@@ -76,11 +100,11 @@ class BrokerProbe:
             return {"status": "skipped", "detail": reason}
         try:
             if self.is_redis:
-                client = self._redis()
                 try:
-                    client.ping()
-                finally:
-                    client.close()
+                    self._redis().ping()
+                except Exception:
+                    self._drop_connections()
+                    raise
             else:
                 from kombu import Connection
 
@@ -102,18 +126,16 @@ class BrokerProbe:
         """
         from kombu.transport.redis import Channel
 
-        client = self._redis()
         try:
-            with client.pipeline(transaction=False) as pipe:
+            with self._redis().pipeline(transaction=False) as pipe:
                 for queue in queues:
                     for step in Channel.priority_steps:
                         pipe.llen(f"{queue}{Channel.sep}{step}" if step else queue)
                 pipe.hlen(Channel.unacked_key)
                 lengths = pipe.execute()
         except Exception as error:
+            self._drop_connections()
             raise BrokerUnavailable(f"broker {self.display_url} is unreachable: {_first_line(error)}") from error
-        finally:
-            client.close()
         steps = len(Channel.priority_steps)
         depths = {queue: sum(lengths[i * steps : (i + 1) * steps]) for i, queue in enumerate(queues)}
         return {"queues": depths, "unacked": lengths[-1]}
@@ -145,6 +167,11 @@ class BrokerProbe:
         return sorted(hostname for reply in replies for hostname in reply)
 
 
+# Alembic's version table under its default name (db/migrations/env.py keeps it): one row, the
+# revision the database is at.
+VERSION_QUERY = "SELECT version_num FROM alembic_version"
+
+
 class SchemaCheck:
     """The migration head the code expects, read once from the migration scripts."""
 
@@ -163,14 +190,24 @@ class SchemaCheck:
         return self._head
 
     def check(self, session: Session) -> dict[str, Any]:
-        from alembic.runtime.migration import MigrationContext
-
+        """``{"status": "ok", "revision": ...}`` when the database answers at the head revision; else
+        ``{"status": "error", ...}`` saying whether it is unreachable or at another revision."""
         try:
-            session.execute(text("SELECT 1"))
-            revision = MigrationContext.configure(session.connection()).get_current_revision()
+            connection = session.connection()  # connects: an unreachable database fails here
         except Exception as error:
             session.rollback()
             return {"status": "error", "detail": f"database unreachable: {_first_line(error)}"}
+        try:
+            recorded = connection.exec_driver_sql(VERSION_QUERY).scalars().all()
+        except Exception:  # no version table yet (an empty database): Alembic says what it finds
+            session.rollback()
+            recorded = []
+        if len(recorded) == 1:
+            revision = recorded[0]
+        else:
+            revision = self._revision_by_alembic(session)
+            if isinstance(revision, dict):
+                return revision
         if revision != self.head:
             return {
                 "status": "error",
@@ -180,3 +217,13 @@ class SchemaCheck:
                 "run `foldwise db upgrade`",
             }
         return {"status": "ok", "revision": revision}
+
+    def _revision_by_alembic(self, session: Session) -> str | None | dict[str, Any]:
+        """The revision as Alembic reads it (no version table: None), or the error to answer."""
+        from alembic.runtime.migration import MigrationContext
+
+        try:
+            return MigrationContext.configure(session.connection()).get_current_revision()
+        except Exception as error:
+            session.rollback()
+            return {"status": "error", "detail": f"database unreachable: {_first_line(error)}"}

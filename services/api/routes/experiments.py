@@ -8,13 +8,14 @@ import json
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response, status
+from sqlalchemy.orm import Session
 from starlette.concurrency import run_in_threadpool
 
 from db.models import ExperimentStatus
 from foldwise.config import ConfigError, ExperimentConfig, parse_config, parse_config_text
 from foldwise.documents import TOO_DEEP
 from services import queries
-from services.api.deps import ExperimentId, SessionDep, TokenRequired
+from services.api.deps import ExperimentId, SessionDep, TokenRequired, read_with
 from services.api.schemas import (
     NOT_FOUND,
     WRITE_ERRORS,
@@ -139,13 +140,13 @@ CONFIG_BODY_DOC = {
 
 
 @router.get("", response_model=list[ExperimentListItem])
-def list_experiments(
+async def list_experiments(
     session: SessionDep,
     status_filter: Annotated[ExperimentStatus | None, Query(alias="status")] = None,
     study: Annotated[str | None, Query(**STUDY_NAME, description="keep one study's experiments")] = None,
 ) -> list[ExperimentListItem]:
     """Every experiment, oldest first; ``?status=running`` keeps one status, ``?study=`` one study."""
-    experiments = queries.list_experiments(session)
+    experiments = await read_with(session, queries.list_experiments)
     if status_filter is not None:
         experiments = [e for e in experiments if e.status == status_filter]
     if study is not None:
@@ -205,14 +206,18 @@ def create_experiment(
 
 
 @router.get("/{experiment_id}", name="experiment_summary", response_model=ExperimentSummary, responses=NOT_FOUND)
-def experiment_summary(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
+async def experiment_summary(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
     """Status, current stage and k, counts of θ, ω and P, elapsed time, best model."""
-    return queries.summary(session, experiment_id)
+    return await read_with(session, queries.summary, experiment_id)
 
 
 @router.get("/{experiment_id}/config", responses=NOT_FOUND)
-def experiment_config(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
+async def experiment_config(experiment_id: ExperimentId, session: SessionDep) -> dict[str, Any]:
     """The experiment's config as recorded, every default filled in."""
+    return await read_with(session, _recorded_config, experiment_id)
+
+
+def _recorded_config(session: Session, experiment_id: int) -> dict[str, Any]:
     return queries.get_experiment(session, experiment_id).config
 
 
@@ -241,12 +246,12 @@ def cancel_experiment(experiment_id: ExperimentId, session: SessionDep) -> dict[
 
 
 @router.get("/{experiment_id}/stages", response_model=list[StageSummary], responses=NOT_FOUND)
-def experiment_stages(experiment_id: ExperimentId, session: SessionDep) -> list[dict[str, Any]]:
+async def experiment_stages(experiment_id: ExperimentId, session: SessionDep) -> list[dict[str, Any]]:
     """The curriculum's stages (c, δ) in order: status, increments, why each ended, best model."""
-    return queries.stages(session, experiment_id)
+    return await read_with(session, queries.stages, experiment_id)
 
 
 @router.get("/{experiment_id}/history", response_model=list[HistoryEntry], responses=NOT_FOUND)
-def experiment_history(experiment_id: ExperimentId, session: SessionDep) -> list[dict[str, Any]]:
+async def experiment_history(experiment_id: ExperimentId, session: SessionDep) -> list[dict[str, Any]]:
     """P: one entry per evaluated model (c, δ, k, mAP, model id, wall time), in arrival order."""
-    return queries.history(session, experiment_id)
+    return await read_with(session, queries.history, experiment_id)

@@ -8,8 +8,9 @@ from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Response, status
 from fastapi.security import HTTPAuthorizationCredentials
+from sqlalchemy.orm import Session
 
-from services.api.deps import BrokerDep, SchemaCheckDep, SessionDep, SettingsDep, bearer
+from services.api.deps import BrokerDep, SchemaCheckDep, SessionDep, SettingsDep, bearer, read_with
 from services.api.schemas import Health
 
 router = APIRouter(tags=["status"])
@@ -21,7 +22,7 @@ router = APIRouter(tags=["status"])
     response_model_exclude_unset=True,
     responses={503: {"model": Health, "description": "the database is unreachable or not migrated"}},
 )
-def health(
+async def health(
     session: SessionDep,
     schema_check: SchemaCheckDep,
     broker: BrokerDep,
@@ -31,8 +32,13 @@ def health(
 ) -> dict[str, Any]:
     """Database and broker reachability: 200 while the database serves (the broker may be down), else 503.
     The state of each is shown to callers with the token; anyone else gets the status alone."""
-    database = schema_check.check(session)
-    broker_state = broker.check()
+
+    def probe(session: Session) -> tuple[dict[str, Any], dict[str, Any]]:
+        database = schema_check.check(session)
+        session.close()  # a silent broker keeps this thread for its timeout; not a database connection too
+        return database, broker.check()
+
+    database, broker_state = await read_with(session, probe)  # both block: one worker thread for the two
     if database["status"] != "ok":
         overall = "error"
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE

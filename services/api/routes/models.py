@@ -3,13 +3,13 @@
 from fastapi import APIRouter
 
 from services import queries
-from services.api.deps import ModelId, SessionDep
+from services.api.deps import ModelId, SessionDep, read_with
 from services.api.schemas import NOT_FOUND, ModelDetail
 
 router = APIRouter(prefix="/models", tags=["models"])
 
 
 @router.get("/{model_id}", response_model=ModelDetail, responses=NOT_FOUND)
-def model_detail(model_id: ModelId, session: SessionDep) -> ModelDetail:
+async def model_detail(model_id: ModelId, session: SessionDep) -> ModelDetail:
     """One ω: its stage, k, parent ω_in, training and its evaluation."""
-    return queries.model_detail(session, model_id)
+    return await read_with(session, queries.model_detail, model_id)

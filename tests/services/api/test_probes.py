@@ -1,0 +1,149 @@
+"""What /health costs: the broker probe keeps its connection, the schema check reads one row, and a
+status read hands over to a worker thread once (services/api/probes.py, services/api/deps.py)."""
+
+from __future__ import annotations
+
+import shutil
+import subprocess
+
+import pytest
+from sqlalchemy import text
+
+from db.session import get_sessionmaker
+from foldwise.settings import get_settings
+from services.api.app import create_app
+from services.api.probes import BrokerProbe, SchemaCheck
+from tests.services.api.helpers import AUTH, TestClient, closed_port
+from tests.waiting import poll
+
+
+class OwnRedis:
+    """A redis-server of the test's own on a fixed port, to stop and start again."""
+
+    def __init__(self) -> None:
+        self.server = shutil.which("redis-server")
+        if self.server is None:
+            pytest.skip("redis-server is not installed")
+        self.port = closed_port()
+        self.url = f"redis://127.0.0.1:{self.port}/0"
+        self.process: subprocess.Popen | None = None
+
+    def start(self) -> None:
+        import redis
+
+        self.process = subprocess.Popen(
+            [self.server, "--port", str(self.port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        client = redis.Redis(port=self.port)
+
+        def answers() -> bool:
+            try:
+                return client.ping()
+            except redis.ConnectionError:
+                return False
+
+        try:
+            if not poll(answers, timeout=5, interval=0.025):
+                pytest.skip("redis-server did not start")
+        finally:
+            client.close()
+
+    def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.terminate()
+            self.process.wait(timeout=10)
+
+    def connections_received(self) -> int:
+        """Connections the server has accepted, this question's own included."""
+        import redis
+
+        client = redis.Redis(port=self.port)
+        try:
+            return int(client.info("stats")["total_connections_received"])
+        finally:
+            client.close()
+
+
+@pytest.fixture
+def own_redis():
+    server = OwnRedis()
+    server.start()
+    yield server
+    server.stop()
+
+
+def probe_of(url: str) -> BrokerProbe:
+    return BrokerProbe(get_settings().model_copy(update={"broker_url": url}), timeout_s=0.5, ping_timeout_s=0.3)
+
+
+def test_the_broker_probe_keeps_one_connection(database_url, own_redis):
+    probe = probe_of(own_redis.url)
+    before = own_redis.connections_received()
+    for _ in range(5):
+        assert probe.check()["status"] == "ok"
+        assert probe.queue_depths(("render", "train"))["queues"] == {"render": 0, "train": 0}
+    # Ten calls, one connection; the other is the second question's own.
+    assert own_redis.connections_received() - before == 1 + 1
+
+
+def test_the_broker_probe_follows_the_broker_down_and_up(database_url, own_redis):
+    probe = probe_of(own_redis.url)
+    assert probe.check()["status"] == "ok"
+    own_redis.stop()
+    down = probe.check()
+    assert down["status"] == "error" and "refused" in down["detail"].lower()
+    own_redis.start()
+    assert probe.check()["status"] == "ok"
+    # Restarted between two checks: the pooled connection the old server closed is replaced at
+    # once, not reported as an outage.
+    own_redis.stop()
+    own_redis.start()
+    assert probe.check()["status"] == "ok"
+
+
+def test_the_schema_check_reads_the_recorded_revision(database_url, tmp_path):
+    check = SchemaCheck(database_url)
+    with get_sessionmaker(database_url)() as session:
+        assert check.check(session) == {"status": "ok", "revision": check.head}
+        session.execute(text("UPDATE alembic_version SET version_num = 'older'"))
+        session.commit()
+        behind = check.check(session)
+    assert behind["status"] == "error" and behind["revision"] == "older" and behind["head"] == check.head
+    assert "foldwise db upgrade" in behind["detail"]
+
+    empty = f"sqlite:///{tmp_path / 'empty.db'}"
+    with get_sessionmaker(empty)() as session:
+        unmigrated = SchemaCheck(empty).check(session)
+    assert unmigrated["status"] == "error" and unmigrated["revision"] is None
+
+
+@pytest.fixture
+def hand_overs(monkeypatch):
+    """Every function the app hands to a worker thread, in order."""
+    import anyio.to_thread
+
+    calls: list[str] = []
+    run_sync = anyio.to_thread.run_sync
+
+    async def counted(function, *args, **kwargs):
+        calls.append(getattr(getattr(function, "func", function), "__qualname__", repr(function)))
+        return await run_sync(function, *args, **kwargs)
+
+    monkeypatch.setattr(anyio.to_thread, "run_sync", counted)
+    return calls
+
+
+@pytest.mark.parametrize(
+    "path", ["/health", "/experiments/{id}", "/experiments/{id}/stages", "/experiments/{id}/history"]
+)
+def test_a_status_read_hands_over_to_a_thread_once(database_url, seeded, hand_overs, path):
+    """Each hand-over to a worker thread waits for the event loop twice (there and back): under
+    load that wait, not the read, was most of a status route's latency."""
+    client = TestClient(create_app(broker_timeout_s=0.5, ping_timeout_s=0.3))
+    client.get("/health")  # the first request builds the engine and reads the migration head
+    hand_overs.clear()
+    response = client.get(path.format(id=seeded["experiment"]), headers=AUTH)
+    assert response.status_code == 200
+    assert hand_overs == ["read_with.<locals>.run"]
