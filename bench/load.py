@@ -16,8 +16,9 @@ requests one after another:
 - detect clients: ``POST /models/{id}/detect`` with a rendered image, the next one as soon as
   the last is answered (after ``Retry-After`` when refused).
 
-All clients run in this one process on one asyncio loop (httpx), so the load costs the machine
-one process beside the API's and the worker's.
+All clients run in this one process on one asyncio loop, each on a keep-alive connection of its
+own spoken with asyncio's streams (:class:`Connection`): the load costs the machine one process
+beside the API's and the worker's, and as little CPU per request as an HTTP client can.
 
 It reports the p50/p99 latency of each group while detects queue (the ``detect`` queue's depth
 is sampled), and what became of every detect: answered, refused cleanly (503 with
@@ -225,6 +226,86 @@ def wait_for_worker(env: dict, deadline_s: float = 60.0) -> None:
 # --------------------------------------------------------------------------- the load
 
 
+class NoAnswer(ConnectionError):
+    """The server closed the connection before a byte of the answer came."""
+
+
+class Connection:
+    """One keep-alive HTTP/1.1 connection to the API, one request at a time (a browser tab's).
+
+    Written on asyncio's streams rather than with an HTTP client library: the clients share
+    the machine with the API they measure, and per request this costs a fraction of httpx's
+    CPU time. It speaks only what the API answers: ``Content-Length`` or chunked bodies."""
+
+    # Under uvicorn's keep-alive timeout (5 s): a connection idle longer is opened anew.
+    IDLE_S = 4.0
+
+    def __init__(self, host: str, port: int, timeout_s: float = CLIENT_TIMEOUT_S) -> None:
+        self.host, self.port, self.timeout_s = host, port, timeout_s
+        self.reader: asyncio.StreamReader | None = None
+        self.writer: asyncio.StreamWriter | None = None
+        self.last_used = 0.0
+
+    async def _open(self) -> None:
+        self.close()
+        self.reader, self.writer = await asyncio.open_connection(self.host, self.port)
+
+    def close(self) -> None:
+        if self.writer is not None:
+            self.writer.close()
+        self.reader = self.writer = None
+
+    async def request(
+        self, method: str, path: str, body: bytes = b"", headers: dict[str, str] | None = None
+    ) -> tuple[int, dict[str, str], bytes]:
+        """(status, headers with lower-case names, body). Raises OSError (``ConnectionError``
+        included) or ``TimeoutError`` when no whole answer comes within ``timeout_s``."""
+        lines = [f"{method} {path} HTTP/1.1", f"Host: {self.host}:{self.port}", f"Content-Length: {len(body)}"]
+        lines += [f"{name}: {value}" for name, value in (headers or {}).items()]
+        message = ("\r\n".join(lines) + "\r\n\r\n").encode("latin-1") + body
+        reused = not (self.writer is None or time.monotonic() - self.last_used > self.IDLE_S or self.reader.at_eof())
+        try:
+            if not reused:
+                await self._open()
+            try:
+                return await asyncio.wait_for(self._exchange(message), self.timeout_s)
+            except (NoAnswer, ConnectionResetError, BrokenPipeError):
+                if not reused:
+                    raise
+                # The server closed the kept-alive connection before reading this request (it
+                # answered nothing): the request never arrived, and goes again on a new one.
+                await self._open()
+                return await asyncio.wait_for(self._exchange(message), self.timeout_s)
+        except BaseException:
+            self.close()  # the connection is somewhere in the middle of an answer
+            raise
+        finally:
+            self.last_used = time.monotonic()
+
+    async def _exchange(self, message: bytes) -> tuple[int, dict[str, str], bytes]:
+        assert self.reader is not None and self.writer is not None
+        self.writer.write(message)
+        await self.writer.drain()
+        status_line = await self.reader.readline()
+        if not status_line:
+            raise NoAnswer("the server closed the connection")
+        headers = {}
+        while (line := await self.reader.readline()) not in (b"\r\n", b""):
+            name, _, value = line.decode("latin-1").partition(":")
+            headers[name.strip().lower()] = value.strip()
+        if headers.get("transfer-encoding", "").lower() == "chunked":
+            body = bytearray()
+            while size := int((await self.reader.readline()).split(b";")[0], 16):
+                body += await self.reader.readexactly(size + 2)
+                del body[-2:]
+            await self.reader.readline()  # the blank line after the last chunk
+        else:
+            body = await self.reader.readexactly(int(headers.get("content-length", "0")))
+        if headers.get("connection", "").lower() == "close":
+            self.close()
+        return int(status_line.split()[1]), headers, bytes(body)
+
+
 async def run_load(
     base: str,
     token: str,
@@ -235,9 +316,11 @@ async def run_load(
     redis_port: int,
     think_s: float,
 ) -> dict:
-    import httpx
+    from urllib.parse import urlsplit
+
     import redis.asyncio
 
+    where = urlsplit(base)
     experiment, model = seeded["experiment"], seeded["model"]
     status_paths = [
         "/health",
@@ -256,63 +339,75 @@ async def run_load(
     other_errors: dict[str, int] = {}
     depths: list[int] = []
     stop_at = time.monotonic() + duration_s
-    limits = httpx.Limits(max_connections=clients + 10, max_keepalive_connections=clients + 10)
-    headers = {"Authorization": f"Bearer {token}"}
+    detect_headers = {"Authorization": f"Bearer {token}", "Content-Type": "image/png"}
 
-    async def status_client(index: int, client: httpx.AsyncClient) -> None:
-        for n in range(per_client):
-            if time.monotonic() > stop_at:
-                return
-            path = status_paths[(index + n) % len(status_paths)]
-            began = time.perf_counter()
-            response = await client.get(path)
-            latencies["health" if path == "/health" else "status"].append(time.perf_counter() - began)
-            if response.status_code != 200:
-                other_errors[f"GET {path} {response.status_code}"] = (
-                    other_errors.get(f"GET {path} {response.status_code}", 0) + 1
-                )
-            await asyncio.sleep(think_s)
+    def connection() -> Connection:
+        return Connection(where.hostname, where.port)
 
-    async def figure_client(index: int, client: httpx.AsyncClient) -> None:
-        for n in range(per_client):
-            if time.monotonic() > stop_at:
-                return
-            path = figure_paths[(index + n) % len(figure_paths)]
-            began = time.perf_counter()
-            response = await client.get(path)
-            latencies["figures"].append(time.perf_counter() - began)
-            if response.status_code != 200:
-                key = f"GET {path.rsplit('/', 1)[-1]} {response.status_code}"
-                other_errors[key] = other_errors.get(key, 0) + 1
-            await asyncio.sleep(think_s)
+    async def status_client(index: int) -> None:
+        client = connection()
+        try:
+            for n in range(per_client):
+                if time.monotonic() > stop_at:
+                    return
+                path = status_paths[(index + n) % len(status_paths)]
+                began = time.perf_counter()
+                code, _, _ = await client.request("GET", path)
+                latencies["health" if path == "/health" else "status"].append(time.perf_counter() - began)
+                if code != 200:
+                    other_errors[f"GET {path} {code}"] = other_errors.get(f"GET {path} {code}", 0) + 1
+                await asyncio.sleep(think_s)
+        finally:
+            client.close()
 
-    async def detect_client(index: int, client: httpx.AsyncClient) -> None:
-        for _ in range(per_client):
-            if time.monotonic() > stop_at:
-                return
-            detects["sent"] += 1
-            began = time.perf_counter()
-            try:
-                response = await client.post(
-                    f"/models/{model}/detect", content=seeded["image"], headers={**headers, "Content-Type": "image/png"}
-                )
-            except httpx.HTTPError as error:
-                detects["lost"] += 1
-                lost_examples.append(f"{type(error).__name__}: {error}"[:200])
-                continue
-            if response.status_code == 200:
-                detects["answered"] += 1
-                latencies["detect_answered"].append(time.perf_counter() - began)
-            elif response.status_code == 503 and response.headers.get("Retry-After"):
-                detects["refused_503"] += 1
-                # A polite client waits as told, but no longer than the run has left.
-                pause = min(float(response.headers["Retry-After"]), max(0.0, stop_at - time.monotonic()))
-                await asyncio.sleep(pause)
-            elif response.status_code == 504:
-                detects["timed_out_504"] += 1
-            else:
-                detects["lost"] += 1
-                lost_examples.append(f"{response.status_code}: {response.text[:200]}")
+    async def figure_client(index: int) -> None:
+        client = connection()
+        try:
+            for n in range(per_client):
+                if time.monotonic() > stop_at:
+                    return
+                path = figure_paths[(index + n) % len(figure_paths)]
+                began = time.perf_counter()
+                code, _, _ = await client.request("GET", path)
+                latencies["figures"].append(time.perf_counter() - began)
+                if code != 200:
+                    key = f"GET {path.rsplit('/', 1)[-1]} {code}"
+                    other_errors[key] = other_errors.get(key, 0) + 1
+                await asyncio.sleep(think_s)
+        finally:
+            client.close()
+
+    async def detect_client(index: int) -> None:
+        client = connection()
+        try:
+            for _ in range(per_client):
+                if time.monotonic() > stop_at:
+                    return
+                detects["sent"] += 1
+                began = time.perf_counter()
+                try:
+                    code, answer_headers, body = await client.request(
+                        "POST", f"/models/{model}/detect", seeded["image"], detect_headers
+                    )
+                except (OSError, TimeoutError, asyncio.IncompleteReadError) as error:
+                    detects["lost"] += 1
+                    lost_examples.append(f"{type(error).__name__}: {error}"[:200])
+                    continue
+                if code == 200:
+                    detects["answered"] += 1
+                    latencies["detect_answered"].append(time.perf_counter() - began)
+                elif code == 503 and answer_headers.get("retry-after"):
+                    detects["refused_503"] += 1
+                    # A polite client waits as told, but no longer than the run has left.
+                    pause = min(float(answer_headers["retry-after"]), max(0.0, stop_at - time.monotonic()))
+                    await asyncio.sleep(pause)
+                elif code == 504:
+                    detects["timed_out_504"] += 1
+                else:
+                    detects["lost"] += 1
+                    lost_examples.append(f"{code}: {body[:200].decode('utf-8', 'replace')}")
+        finally:
+            client.close()
 
     async def sample_depth() -> None:
         queue = redis.asyncio.Redis(port=redis_port)
@@ -324,20 +419,23 @@ async def run_load(
             await queue.aclose()
 
     roles = [status_client, status_client, figure_client, detect_client, detect_client]
-    async with httpx.AsyncClient(base_url=base, limits=limits, timeout=CLIENT_TIMEOUT_S) as client:
-        # Each figure is drawn once for the record as it stands (services/api/drawings.py); the
-        # first draws (matplotlib's import included) are timed apart, before the load.
-        began = time.monotonic()
+    # Each figure is drawn once for the record as it stands (services/api/drawings.py); the
+    # first draws (matplotlib's import included) are timed apart, before the load.
+    first = connection()
+    began = time.monotonic()
+    try:
         for path in figure_paths:
-            assert (await client.get(path)).status_code == 200, path
-        first_draws_s = time.monotonic() - began
-        stop_at = time.monotonic() + duration_s
-        started = time.monotonic()
-        tasks = [asyncio.create_task(roles[i % len(roles)](i, client)) for i in range(clients)]
-        sampler = asyncio.create_task(sample_depth())
-        await asyncio.gather(*tasks)
-        await sampler
-        took = time.monotonic() - started
+            assert (await first.request("GET", path))[0] == 200, path
+    finally:
+        first.close()
+    first_draws_s = time.monotonic() - began
+    stop_at = time.monotonic() + duration_s
+    started = time.monotonic()
+    tasks = [asyncio.create_task(roles[i % len(roles)](i)) for i in range(clients)]
+    sampler = asyncio.create_task(sample_depth())
+    await asyncio.gather(*tasks)
+    await sampler
+    took = time.monotonic() - started
     role_counts = {
         role.__name__: sum(1 for i in range(clients) if roles[i % len(roles)] is role) for role in set(roles)
     }
