@@ -16,9 +16,9 @@ thread pool nor delays the other routes.
 
 import asyncio
 import base64
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
-from typing import Annotated, Any
+from typing import Annotated, Any, NamedTuple
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, status
 from pydantic import BaseModel, Field
@@ -149,8 +149,8 @@ async def detect(
     """Run ω ``model_id`` on the image in the body; boxes, classes and scores as JSON."""
     with _slot(request):
         image = await _read_image(request)
-        checkpoint = await run_in_threadpool(_checkpoint_of, session, model_id)
-        reply = await _ask_worker(checkpoint, image, threshold)
+        # The model's row is read on the thread that sends the message (404, 409 from there).
+        reply = await _ask_worker(lambda: _checkpoint_of(session, model_id), image, threshold)
     if "error" in reply:
         code = status.HTTP_409_CONFLICT if reply.get("missing") else status.HTTP_422_UNPROCESSABLE_CONTENT
         raise HTTPException(code, reply["error"])
@@ -192,19 +192,29 @@ def _slot(request: Request) -> Iterator[None]:
         state.detects_in_flight -= 1
 
 
-async def _ask_worker(checkpoint: str, image: bytes, threshold: float) -> dict[str, Any]:
-    """The detect worker's reply, waited for without holding a thread."""
+async def _ask_worker(checkpoint: Callable[[], str], image: bytes, threshold: float) -> dict[str, Any]:
+    """The detect worker's reply, waited for without holding a thread.
+
+    Each hand-over to a worker thread costs the event loop as much as a small request, and a
+    crowd of waiting detects makes many: where the detector is (``checkpoint()``, which may read
+    the database) is found on the thread that publishes the message, and the look that finds the
+    reply come also fetches and forgets it."""
     from workers.app import app
 
-    args = [checkpoint, base64.b64encode(image).decode("ascii"), threshold]
+    encoded = base64.b64encode(image).decode("ascii")
+
+    def arguments() -> list:
+        return [checkpoint(), encoded, threshold]
+
     if app.conf.task_always_eager:
-        return await run_in_threadpool(_run_here, args)
-    reply = await run_in_threadpool(_publish, args)
+        return await run_in_threadpool(lambda: _run_here(arguments()))
+    reply = await run_in_threadpool(lambda: _publish(arguments()))
+    collected = False
     try:
         loop = asyncio.get_running_loop()
         deadline = loop.time() + REPLY_TIMEOUT_S
         pause = FIRST_POLL_S
-        while not await run_in_threadpool(_ready, reply):
+        while (outcome := await run_in_threadpool(_collect, reply)) is PENDING:
             left = deadline - loop.time()
             if left <= 0:
                 raise HTTPException(
@@ -213,17 +223,45 @@ async def _ask_worker(checkpoint: str, image: bytes, threshold: float) -> dict[s
                 )
             await asyncio.sleep(min(pause, left))
             pause = min(pause * 1.5, MAX_POLL_S)
-        try:
-            return await run_in_threadpool(reply.get, timeout=REPLY_TIMEOUT_S)
-        except Exception as error:  # the task raised in the worker: its failure, not the client's
+        collected = True
+        if isinstance(outcome, Failed):  # the task raised in the worker: its failure, not the client's
+            error = outcome.error
             raise HTTPException(
                 status.HTTP_502_BAD_GATEWAY, f"the detect worker failed: {type(error).__name__}: {error}"
-            ) from None
+            )
+        return outcome
     finally:
-        try:
-            await run_in_threadpool(reply.forget)
-        except Exception:  # a lost broker keeps the reply until result_expires: nothing to answer for
-            pass
+        if not collected:
+            await run_in_threadpool(_forget, reply)
+
+
+# What _collect answers while the reply has not come.
+PENDING = object()
+
+
+class Failed(NamedTuple):
+    """What _collect answers when the task raised in the worker."""
+
+    error: Exception
+
+
+def _collect(reply) -> Any:
+    """On a worker thread: the reply's result (or Failed) once it has come, forgotten then; else PENDING."""
+    if not _ready(reply):
+        return PENDING
+    try:
+        return reply.get(timeout=REPLY_TIMEOUT_S)
+    except Exception as error:
+        return Failed(error)
+    finally:
+        _forget(reply)
+
+
+def _forget(reply) -> None:
+    try:
+        reply.forget()
+    except Exception:  # a lost broker keeps the reply until result_expires: nothing to answer for
+        pass
 
 
 def _ready(reply) -> bool:
@@ -315,7 +353,7 @@ async def detect_with_study(
         raise HTTPException(status.HTTP_422_UNPROCESSABLE_CONTENT, f"study {study!r} names no folder")
     with _slot(request):
         image = await _read_image(request)
-        reply = await _ask_worker(store.ensemble_path(study), image, threshold)
+        reply = await _ask_worker(lambda: store.ensemble_path(study), image, threshold)
     if "error" in reply:
         if reply.get("missing"):
             raise HTTPException(
