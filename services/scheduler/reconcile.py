@@ -124,23 +124,30 @@ def _latest_failure(session: Session, experiment: Experiment) -> tuple[int | Non
     return latest.id, failure
 
 
-def _drawn_for(theta: dict, model_id: int | None, failure: dict, config: ExperimentConfig) -> dict:
-    """Why a mixed training θ was drawn (ParameterSet.drawn_for)."""
+def _drawn_for(thetas: Sequence[dict], model_id: int | None, failure: dict, config: ExperimentConfig) -> list[dict]:
+    """Why each mixed training θ of one draw was drawn (ParameterSet.drawn_for)."""
     from foldwise.sampling import cell_probabilities
 
     if model_id is None:
-        return {"sampling": "uniform", "why": "no model scored yet"}
+        return [{"sampling": "uniform", "why": "no model scored yet"} for _ in thetas]
     table = load_condition_table()
     mixed = config.curriculum.mixed
     pool = list(mixed.draw_from or table.codes)
-    levels = table.difficulties[: table.difficulties.index(theta["difficulty"]) + 1]
-    probabilities = cell_probabilities(pool, levels, failure, mixed.failure_share)
-    cells = {}
-    for component in theta.get("components") or ():
-        cell = (component["condition"], component["difficulty"])
-        ap = 1.0 - failure[cell] if cell in failure else None
-        cells["/".join(cell)] = {"ap": None if ap is None else round(ap, 4), "p": round(probabilities[cell], 5)}
-    return {"sampling": "failure", "model_id": model_id, "share": mixed.failure_share, "cells": cells}
+    by_difficulty = {}  # the cells' probabilities depend on θ only through its difficulty
+    reasons = []
+    for theta in thetas:
+        difficulty = theta["difficulty"]
+        if difficulty not in by_difficulty:
+            levels = table.difficulties[: table.difficulties.index(difficulty) + 1]
+            by_difficulty[difficulty] = cell_probabilities(pool, levels, failure, mixed.failure_share)
+        probabilities = by_difficulty[difficulty]
+        cells = {}
+        for component in theta.get("components") or ():
+            cell = (component["condition"], component["difficulty"])
+            ap = 1.0 - failure[cell] if cell in failure else None
+            cells["/".join(cell)] = {"ap": None if ap is None else round(ap, 4), "p": round(probabilities[cell], 5)}
+        reasons.append({"sampling": "failure", "model_id": model_id, "share": mixed.failure_share, "cells": cells})
+    return reasons
 
 
 def _condition_index(table, condition: str) -> int:
@@ -192,7 +199,7 @@ def apply(
                     source, failure = _latest_failure(session, experiment)
                     cells = tuple((c, d, value) for (c, d), value in failure.items())
                     thetas = _sample(config, stage.condition, stage.difficulty, m, seed, cells)
-                    reasons = [_drawn_for(theta, source, failure, config) for theta in thetas]
+                    reasons = _drawn_for(thetas, source, failure, config)
                 else:
                     thetas = _sample(config, stage.condition, stage.difficulty, m, seed)
                     reasons = [{"sampling": "uniform"} if stage.condition == MIXED else None for _ in thetas]
