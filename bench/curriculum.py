@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sqlite3
 import subprocess
 import sys
 import time
@@ -31,50 +30,46 @@ GOAL_SECONDS = 15 * 60
 
 
 def read_stages(database: Path) -> list[dict]:
-    """Every experiment's stages, in order, with each model's P and mAP at the cut."""
-    db = sqlite3.connect(database)
+    """Every experiment's stages, in order, with each model's P and mAP at the cut: read from
+    the run's database through ``services.queries``, as the CLI's stage table and the API read them."""
+    from sqlalchemy import select
+    from sqlalchemy.orm import Session
+
+    from db.models import Experiment
+    from db.session import make_engine
+    from services import queries
+
+    engine = make_engine(f"sqlite:///{database}")
+    out = []
     try:
-        experiments = db.execute(
-            "SELECT id, seed, json_extract(config, '$.evaluation.loop_score') FROM experiments ORDER BY id"
-        ).fetchall()
-        out = []
-        for experiment_id, seed, loop_score in experiments:
-            column = "map_unthresholded" if loop_score == "map_unthresholded" else "map"
-            stages = db.execute(
-                """SELECT id, "order", condition, difficulty, end_reason, init_model_id, best_model_id
-                   FROM stages WHERE experiment_id = ? ORDER BY "order\"""",
-                (experiment_id,),
-            ).fetchall()
-            p_of = dict(
-                db.execute(
-                    f"""SELECT m.id, e.{column} FROM models m JOIN evaluations e ON e.model_id = m.id
-                        WHERE m.experiment_id = ?""",
-                    (experiment_id,),
-                ).fetchall()
-            )
-            for stage_id, order, condition, difficulty, reason, init_id, best_id in stages:
-                models = db.execute(
-                    f"""SELECT m.increment, e.{column}, e.map FROM models m JOIN evaluations e ON e.model_id = m.id
-                        WHERE m.stage_id = ? ORDER BY m.increment""",
-                    (stage_id,),
-                ).fetchall()
-                best = db.execute("SELECT map FROM evaluations WHERE model_id = ?", (best_id,)).fetchone()
-                out.append(
-                    {
-                        "seed": seed,
-                        "stage": f"{condition}/{difficulty}",
-                        "order": order,
-                        "end_reason": reason,
-                        "p": column,
-                        "start_p": p_of.get(init_id) if init_id is not None else None,
-                        "best_p": p_of.get(best_id),
-                        "best_map": best[0] if best else None,
-                        "increments": [{"k": k, "p": p, "map": m} for k, p, m in models],
-                    }
-                )
-        return out
+        with Session(engine) as session:
+            for experiment in session.scalars(select(Experiment).order_by(Experiment.id)):
+                scores = queries.history(session, experiment.id)
+                for stage in queries.stages(session, experiment.id):
+                    p = stage["loop_score"]
+                    out.append(
+                        {
+                            "seed": experiment.seed,
+                            "stage": f"{stage['condition']}/{stage['difficulty']}",
+                            "order": stage["order"],
+                            "end_reason": stage["end_reason"],
+                            "p": p,
+                            "start_p": stage["start_p"],
+                            "best_p": stage["best_p"],
+                            "best_map": stage["best_map"],
+                            "increments": sorted(
+                                (
+                                    {"k": entry["k"], "p": entry[p], "map": entry["map"]}
+                                    for entry in scores
+                                    if entry["stage"] == stage["order"]
+                                ),
+                                key=lambda entry: entry["k"],
+                            ),
+                        }
+                    )
     finally:
-        db.close()
+        engine.dispose()
+    return out
 
 
 def goals(stages: list[dict], seconds: float) -> dict:

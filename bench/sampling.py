@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import sqlite3
 import subprocess
 import sys
 import time
@@ -66,38 +65,49 @@ def rule_config(base: dict, rule: str, increments: int, share: float) -> dict:
 
 def read_run(data_dir: Path, database: Path | None = None) -> dict:
     """P against cumulative CPU seconds, and the final model's checkpoint, from a run's SQLite
-    database (``foldwise run``'s own in ``data_dir`` unless given)."""
-    db = sqlite3.connect(database or data_dir / "foldwise.db")
+    database (``foldwise run``'s own in ``data_dir`` unless given), read through ``services.queries``."""
+    from collections import Counter
+
+    from sqlalchemy import select
+    from sqlalchemy.orm import Session
+
+    from db.models import Experiment, Model, ParameterSet
+    from db.session import make_engine
+    from services import queries
+
+    engine = make_engine(f"sqlite:///{database or data_dir / 'foldwise.db'}")
     try:
-        experiment_id, status, final_model_id, loop_score = db.execute(
-            "SELECT id, status, final_model_id, json_extract(config, '$.evaluation.loop_score') FROM experiments"
-        ).fetchone()
-        column = "map_unthresholded" if loop_score == "map_unthresholded" else "map"
-        rows = db.execute(
-            f"""SELECT m.id, s."order", s.difficulty, m.increment, m.train_seconds, e.eval_seconds, e.{column},
-                       (SELECT COALESCE(SUM(p.render_seconds), 0) FROM parameter_sets p
-                        WHERE p.stage_id = m.stage_id AND p.increment = m.increment)
-                FROM models m JOIN stages s ON s.id = m.stage_id JOIN evaluations e ON e.model_id = m.id
-                WHERE m.experiment_id = ? ORDER BY s."order", m.increment""",
-            (experiment_id,),
-        ).fetchall()
-        test_render = db.execute(
-            "SELECT COALESCE(SUM(render_seconds), 0) FROM parameter_sets WHERE experiment_id = ? AND stage_id IS NULL",
-            (experiment_id,),
-        ).fetchone()[0]
-        checkpoint = db.execute("SELECT checkpoint_path FROM models WHERE id = ?", (final_model_id,)).fetchone()
-        reasons = db.execute(
-            """SELECT json_extract(drawn_for, '$.sampling'), COUNT(*) FROM parameter_sets
-               WHERE experiment_id = ? AND drawn_for IS NOT NULL GROUP BY 1""",
-            (experiment_id,),
-        ).fetchall()
+        with Session(engine) as session:
+            experiment = session.scalars(select(Experiment).order_by(Experiment.id)).first()
+            # P: the score the run's loop read (the stored config holds every key).
+            column = (experiment.config.get("evaluation") or {}).get("loop_score", "map")
+            scores = sorted(queries.history(session, experiment.id), key=lambda entry: (entry["stage"], entry["k"]))
+            spent = queries.test_set_render_seconds(session, experiment.id)
+            final = session.get(Model, experiment.final_model_id) if experiment.final_model_id else None
+            checkpoint = final.checkpoint_path if final is not None else None
+            reasons = Counter(
+                drawn_for.get("sampling")
+                for drawn_for in session.scalars(
+                    select(ParameterSet.drawn_for).where(
+                        ParameterSet.experiment_id == experiment.id, ParameterSet.drawn_for.is_not(None)
+                    )
+                )
+            )
+            status = experiment.status.value
     finally:
-        db.close()
-    spent = float(test_render)
+        engine.dispose()
     curve = []
-    for model_id, order, difficulty, k, train_s, eval_s, p, render_s in rows:
-        spent += (train_s or 0.0) + (eval_s or 0.0) + (render_s or 0.0)
-        curve.append({"model_id": model_id, "stage": f"mixed/{difficulty}", "k": k, "cpu_seconds": spent, "p": p})
+    for entry in scores:
+        spent += sum(entry[key] or 0.0 for key in ("train_seconds", "eval_seconds", "render_seconds"))
+        curve.append(
+            {
+                "model_id": entry["model_id"],
+                "stage": f"{entry['condition']}/{entry['difficulty']}",
+                "k": entry["k"],
+                "cpu_seconds": spent,
+                "p": entry[column],
+            }
+        )
     return {
         "status": status,
         "loop_score": column,
@@ -106,7 +116,7 @@ def read_run(data_dir: Path, database: Path | None = None) -> dict:
         "final_p": curve[-1]["p"] if curve else None,
         "best_p": max((point["p"] for point in curve if point["p"] is not None), default=None),
         "theta_drawn": dict(reasons),
-        "checkpoint": str(data_dir / checkpoint[0]) if checkpoint and checkpoint[0] else None,
+        "checkpoint": str(data_dir / checkpoint) if checkpoint else None,
     }
 
 
