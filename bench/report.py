@@ -22,7 +22,7 @@ def machine() -> dict:
             ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
         ).stdout.strip()
     except (OSError, subprocess.CalledProcessError):
-        commit = None
+        commit = os.environ.get("BENCH_COMMIT")  # a copy of the tree without its git folder (a GPU machine's)
     return {
         "cpu": cpu_model(),
         "cores": os.cpu_count(),

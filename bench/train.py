@@ -35,15 +35,17 @@ import contextlib
 import json
 import math
 import os
-import platform
 import sys
 import time
 from pathlib import Path
 from typing import Any
 
-from workers.train.evaluation import json_safe
-
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from bench.report import machine  # noqa: E402
+from workers.train.evaluation import json_safe  # noqa: E402
+
 RESULTS = REPO / "bench" / "results"
 FAMILIES = ("faster_rcnn", "fast_rcnn", "yolo")
 RCNN_FAMILIES = ("faster_rcnn", "fast_rcnn")
@@ -358,6 +360,45 @@ def to_target(args, base, input_size: int, train_samples, test_samples, classes,
     return families
 
 
+RATES = ("train_images_per_s", "inference_images_per_s")
+
+
+def compared(families: dict[str, Any], other: dict[str, Any]) -> dict[str, Any]:
+    """Each family's rates over another machine's report of the same family (same settings)."""
+    there = other.get("families", {})
+    return {
+        "machine": other.get("machine"),
+        "settings": other.get("settings"),
+        "ratios": {
+            family: {
+                rate: entry[rate] / there[family][rate]
+                for rate in RATES
+                if entry.get(rate) and there.get(family, {}).get(rate)
+            }
+            for family, entry in families.items()
+        },
+    }
+
+
+def headline(report: dict[str, Any]) -> str:
+    """One line: where it ran, and per family its rates and scores (and ratios to the compared run)."""
+    where = report["machine"].get("gpu") or f"{report['machine'].get('cores')} CPU cores"
+    parts = []
+    for family, entry in report["families"].items():
+        text = (
+            f"{family} train {entry.get('train_images_per_s') or 0:.1f} img/s, "
+            f"detect {entry.get('inference_images_per_s') or 0:.1f} img/s, "
+            f"mAP {entry.get('map') or 0:.3f} (unthresholded {entry.get('map_unthresholded') or 0:.3f})"
+        )
+        ratios = report.get("compared_with", {}).get("ratios", {}).get(family)
+        if ratios:
+            text += " = " + ", ".join(f"{ratios[r]:.3g}x" for r in RATES if r in ratios) + " the compared run"
+        parts.append(text)
+    settings = report["settings"]
+    budget = f"{settings['iterations']} iterations" if "iterations" in settings else "to a target"
+    return f"{where}, {budget} on {settings['train_images']} canonical images: " + "; ".join(parts)
+
+
 def main(argv: list[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--families", default=",".join(FAMILIES), help="comma-separated detector families")
@@ -378,6 +419,13 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "--compare-roi-align",
         action="store_true",
         help="fixed-budget mode: train each R-CNN again on torchvision's RoIAlign kernel and report the speed-up",
+    )
+    parser.add_argument(
+        "--compare-with",
+        type=Path,
+        default=None,
+        help="fixed-budget mode: a report of the same settings from another machine (a GPU's, say): "
+        "each family's training and inference rates are also given as this run's over that one's",
     )
     parser.add_argument("--out", type=Path, default=None, help="also write the JSON here")
     args = parser.parse_args(argv)
@@ -429,17 +477,22 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             "iou_threshold": 0.5,
         },
         "machine": {
-            "python": platform.python_version(),
+            **machine(),
             "torch": torch.__version__,
             "cuda": torch.cuda.is_available(),
-            "cpus": os.cpu_count(),
+            "gpu": torch.cuda.get_device_name(0) if torch.cuda.is_available() else None,
             "load_average_at_start": list(os.getloadavg()),
         },
         "families": {},
     }
 
+    other = json.loads(args.compare_with.read_text()) if args.compare_with else None
+
     def publish(families: dict[str, Any]) -> str:
         report["families"] = families
+        if other is not None:
+            report["compared_with"] = compared(families, other)
+        report["headline"] = headline(report)
         text = json.dumps(json_safe(report), indent=2, allow_nan=False)
         if args.out:
             args.out.parent.mkdir(parents=True, exist_ok=True)

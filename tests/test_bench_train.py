@@ -88,3 +88,31 @@ def test_the_roi_align_baseline_runs_torchvisions_kernel_and_then_ours_again(mon
     ours = pool(features, boxes, [(128, 128)])
     assert gathered == [1]
     torch.testing.assert_close(ours, baseline, rtol=1e-4, atol=1e-4)
+
+
+def test_a_run_compared_with_another_machines_gives_each_familys_rate_ratios_in_its_headline():
+    here = {
+        "faster_rcnn": {"train_images_per_s": 10.0, "inference_images_per_s": 40.0, "map": 0.5},
+        "yolo": {"train_images_per_s": 20.0, "inference_images_per_s": None, "map": 0.25},
+    }
+    there = {
+        "machine": {"gpu": "a GPU"},
+        "families": {"faster_rcnn": {"train_images_per_s": 100.0, "inference_images_per_s": 200.0}},
+    }
+    comparison = train.compared(here, there)
+    assert comparison["ratios"] == {
+        "faster_rcnn": {"train_images_per_s": 0.1, "inference_images_per_s": 0.2},
+        "yolo": {},
+    }
+    report = {
+        "machine": {"gpu": None, "cores": 2},
+        "settings": {"iterations": 100, "train_images": 300},
+        "families": here,
+        "compared_with": comparison,
+    }
+    line = train.headline(report)
+    assert line.startswith("2 CPU cores, 100 iterations on 300 canonical images: ")
+    assert (
+        "faster_rcnn train 10.0 img/s, detect 40.0 img/s, mAP 0.500" in line and "0.1x, 0.2x the compared run" in line
+    )
+    assert "yolo train 20.0 img/s" in line and line.count("the compared run") == 1
