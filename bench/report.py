@@ -17,12 +17,16 @@ def machine() -> dict:
 
     from bench.render import cpu_model
 
-    try:
-        commit = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
-        ).stdout.strip()
-    except (OSError, subprocess.CalledProcessError):
-        commit = os.environ.get("BENCH_COMMIT")  # a copy of the tree without its git folder (a GPU machine's)
+    # BENCH_COMMIT names the commit where the tree was copied without its own history (a GPU
+    # machine's copy), whose git folder, if any, need not be at that commit.
+    commit = os.environ.get("BENCH_COMMIT")
+    if not commit:
+        try:
+            commit = subprocess.run(
+                ["git", "rev-parse", "HEAD"], cwd=ROOT, capture_output=True, text=True, check=True
+            ).stdout.strip()
+        except (OSError, subprocess.CalledProcessError):
+            commit = None
     return {
         "cpu": cpu_model(),
         "cores": os.cpu_count(),
