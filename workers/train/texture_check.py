@@ -364,13 +364,23 @@ class TextureCheck:
         )  # FLANN's L2 is squared
         return indices, distances
 
+    def matches(self, image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """The image's keypoints and their texture matches, as :meth:`apply` reads them: for a
+        second ``apply`` on the same image (other detections) without finding them again."""
+        return self._keypoints_and_matches(grayscale(image))
+
     def apply(
-        self, image: np.ndarray, detections: Mapping[str, np.ndarray], with_evidence: bool = False
+        self,
+        image: np.ndarray,
+        detections: Mapping[str, np.ndarray],
+        with_evidence: bool = False,
+        matches: tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None = None,
     ) -> dict[str, np.ndarray]:
         """``detections`` (boxes, scores, labels as ``detect_object`` gives them, in ``image``'s
         pixels) checked: new arrays, best score first, with ``confirmed`` (n,) bool: whether the
         texture confirmed each box (or the search found it). ``with_evidence``: also
-        ``evidence`` (n, len(calibration.FEATURES)), what the score was read from."""
+        ``evidence`` (n, len(calibration.FEATURES)), what the score was read from. ``matches``:
+        :meth:`matches` of this image, where already found."""
         from workers.train.calibration import FEATURES, network_logit
 
         boxes = np.array(detections["boxes"], dtype=np.float32, copy=True).reshape(-1, 4)
@@ -381,9 +391,10 @@ class TextureCheck:
         evidence = np.zeros((len(scores), len(FEATURES)), np.float32)
         evidence[:, 0] = network_logit(scores)
         if len(checked) or self.search:
-            gray = grayscale(image)
-            every, image_points, match_labels, texture_points = self._keypoints_and_matches(gray)
-            height, width = gray.shape
+            if matches is None:
+                matches = self.matches(image)
+            every, image_points, match_labels, texture_points = matches
+            height, width = image.shape[:2]
             if self.search:  # scored by the network's boxes as they came, before the check below moves them
                 found, found_labels, found_evidence = self._search(
                     image_points, match_labels, texture_points, width, height

@@ -582,3 +582,152 @@ def test_a_detectors_texture_check_is_kept_in_the_settings_cache_folder(tmp_path
         get_settings.cache_clear()
     kept = sorted(path.suffix for path in (cache / "texture-check").glob("*")) if cache.exists() else []
     assert kept == ([".flann", ".npz"] if setting == "folder" else [])
+
+
+def _views_by_hand(members, images, sizes, turns, vote, iou, limit):
+    """An ensemble's views as the plainest code gives them: each member, size, turn and image
+    one eval forward alone, boxes turned back, each member's views merged, then the members."""
+    from torchvision.models.detection.generalized_rcnn import GeneralizedRCNN
+
+    from workers.train.detectors.views import merge_detections, turn_image, unturn_boxes
+
+    runs = []
+    for member in members:
+        saved = member.transform.min_size, member.transform.max_size
+        views = []
+        for turn in turns:
+            for size in sizes:
+                member.transform.min_size, member.transform.max_size = (size,), size
+                found = []
+                for image in images:
+                    (output,) = GeneralizedRCNN.forward(member, [turn_image(image, turn)])
+                    found.append({**output, "boxes": unturn_boxes(output["boxes"], turn, *image.shape[-2:])})
+                views.append(found)
+        member.transform.min_size, member.transform.max_size = saved
+        heads = member.roi_heads
+        runs.append(
+            [merge_detections(o, heads.nms_thresh, heads.detections_per_img, member.view_vote) for o in zip(*views)]
+        )
+    return [merge_detections(outputs, iou, limit, vote) for outputs in zip(*runs)]
+
+
+def test_an_ensembles_views_run_together_and_detect_as_each_view_alone(tmp_path, monkeypatch):
+    """Members on one trunk (a frozen pretrained backbone, other heads) run it once per view for
+    all of them, and the turns of one shape (0 and 2, 1 and 3) run as one batch: the detections
+    are those of every member, view and image run alone, on square and non-square images."""
+    import workers.train.detectors.views as views
+    from workers.train.checkpoint import Cascade, save_ensemble
+
+    paths, arrays = write_images(tmp_path / "images", n=2, size=(48, 80))
+    arrays.append(write_images(tmp_path / "square", n=1)[1][0])
+    samples = [Sample(path, [[12, 10, 50, 40]], [index % 2]) for index, path in enumerate(paths)]
+    changes = {"family": "faster_rcnn", "test_sizes": [64, 96], "test_turns": [0, 1, 2, 3], "view_vote": 0.7}
+    path = tmp_path / "first.pt"
+    train_detector(samples, None, 2, config(**changes), CLASSES, path, seed=0)
+    first = load_detector(path)
+    # A second member on the same trunk: the first's weights with every layer after the trunk moved.
+    other = first.model
+    with torch.no_grad():
+        for name, parameter in other.named_parameters():
+            if not name.startswith("backbone.body."):
+                parameter.add_(0.05 * torch.randn_like(parameter))
+    save_checkpoint(other, first.meta, tmp_path / "second.pt")
+    ensemble = load_detector(save_ensemble([path, tmp_path / "second.pt"], tmp_path / "pair.pt"))
+    ensemble.cascade = None
+    members = list(ensemble.model.members)
+    assert views.shares_trunk(members)
+    trunk_calls = []
+    for member in members:
+        body_forward = member.backbone.body.forward
+        monkeypatch.setattr(
+            member.backbone.body, "forward", lambda x, f=body_forward: trunk_calls.append(x.shape[0]) or f(x)
+        )
+    monkeypatch.setattr(views, "VOTE_FLOOR", 0.01)  # two training steps score under the vote's floor
+    found = detect_object(ensemble, arrays, batch_size=1)
+    # Per image: 2 sizes x 2 pairs of turns, one trunk pass each for both members, two images a pass.
+    assert trunk_calls == [2] * 4 * len(arrays)
+    tensors = [torch.from_numpy(image).permute(2, 0, 1).float() / 255 for image in arrays]
+    with torch.no_grad(), torch_threads(1):
+        expected = _views_by_hand(members, tensors, (64, 96), (0, 1, 2, 3), 1.0, 0.5, 10)
+    for result, reference in zip(found, expected):
+        assert len(result["scores"]) > 1
+        np.testing.assert_array_equal(result["labels"], reference["labels"].numpy() - 1)
+        np.testing.assert_allclose(result["scores"], reference["scores"].numpy(), rtol=0, atol=1e-5)
+        np.testing.assert_allclose(result["boxes"], reference["boxes"].numpy(), rtol=0, atol=1e-3)
+    # Members on trunks of their own run their views each, to the same rule.
+    with torch.no_grad():
+        next(members[1].backbone.body.parameters()).add_(0.01)
+    assert not views.shares_trunk(members)
+    trunk_calls.clear()
+    found = detect_object(ensemble, arrays[:1])
+    assert trunk_calls == [2] * 4 * 2
+    with torch.no_grad(), torch_threads(1):
+        (expected,) = _views_by_hand(members, tensors[:1], (64, 96), (0, 1, 2, 3), 1.0, 0.5, 10)
+    np.testing.assert_allclose(found[0]["scores"], expected["scores"].numpy(), rtol=0, atol=1e-5)
+    assert Cascade().first_size((64, 96)) == 96 and Cascade(size=64).first_size((64, 96)) == 64
+
+
+def test_the_cascade_runs_every_view_only_where_one_view_leaves_the_image_unsure(tmp_path, monkeypatch):
+    """detector.cascade: each image at one view (the largest size, upright) and the texture check
+    first; an image the cascade's rule calls unsure then at every view, checked on the keypoints
+    found once; the others keep the first pass's detections."""
+    import skimage.data
+
+    from workers.train.checkpoint import Cascade
+    from workers.train.texture_check import TextureCheck
+
+    paths, arrays = write_images(tmp_path / "images", n=4, size=(64, 80))
+    samples = [Sample(path, [[12, 10, 50, 40]], [index % 2]) for index, path in enumerate(paths)]
+    textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}
+    changes = {"family": "faster_rcnn", "test_sizes": [64, 96], "test_turns": [0, 1], "texture_check": True}
+    path = tmp_path / "checked.pt"
+    train_detector(samples, None, 2, config(**changes), CLASSES, path, seed=0, textures=textures)
+    detector = load_detector(path)
+    assert detector.cascade == Cascade()
+    detector.cascade = None
+    every_view = detect_object(detector, arrays)
+    one_view = detect_object(detector, arrays, test_sizes=(96,), test_turns=())
+    assert not all(same_detections([a], [b]) for a, b in zip(every_view, one_view))
+    found_keypoints = []
+    keypoints = TextureCheck._keypoints_and_matches
+    monkeypatch.setattr(
+        TextureCheck, "_keypoints_and_matches", lambda self, gray: found_keypoints.append(1) or keypoints(self, gray)
+    )
+    detector.cascade = Cascade()
+    monkeypatch.setattr(Cascade, "again", lambda self, checked: True)
+    assert same_detections(detect_object(detector, arrays), every_view)
+    assert len(found_keypoints) == len(arrays)  # once an image, for both passes
+    monkeypatch.setattr(Cascade, "again", lambda self, checked: False)
+    assert same_detections(detect_object(detector, arrays), one_view)
+    # Images 1 and 3 unsure: they alone go again (one forward for the two of them).
+    asked = []
+    monkeypatch.setattr(Cascade, "again", lambda self, checked: asked.append(1) or len(asked) % 2 == 0)
+    forwards = []
+    forward = type(detector.model).forward
+    monkeypatch.setattr(
+        type(detector.model), "forward", lambda self, images: forwards.append(len(images)) or forward(self, images)
+    )
+    found = detect_object(detector, arrays, batch_size=4)
+    assert forwards == [4, 2] and len(asked) == 4
+    expected = [one_view[0], every_view[1], one_view[2], every_view[3]]
+    for result, reference in zip(found, expected):
+        for key in ("boxes", "scores", "labels", "confirmed"):
+            np.testing.assert_allclose(result[key], reference[key], rtol=0, atol=1e-5)
+    # Views asked for, or a detector without the check: one pass at those views.
+    forwards.clear()
+    detect_object(detector, arrays, batch_size=4, test_turns=(0, 1))
+    detect_object(detector, arrays, batch_size=4, texture_check=False)
+    assert forwards == [4, 4]
+
+
+def test_the_cascades_rule_goes_on_where_nothing_is_confirmed_or_a_box_is_unsure():
+    from workers.train.checkpoint import Cascade
+
+    def checked(scores, confirmed):
+        return {"scores": np.array(scores, np.float32), "confirmed": np.array(confirmed, bool)}
+
+    assert Cascade().again(checked([], []))
+    assert Cascade().again(checked([0.85, 0.4], [False, False]))
+    assert not Cascade().again(checked([0.95, 0.85, 0.4], [True, False, False]))
+    assert Cascade(unsure=0.8).again(checked([0.95, 0.85, 0.4], [True, False, False]))
+    assert not Cascade(unsure=0.9).again(checked([0.95, 0.85, 0.4], [True, False, False]))

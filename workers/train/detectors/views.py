@@ -1,7 +1,8 @@
 """Test-time views of a detector and the merge of their detections.
 
 ``detect_at_views`` runs an R-CNN's eval forward at each size and quarter turn and maps the boxes
-back (``turn_image``, ``unturn_boxes``); ``merge_detections`` merges several runs (views, or the
+back (``view_runs``, ``turn_image``, ``unturn_boxes``; ``ensemble_detect``: several R-CNNs on one
+trunk); ``merge_detections`` merges several runs (views, or the
 members of an ensemble) into one image's detections, scored by the views' vote where the model
 has one (``VOTE_FLOOR``).
 """
@@ -28,26 +29,124 @@ def detect_at_views(
     mapped back to the images' own pixels (resize and turn undone), so they merge as they are.
     The size is restored after, also when a run fails.
     """
-    transform, heads = model.transform, model.roi_heads
-    saved = transform.min_size, transform.max_size
-    runs = []
-    try:
-        for turn in turns or (0,):
-            turned = [turn_image(image, turn) for image in images] if turn else images
-            for size in sizes or (None,):
-                if size is not None:
-                    transform.min_size, transform.max_size = (int(size),), int(size)
-                outputs = detect(turned)
-                if turn:
-                    outputs = [
-                        {**output, "boxes": unturn_boxes(output["boxes"], turn, image.shape[-2], image.shape[-1])}
-                        for output, image in zip(outputs, images)
-                    ]
-                runs.append(outputs)
-    finally:
-        transform.min_size, transform.max_size = saved
+    (runs,) = view_runs([model], lambda batch: [detect(batch)], images, sizes, turns)
+    heads = model.roi_heads
     vote = getattr(model, "view_vote", None)
     return [merge_detections(outputs, heads.nms_thresh, heads.detections_per_img, vote) for outputs in zip(*runs)]
+
+
+def view_runs(
+    models: Sequence[nn.Module],
+    detect: Callable[[list], list[list[dict]]],
+    images: list,
+    sizes: Sequence[int],
+    turns: Sequence[int],
+) -> list[list[list[dict]]]:
+    """Each of ``models``' detections on each view of the images (``detect_at_views``), unmerged:
+    ``[model][view][image]``, the views turn by turn, each turn size by size, boxes in the images'
+    own pixels. ``detect(batch)`` gives every model's one-size eval forward on a batch, a list per
+    model (an ensemble's members share work there: ``ensemble_detect``); their transforms are
+    set to each size in turn, and restored after.
+
+    The turns that give images of one shape (0 and 2, 1 and 3) run as one batch: the batch is
+    padded to its largest image, which such a pair leaves as it is, so each view's detections are
+    the ones it gives alone, for half the forward calls (each call's fixed cost is large against
+    small views' work on a CPU).
+    """
+    transforms = [model.transform for model in models]
+    saved = [(transform.min_size, transform.max_size) for transform in transforms]
+    turns, sizes = tuple(turns) or (0,), tuple(sizes) or (None,)
+    found: dict[tuple[int, int, int | None], list[dict]] = {}
+    count = len(images)
+    try:
+        for size in sizes:
+            if size is not None:
+                for transform in transforms:
+                    transform.min_size, transform.max_size = (int(size),), int(size)
+            for group in (tuple(t for t in turns if t % 2 == 0), tuple(t for t in turns if t % 2 == 1)):
+                if not group:
+                    continue
+                batch = [turn_image(image, turn) if turn else image for turn in group for image in images]
+                for index, outputs in enumerate(detect(batch)):
+                    for place, turn in enumerate(group):
+                        part = outputs[place * count : (place + 1) * count]
+                        if turn:
+                            part = [
+                                {
+                                    **output,
+                                    "boxes": unturn_boxes(output["boxes"], turn, image.shape[-2], image.shape[-1]),
+                                }
+                                for output, image in zip(part, images)
+                            ]
+                        found[index, turn, size] = part
+    finally:
+        for transform, (min_size, max_size) in zip(transforms, saved):
+            transform.min_size, transform.max_size = min_size, max_size
+    return [[found[index, turn, size] for turn in turns for size in sizes] for index in range(len(models))]
+
+
+def ensemble_detect(models: Sequence[nn.Module]) -> Callable[[list], list[list[dict]]]:
+    """``view_runs``' ``detect`` for torchvision R-CNNs (an ensemble's members): each model's
+    eval forward on a batch. Where the models' input transforms and backbone trunks are the same
+    (``shares_trunk``: members trained on one frozen pretrained trunk), the batch is resized and
+    the trunk run once, and each model runs its own feature pyramid, RPN and box head on those
+    features: the same detections as each forward alone, for one trunk pass instead of one per model.
+    """
+    from collections import OrderedDict
+
+    import torch
+    from torchvision.models.detection.generalized_rcnn import GeneralizedRCNN
+
+    if not shares_trunk(models):
+        return lambda batch: [GeneralizedRCNN.forward(model, batch) for model in models]
+
+    def detect(batch: list) -> list[list[dict]]:
+        # GeneralizedRCNN.forward in eval, with the transform and the trunk done once.
+        original_sizes = [(image.shape[-2], image.shape[-1]) for image in batch]
+        resized, _ = models[0].transform(batch)
+        trunk = models[0].backbone.body(resized.tensors)
+        outputs = []
+        for model in models:
+            features = model.backbone.fpn(trunk)
+            if isinstance(features, torch.Tensor):
+                features = OrderedDict([("0", features)])
+            proposals, _ = model.rpn(resized, features)
+            detections, _ = model.roi_heads(features, proposals, resized.image_sizes)
+            outputs.append(model.transform.postprocess(detections, resized.image_sizes, original_sizes))
+        return outputs
+
+    return detect
+
+
+def shares_trunk(models: Sequence[nn.Module]) -> bool:
+    """Whether torchvision R-CNNs (backbone ``body`` then ``fpn``) resize and normalise their
+    input alike and have one backbone trunk: of one type, with equal parameters and buffers.
+    One model: False (nothing to share)."""
+    import torch
+
+    if len(models) < 2:
+        return False
+    first = models[0]
+    if not all(hasattr(model.backbone, "body") and hasattr(model.backbone, "fpn") for model in models):
+        return False
+    settings = ("image_mean", "image_std", "size_divisible", "fixed_size", "min_size", "max_size", "_skip_resize")
+    state = first.backbone.body.state_dict()
+    for model in models[1:]:
+        if type(model.transform) is not type(first.transform) or type(model.backbone.body) is not type(
+            first.backbone.body
+        ):
+            return False
+        if any(getattr(model.transform, name, None) != getattr(first.transform, name, None) for name in settings):
+            return False
+        other = model.backbone.body.state_dict()
+        if other.keys() != state.keys():
+            return False
+        if not all(
+            other[key].shape == value.shape and other[key].dtype == value.dtype and torch.equal(other[key], value)
+            for key, value in state.items()
+        ):
+            return False
+    return True
 
 
 # A run votes for a box only with a score of at least this (the same 0.3 the texture check starts
