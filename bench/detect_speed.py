@@ -1,18 +1,25 @@
-"""Detection's speed against its accuracy: a model's views (input sizes, quarter turns) and
-members cut down, side by side on one set, beside the keypoint recipe (JSON out).
+"""Detection's speed against its accuracy: the detector's ways of running its views side by side
+on the same images, at 320×240 and 640×480, beside the keypoint recipe (JSON out).
 
-Each row detects every image of ``--data`` (a COCO folder: ``bench/wild.py --sets-only`` renders
-them) with the model's texture check, and reports seconds per image (network and check, images
-read beforehand), the paper's mAP, and precision and recall at the threshold. Rows:
+Each row detects every image of each ``--data`` set (COCO folders: ``bench/wild.py --sets-only``
+renders them) one image per call, as the REST detect route does (``--batch-size``), with the
+model's texture check, and reports seconds per image (network and check, images read
+beforehand), the paper's mAP, precision and recall at the threshold, and its time as a multiple
+of the keypoint recipe's on the same images. Rows:
 
-- ``as built``: the model's own views (``make run``'s ensemble: 5 sizes × 4 turns × 2 members);
-- ``upright``: its sizes, no turns;
-- ``one size``: 320 px (or ``--one-size``), no turns;
-- ``one member``: the ensemble's first member at its own views;
+- ``every view alone``: the model's views (``make run``'s ensemble: 5 sizes × 4 turns × 2
+  members), each member, view and image one R-CNN forward, as the views ran before they were
+  batched (40 forwards an image);
+- ``as built``: the same views and detections, run together (``detect_at_views``: one trunk pass
+  per view for both members, the turns of one shape in one batch);
+- ``cascade``: the detector's default (``checkpoint.Cascade``): one view and the check first,
+  every view only for the images that leave a box unsure; ``second_pass`` is the share of images
+  that went on;
+- ``one view``: the cascade's first pass alone (the largest size, upright, both members);
 - ``keypoints``: bench/keypoint_baseline.py.
 
-    python bench/detect_speed.py --model var/studies/S/ensemble.pt --data var/bench/wild-ood-apart \\
-        --out bench/results/detect_speed.json
+    python bench/detect_speed.py --model var/studies/S/ensemble.pt \\
+        --data var/bench/wild-ood-apart var/bench/wild-ood-large --out bench/results/detect_speed.json
 """
 
 from __future__ import annotations
@@ -31,63 +38,129 @@ from bench.report import machine, write_report  # noqa: E402
 from bench.wild_scoring import _scores  # noqa: E402
 
 
+def views_alone(detector, images: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
+    """The detector's views the plain way: every member, view and image one eval forward of its
+    own (torchvision's), boxes turned back, each member's views merged, then the members, then the
+    texture check: the detections ``detect_object`` gives, at one forward per view."""
+    import torch
+    from torchvision.models.detection.generalized_rcnn import GeneralizedRCNN
+
+    from workers.train.checkpoint import _found, torch_threads
+    from workers.train.detectors.views import merge_detections, turn_image, unturn_boxes
+
+    model = detector.model
+    members = list(getattr(model, "members", [model]))
+    checker = detector.texture_check()
+    threads = int(detector.meta.get("config", {}).get("num_threads", 0))
+    results = []
+    with torch.no_grad(), torch_threads(threads):
+        for array in images:
+            image = torch.from_numpy(array).permute(2, 0, 1).float().div_(255)
+            runs = []
+            for member in members:
+                saved = member.transform.min_size, member.transform.max_size
+                views = []
+                try:
+                    for turn in member.test_turns or (0,):
+                        for size in member.test_sizes or (None,):
+                            if size is not None:
+                                member.transform.min_size, member.transform.max_size = (size,), size
+                            (output,) = GeneralizedRCNN.forward(member, [turn_image(image, turn)])
+                            views.append({**output, "boxes": unturn_boxes(output["boxes"], turn, *image.shape[-2:])})
+                finally:
+                    member.transform.min_size, member.transform.max_size = saved
+                heads = member.roi_heads
+                runs.append(merge_detections(views, heads.nms_thresh, heads.detections_per_img, member.view_vote))
+            merged = runs[0] if len(runs) == 1 else merge_detections(runs, model.iou, model.limit, model.vote)
+            found = _found(merged)
+            results.append(checker.apply(array, found) if checker is not None else found)
+    return results
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--model", type=Path, required=True)
-    parser.add_argument("--data", type=Path, required=True, help="a COCO folder")
-    parser.add_argument("--one-size", type=int, default=320)
+    parser.add_argument("--data", type=Path, nargs="+", required=True, help="COCO folders")
+    parser.add_argument("--batch-size", type=int, default=1, help="images per detect_object call")
     parser.add_argument("--threshold", type=float, default=0.8)
     parser.add_argument("--iou", type=float, default=0.5)
     parser.add_argument("--out", type=Path)
     args = parser.parse_args(argv)
 
+    from dataclasses import asdict
+
     from bench.keypoint_baseline import KeypointBaseline
-    from workers.train.checkpoint import Detector, detect_object, load_detector
+    from workers.train.checkpoint import Cascade, detect_object, load_detector
     from workers.train.data import load_coco_dataset, read_image_rgb
 
     detector = load_detector(args.model, device="cpu")
-    samples, set_classes = load_coco_dataset(args.data)
+    cascade = detector.cascade or Cascade()
+    went_on: list[bool] = []
+
+    class Counted(Cascade):
+        """The cascade's rule, each answer kept (the share of images that go on to every view)."""
+
+        def again(self, checked) -> bool:
+            went_on.append(super().again(checked))
+            return went_on[-1]
+
     classes = detector.classes
-    to_model = np.array([classes.index(name) for name in set_classes], np.int64)
-    truth = [{"boxes": s.boxes, "labels": to_model[np.asarray(s.labels, np.int64)]} for s in samples]
-    groups = [{"condition": s.condition, "difficulty": s.difficulty} for s in samples]
-    images = [read_image_rgb(s.image_path) for s in samples]
-    # The ensemble's first member as a detector of its own: its network, meta and the shared textures.
-    members = getattr(detector.model, "members", None)
-    first = None
-    if members is not None:
-        first = Detector(
-            model=members[0],
-            meta=detector.meta["members"][0],
-            device=detector.device,
-            textures=detector.textures,
-            lookalikes=detector.lookalikes,
-        )
-    rows = [
-        ("as built", detector, None, None),
-        ("upright", detector, None, (0,)),
-        ("one size", detector, (args.one_size,), (0,)),
-    ]
-    if first is not None:
-        rows.append(("one member", first, None, None))
+    model = detector.model
     detector.texture_check()  # built (or read from the cache) before any row is timed
-    report: dict = {"model": str(args.model), "data": str(args.data), "images": len(samples), "rows": {}}
-    for name, which, sizes, turns in rows:
-        started = time.perf_counter()
-        found = detect_object(which, images, test_sizes=sizes, test_turns=turns)
-        seconds = time.perf_counter() - started
-        report["rows"][name] = _scores(found, truth, classes, groups, args.threshold, args.iou, seconds)
-        report["rows"][name]["views"] = {"sizes": sizes or "the model's", "turns": turns or "the model's"}
-    baseline = KeypointBaseline(detector.textures, classes)
-    started = time.perf_counter()
-    found = [baseline.detect(image) for image in images]
-    report["rows"]["keypoints"] = _scores(
-        found, truth, classes, groups, args.threshold, args.iou, time.perf_counter() - started
-    )
-    frame = f"{images[0].shape[1]}x{images[0].shape[0]}" if images else "-"
-    report["headline"] = f"{args.data.name} ({len(samples)} images, {frame}): " + "; ".join(
-        f"{name} {row['seconds_per_image']:.2f} s/image, mAP {row['map']:.3f}" for name, row in report["rows"].items()
-    )
+    report: dict = {
+        "model": str(args.model),
+        "views": {"sizes": list(model.test_sizes), "turns": list(model.test_turns)},
+        "members": len(getattr(model, "members", [model])),
+        "cascade": asdict(cascade),
+        "batch_size": args.batch_size,
+        "sets": {},
+    }
+    first_size = cascade.first_size(model.test_sizes)
+    headline = []
+    for data in args.data:
+        samples, set_classes = load_coco_dataset(data)
+        to_model = np.array([classes.index(name) for name in set_classes], np.int64)
+        truth = [{"boxes": s.boxes, "labels": to_model[np.asarray(s.labels, np.int64)]} for s in samples]
+        groups = [{"condition": s.condition, "difficulty": s.difficulty} for s in samples]
+        images = [read_image_rgb(s.image_path) for s in samples]
+        frame = f"{images[0].shape[1]}x{images[0].shape[0]}" if images else "-"
+        rows = {}
+
+        def row(name, detect):
+            started = time.perf_counter()
+            found = detect()
+            seconds = time.perf_counter() - started
+            rows[name] = _scores(found, truth, classes, groups, args.threshold, args.iou, seconds)
+
+        detect_object(detector, images[:1], test_sizes=(first_size,), test_turns=())  # warm: first calls allocate
+        row("every view alone", lambda: views_alone(detector, images))
+        detector.cascade = None
+        row("as built", lambda: detect_object(detector, images, batch_size=args.batch_size))
+        detector.cascade = Counted(**asdict(cascade))
+        went_on.clear()
+        row("cascade", lambda: detect_object(detector, images, batch_size=args.batch_size))
+        rows["cascade"]["second_pass"] = float(np.mean(went_on)) if went_on else 0.0
+        detector.cascade = cascade
+        row(
+            "one view",
+            lambda: detect_object(
+                detector, images, batch_size=args.batch_size, test_sizes=(first_size,), test_turns=()
+            ),
+        )
+        baseline = KeypointBaseline(detector.textures, classes)
+        row("keypoints", lambda: [baseline.detect(image) for image in images])
+        keypoint_seconds = rows["keypoints"]["seconds_per_image"]
+        for values in rows.values():
+            values["times_keypoints"] = values["seconds_per_image"] / keypoint_seconds
+        report["sets"][data.name] = {"data": str(data), "frame": frame, "images": len(samples), "rows": rows}
+        headline.append(
+            f"{data.name} ({len(samples)} images, {frame}): "
+            + "; ".join(
+                f"{name} {values['seconds_per_image']:.2f} s/image, mAP {values['map']:.3f}"
+                for name, values in rows.items()
+            )
+        )
+    report["headline"] = " | ".join(headline)
     report["machine"] = machine()
     return write_report(report, args.out)
 
