@@ -18,6 +18,9 @@ of the keypoint recipe's on the same images. Rows:
 - ``one view``: the cascade's first pass alone (the largest size, upright, both members);
 - ``keypoints``: bench/keypoint_baseline.py.
 
+Beside the rows, each set's ``check_keypoints_seconds_per_image``: the texture check's keypoints
+and matches alone (every row but the recipe's finds them once an image).
+
     python bench/detect_speed.py --model var/studies/S/ensemble.pt \\
         --data var/bench/wild-ood-apart var/bench/wild-ood-large --out bench/results/detect_speed.json
 """
@@ -152,7 +155,20 @@ def main(argv=None) -> dict:
         keypoint_seconds = rows["keypoints"]["seconds_per_image"]
         for values in rows.values():
             values["times_keypoints"] = values["seconds_per_image"] / keypoint_seconds
-        report["sets"][data.name] = {"data": str(data), "frame": frame, "images": len(samples), "rows": rows}
+        # What every row but the recipe's spends before any box is checked: the texture check's
+        # keypoints of the image and their matches (SIFT on the image enlarged, FLANN).
+        check = detector.texture_check()
+        started = time.perf_counter()
+        for image in images:
+            check.matches(image)
+        matching = (time.perf_counter() - started) / max(len(images), 1)
+        report["sets"][data.name] = {
+            "data": str(data),
+            "frame": frame,
+            "images": len(samples),
+            "check_keypoints_seconds_per_image": matching,
+            "rows": rows,
+        }
         headline.append(
             f"{data.name} ({len(samples)} images, {frame}): "
             + "; ".join(
