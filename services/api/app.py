@@ -10,6 +10,8 @@ of the Celery app import them only inside task bodies, and are never imported he
 """
 
 import re
+from collections.abc import AsyncIterator
+from contextlib import asynccontextmanager
 from typing import Any
 
 from fastapi import FastAPI, Request, status
@@ -74,6 +76,13 @@ async def id_out_of_range(request: Request, error: RequestValidationError) -> JS
     return await request_validation_exception_handler(request, error)
 
 
+@asynccontextmanager
+async def lifespan(_app: FastAPI) -> AsyncIterator[None]:
+    """Before the first request: what the first detects would otherwise load while others wait."""
+    await detect.prepare_broker()
+    yield
+
+
 def create_app(
     settings: Settings | None = None,
     *,
@@ -90,6 +99,7 @@ def create_app(
         title="foldwise",
         summary="Active learning of a detector for one deformable object, from rendered images.",
         version="0.1.0",
+        lifespan=lifespan,
     )
     app.state.settings = settings
     app.state.broker = BrokerProbe(settings, timeout_s=broker_timeout_s, ping_timeout_s=ping_timeout_s)

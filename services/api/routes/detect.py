@@ -8,15 +8,19 @@ queue (:mod:`workers.train.serving`) and this request waits for the reply. With 
 
 The image's header is read before anything else is done with it: a few bytes can claim
 50000x50000 pixels, which no decoder should be asked to allocate. The wait for the worker holds
-no thread: the reply is polled from the event loop, a thread borrowed for each short look at
-the result backend. At most MAX_IN_FLIGHT detects wait at once; past that the answer is a 503
-with ``Retry-After``, so a crowd of detects with no (or slow) workers neither exhausts the
-thread pool nor delays the other routes.
+no thread: every reply waited for is looked for together, by one poller on the event loop that
+asks the result backend about all of them in one round trip (:class:`Replies`). Every call to
+the broker runs on a few threads of its own (BROKER_THREADS): Celery keeps a result backend per
+thread, and making one (entry points scanned, connections opened) costs far more than the call.
+At most MAX_IN_FLIGHT detects wait at once; past that the answer is a 503 with ``Retry-After``,
+so a crowd of detects with no (or slow) workers neither exhausts a thread pool nor delays the
+other routes.
 """
 
 import asyncio
 import base64
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 from typing import Annotated, Any, NamedTuple
 
@@ -24,6 +28,10 @@ from fastapi import APIRouter, HTTPException, Path, Query, Request, status
 from pydantic import BaseModel, Field
 from starlette.concurrency import run_in_threadpool
 
+# The Celery app (celery and kombu; neither torch nor bpy) is loaded with the API: imported by
+# the first detect instead, it would hold the event loop, and every request waiting on it, for
+# a few hundred milliseconds. Routes read ``workers.app.app`` when called (tests replace it).
+import workers.app  # noqa: F401
 from db.models import Model, ModelStatus
 from foldwise import store
 from foldwise.images import ImageError, image_size
@@ -40,9 +48,14 @@ REPLY_TIMEOUT_S = 30.0
 # Detects waiting for a worker at once, per API process; more are refused with a 503.
 MAX_IN_FLIGHT = 16
 RETRY_AFTER_S = 5
-# The reply is looked for after FIRST_POLL_S, then ever less often, up to every MAX_POLL_S.
+# Replies are looked for FIRST_POLL_S after a detect is sent or a reply comes, then ever less
+# often while none comes, up to every MAX_POLL_S.
 FIRST_POLL_S = 0.02
 MAX_POLL_S = 0.25
+# Threads that talk to the broker (send a detect, look for replies, forget one), shared by every
+# app of the process: each holds a Celery result backend of its own for the process's life.
+BROKER_THREADS = 4
+_broker = ThreadPoolExecutor(max_workers=BROKER_THREADS, thread_name_prefix="foldwise-broker")
 IMAGE_TYPES = frozenset({"image/png", "image/jpeg", "application/octet-stream"})
 # What the first bytes of a PNG and a JPEG are; anything else is refused before a worker sees it.
 SIGNATURES = (b"\x89PNG\r\n\x1a\n", b"\xff\xd8\xff")
@@ -195,10 +208,9 @@ def _slot(request: Request) -> Iterator[None]:
 async def _ask_worker(checkpoint: Callable[[], str], image: bytes, threshold: float) -> dict[str, Any]:
     """The detect worker's reply, waited for without holding a thread.
 
-    Each hand-over to a worker thread costs the event loop as much as a small request, and a
-    crowd of waiting detects makes many: where the detector is (``checkpoint()``, which may read
-    the database) is found on the thread that publishes the message, and the look that finds the
-    reply come also fetches and forgets it."""
+    Where the detector is (``checkpoint()``, which may read the database) is found on the
+    broker thread that publishes the message; the reply is then waited for with every other
+    (:class:`Replies`), and fetched and forgotten by the look that finds it come."""
     from workers.app import app
 
     encoded = base64.b64encode(image).decode("ascii")
@@ -208,53 +220,146 @@ async def _ask_worker(checkpoint: Callable[[], str], image: bytes, threshold: fl
 
     if app.conf.task_always_eager:
         return await run_in_threadpool(lambda: _run_here(arguments()))
-    reply = await run_in_threadpool(lambda: _publish(arguments()))
+    loop = asyncio.get_running_loop()
+    reply = await loop.run_in_executor(_broker, lambda: _publish(arguments()))
     collected = False
     try:
-        loop = asyncio.get_running_loop()
-        deadline = loop.time() + REPLY_TIMEOUT_S
-        pause = FIRST_POLL_S
-        while (outcome := await run_in_threadpool(_collect, reply)) is PENDING:
-            left = deadline - loop.time()
-            if left <= 0:
-                raise HTTPException(
-                    status.HTTP_504_GATEWAY_TIMEOUT,
-                    f"no detect worker answered within {REPLY_TIMEOUT_S:g} s: start one with `foldwise worker detect`",
-                )
-            await asyncio.sleep(min(pause, left))
-            pause = min(pause * 1.5, MAX_POLL_S)
-        collected = True
-        if isinstance(outcome, Failed):  # the task raised in the worker: its failure, not the client's
-            error = outcome.error
-            raise HTTPException(
-                status.HTTP_502_BAD_GATEWAY, f"the detect worker failed: {type(error).__name__}: {error}"
-            )
-        return outcome
+        outcome = await asyncio.wait_for(Replies.of(loop).wait(reply), REPLY_TIMEOUT_S)
+        collected = True  # and forgotten by the look that found it
+    except TimeoutError:
+        raise HTTPException(
+            status.HTTP_504_GATEWAY_TIMEOUT,
+            f"no detect worker answered within {REPLY_TIMEOUT_S:g} s: start one with `foldwise worker detect`",
+        ) from None
     finally:
         if not collected:
-            await run_in_threadpool(_forget, reply)
+            await loop.run_in_executor(_broker, _forget, reply)
+    if isinstance(outcome, Failed):  # the task raised in the worker: its failure, not the client's
+        error = outcome.error
+        raise HTTPException(status.HTTP_502_BAD_GATEWAY, f"the detect worker failed: {type(error).__name__}: {error}")
+    return outcome
 
 
-# What _collect answers while the reply has not come.
-PENDING = object()
+async def prepare_broker() -> None:
+    """Load what the first detect would load on a broker thread, so that the first detects
+    after the API starts do not wait for it: the result backend's module and classes, found
+    through Celery's entry points (tens of milliseconds, the GIL held throughout). Nothing
+    connects; whatever fails here fails again, and is answered, in the detect that needs it."""
+
+    def prepare() -> None:
+        from workers.app import app
+
+        try:
+            if not app.conf.task_always_eager:
+                app.backend  # noqa: B018  (made on first use, per thread)
+                app.connection_for_write().get_transport_cls()  # the transport's module, imported
+        except Exception:
+            pass
+
+    await asyncio.get_running_loop().run_in_executor(_broker, prepare)
 
 
 class Failed(NamedTuple):
-    """What _collect answers when the task raised in the worker."""
+    """The outcome of a task that raised in the worker."""
 
     error: Exception
 
 
-def _collect(reply) -> Any:
-    """On a worker thread: the reply's result (or Failed) once it has come, forgotten then; else PENDING."""
-    if not _ready(reply):
-        return PENDING
-    try:
-        return reply.get(timeout=REPLY_TIMEOUT_S)
-    except Exception as error:
-        return Failed(error)
-    finally:
+class Replies:
+    """The replies waited for on one event loop, looked for together.
+
+    One poller task runs while any reply is waited for: each look is one hand-over to a broker
+    thread that asks about every waiting reply at once (:func:`_collect`), so a crowd of waiting
+    detects costs the event loop one hand-over per look, not one per detect."""
+
+    def __init__(self, loop: asyncio.AbstractEventLoop) -> None:
+        self.loop = loop
+        self.waiting: dict[Any, asyncio.Future] = {}
+        self.pause = FIRST_POLL_S
+        self.poller: asyncio.Task | None = None
+
+    @classmethod
+    def of(cls, loop: asyncio.AbstractEventLoop) -> "Replies":
+        """The replies of ``loop`` (a test client may start a loop per request)."""
+        replies = _replies.get(id(loop))
+        if replies is None or replies.loop is not loop:
+            _replies.clear()  # one loop serves the process at a time
+            replies = _replies[id(loop)] = cls(loop)
+        return replies
+
+    async def wait(self, reply) -> Any:
+        """The reply's result, or Failed; an HTTPException (503) when the broker stops answering."""
+        future = self.loop.create_future()
+        self.waiting[reply] = future
+        self.pause = FIRST_POLL_S
+        if self.poller is None or self.poller.done():
+            self.poller = self.loop.create_task(self._poll())
+        try:
+            return await future
+        finally:
+            self.waiting.pop(reply, None)
+
+    async def _poll(self) -> None:
+        while self.waiting:
+            await asyncio.sleep(self.pause)
+            waiting = {reply: future for reply, future in self.waiting.items() if not future.done()}
+            if not waiting:
+                continue
+            try:
+                outcomes = await self.loop.run_in_executor(_broker, _collect, list(waiting))
+            except Exception as error:  # the broker lost (a 503), or anything unforeseen: each waiter gets it
+                for future in waiting.values():
+                    if not future.done():
+                        future.set_exception(error)
+                continue
+            self.pause = FIRST_POLL_S if outcomes else min(self.pause * 1.5, MAX_POLL_S)
+            for reply, outcome in outcomes.items():
+                if not waiting[reply].done():
+                    waiting[reply].set_result(outcome)
+
+
+_replies: dict[int, Replies] = {}
+
+
+def _collect(replies: list) -> dict[Any, Any]:
+    """On a broker thread: the outcome (result or Failed) of each reply that has come, each
+    forgotten then. Celery results of a key-value backend (Redis) are read with one MGET;
+    anything else is asked reply by reply. A 503 when the result backend stops answering."""
+    from celery.result import AsyncResult
+
+    outcomes: dict[Any, Any] = {}
+    batched: dict[Any, list] = {}
+    single = []
+    for reply in replies:
+        if isinstance(reply, AsyncResult) and hasattr(reply.backend, "mget"):
+            batched.setdefault(reply.backend, []).append(reply)
+        else:
+            single.append(reply)
+    for backend, group in batched.items():
+        by_id = {reply.id: reply for reply in group}
+        try:
+            found = dict(backend.get_many(list(by_id), interval=0, max_iterations=1))
+        except NotImplementedError:  # a key-value backend without MGET
+            single += group
+            continue
+        except Exception as error:
+            raise _broker_lost(error) from None
+        for task_id, meta in found.items():
+            result = meta["result"]  # a failed task's exception is already rebuilt (meta_from_decoded)
+            outcomes[by_id[task_id]] = result if meta["status"] == "SUCCESS" else Failed(_as_exception(result))
+    for reply in single:
+        if _ready(reply):
+            try:
+                outcomes[reply] = reply.get(timeout=REPLY_TIMEOUT_S)
+            except Exception as error:
+                outcomes[reply] = Failed(error)
+    for reply in outcomes:
         _forget(reply)
+    return outcomes
+
+
+def _as_exception(result: Any) -> Exception:
+    return result if isinstance(result, Exception) else RuntimeError(str(result))
 
 
 def _forget(reply) -> None:
@@ -264,15 +369,19 @@ def _forget(reply) -> None:
         pass
 
 
+def _broker_lost(error: Exception) -> HTTPException:
+    return HTTPException(
+        status.HTTP_503_SERVICE_UNAVAILABLE,
+        f"the broker stopped answering while the detect waited: {' '.join(str(error).split())[:300]}",
+    )
+
+
 def _ready(reply) -> bool:
     """Whether the reply has come; a 503 when the result backend (the broker) stops answering."""
     try:
         return reply.ready()
     except Exception as error:
-        raise HTTPException(
-            status.HTTP_503_SERVICE_UNAVAILABLE,
-            f"the broker stopped answering while the detect waited: {' '.join(str(error).split())[:300]}",
-        ) from None
+        raise _broker_lost(error) from None
 
 
 def _run_here(args: list) -> dict[str, Any]:
