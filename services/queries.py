@@ -151,9 +151,22 @@ def _seconds_between(start: datetime | None, end: datetime | None) -> float | No
     return (end - start).total_seconds()
 
 
+def _experiment_column(session: Session, experiment_id: int, column):
+    """One column of an experiment's row, read without loading the row (its config, its
+    classes); NotFound if it does not exist."""
+    row = (
+        session.execute(select(column).where(Experiment.id == experiment_id)).first()
+        if 1 <= experiment_id <= MAX_ID
+        else None
+    )
+    if row is None:
+        raise NotFound(f"experiment {experiment_id} does not exist")
+    return row[0]
+
+
 def history(session: Session, experiment_id: int) -> list[dict[str, Any]]:
     """P: one entry per evaluated model, in the order the scores arrived."""
-    experiment = get_experiment(session, experiment_id)
+    started_at = _experiment_column(session, experiment_id, Experiment.started_at)
     render_seconds = {
         (stage_id, k): seconds
         for stage_id, k, seconds in session.execute(
@@ -162,8 +175,23 @@ def history(session: Session, experiment_id: int) -> list[dict[str, Any]]:
             .group_by(ParameterSet.stage_id, ParameterSet.increment)
         )
     }
+    # The columns the entries show, not the rows: an evaluation's details and a model's
+    # training statistics are documents of their own, decoded for nothing here.
     rows = session.execute(
-        select(Model, Evaluation, Stage)
+        select(
+            Stage.id,
+            Stage.order,
+            Stage.condition,
+            Stage.difficulty,
+            Model.increment,
+            Model.id,
+            Model.parent_id,
+            Model.train_seconds,
+            Evaluation.map,
+            Evaluation.map_unthresholded,
+            Evaluation.eval_seconds,
+            Evaluation.created_at,
+        )  # fmt: skip
         .join(Evaluation, Evaluation.model_id == Model.id)
         .join(Stage, Stage.id == Model.stage_id)
         .where(Model.experiment_id == experiment_id)
@@ -171,21 +199,34 @@ def history(session: Session, experiment_id: int) -> list[dict[str, Any]]:
     ).all()
     return [
         {
-            "stage": stage.order,
-            "condition": stage.condition,
-            "difficulty": stage.difficulty,
-            "k": model.increment,
-            "model_id": model.id,
-            "parent_id": model.parent_id,
-            "map": evaluation.map,
-            "map_unthresholded": evaluation.map_unthresholded,
-            "render_seconds": render_seconds.get((stage.id, model.increment)),
-            "train_seconds": model.train_seconds,
-            "eval_seconds": evaluation.eval_seconds,
-            "wall_seconds": _seconds_between(experiment.started_at, evaluation.created_at),
-            "evaluated_at": _iso(evaluation.created_at),
+            "stage": order,
+            "condition": condition,
+            "difficulty": difficulty,
+            "k": k,
+            "model_id": model_id,
+            "parent_id": parent_id,
+            "map": score,
+            "map_unthresholded": unthresholded,
+            "render_seconds": render_seconds.get((stage_id, k)),
+            "train_seconds": train_seconds,
+            "eval_seconds": eval_seconds,
+            "wall_seconds": _seconds_between(started_at, created_at),
+            "evaluated_at": _iso(created_at),
         }
-        for model, evaluation, stage in rows
+        for (
+            stage_id,
+            order,
+            condition,
+            difficulty,
+            k,
+            model_id,
+            parent_id,
+            train_seconds,
+            score,
+            unthresholded,
+            eval_seconds,
+            created_at,
+        ) in rows  # fmt: skip
     ]
 
 
@@ -204,14 +245,14 @@ def stages(session: Session, experiment_id: int) -> list[dict[str, Any]]:
     loop_score = (experiment.config.get("evaluation") or {}).get("loop_score", "map")
     scores: dict[int, list[tuple[int, float | None, int]]] = {}
     p_of: dict[int, float | None] = {}  # each model's P, the score its loop read
-    for model, score, p in session.execute(
-        select(Model, Evaluation.map, getattr(Evaluation, loop_score))
+    for stage_id, increment, model_id, score, p in session.execute(
+        select(Model.stage_id, Model.increment, Model.id, Evaluation.map, getattr(Evaluation, loop_score))
         .join(Evaluation, Evaluation.model_id == Model.id)
         .where(Model.experiment_id == experiment_id)
         .order_by(Model.increment)
     ):
-        scores.setdefault(model.stage_id, []).append((model.increment, score, model.id))
-        p_of[model.id] = p
+        scores.setdefault(stage_id, []).append((increment, score, model_id))
+        p_of[model_id] = p
     failed_images = dict(
         session.execute(
             select(ParameterSet.stage_id, func.count())
@@ -291,14 +332,28 @@ def summary(session: Session, experiment_id: int) -> dict[str, Any]:
             select(Model.status, func.count()).where(Model.experiment_id == experiment_id).group_by(Model.status)
         )
     }
-    current = session.scalar(
-        select(Stage)
+    # The running stage with its newest increment, and the two counts, one statement each.
+    current = session.execute(
+        select(
+            Stage.order,
+            Stage.condition,
+            Stage.difficulty,
+            select(func.max(Model.increment)).where(Model.stage_id == Stage.id).scalar_subquery(),
+        )
         .where(Stage.experiment_id == experiment_id, Stage.status == StageStatus.running)
         .order_by(Stage.order)
-    )
-    current_k = None
-    if current is not None:
-        current_k = session.scalar(select(func.max(Model.increment)).where(Model.stage_id == current.id))
+        .limit(1)
+    ).first()
+    evaluations, stage_count = session.execute(
+        select(
+            select(func.count())
+            .select_from(Evaluation)
+            .join(Model, Model.id == Evaluation.model_id)
+            .where(Model.experiment_id == experiment_id)
+            .scalar_subquery(),
+            select(func.count()).select_from(Stage).where(Stage.experiment_id == experiment_id).scalar_subquery(),
+        )
+    ).one()
     best = session.execute(
         select(Evaluation.map, Model.id)
         .join(Model, Model.id == Evaluation.model_id)
@@ -315,22 +370,15 @@ def summary(session: Session, experiment_id: int) -> dict[str, Any]:
         "seed": experiment.seed,
         "classes": experiment.classes,
         "current_stage": (
-            {"order": current.order, "condition": current.condition, "difficulty": current.difficulty, "k": current_k}
+            {"order": current[0], "condition": current[1], "difficulty": current[2], "k": current[3]}
             if current
             else None
         ),
         "counts": {
             "parameter_sets": theta_counts,
             "models": model_counts,
-            "evaluations": session.scalar(
-                select(func.count())
-                .select_from(Evaluation)
-                .join(Model, Model.id == Evaluation.model_id)
-                .where(Model.experiment_id == experiment_id)
-            ),
-            "stages": session.scalar(
-                select(func.count()).select_from(Stage).where(Stage.experiment_id == experiment_id)
-            ),
+            "evaluations": evaluations,
+            "stages": stage_count,
         },
         "failed_by_reason": failed_by_reason(session, experiment_id),
         "best": {"map": best[0], "model_id": best[1]} if best else None,

@@ -17,7 +17,6 @@ import json
 import shutil
 import tempfile
 from collections.abc import Callable
-from dataclasses import asdict
 from pathlib import Path
 from typing import Any
 
@@ -49,26 +48,48 @@ def _digest(content: Any) -> str:
 
 
 def report_content(experiment_id: int) -> str:
-    """What ``foldwise report`` draws for one experiment, hashed (queries.NotFound if it does not exist)."""
+    """What ``foldwise report`` draws for one experiment, hashed (queries.NotFound if it does not exist).
+
+    The report's rows (services.report.report_rows) are made of the history and the test set's
+    render time: those are hashed, read in one session, rather than the rows themselves."""
     from db.session import session_scope
     from services import queries
-    from services.report import report_rows
 
     with session_scope() as session:
         experiment = queries.get_experiment(session, experiment_id)
-        head = {"name": experiment.name, "status": str(experiment.status), "config": experiment.config}
-    return _digest({**head, "rows": report_rows(experiment_id)})
+        content = {
+            "name": experiment.name,
+            "status": str(experiment.status),
+            "config": experiment.config,
+            "history": queries.history(session, experiment_id),
+            "test_set_render_seconds": queries.test_set_render_seconds(session, experiment_id),
+        }
+    return _digest(content)
 
 
 def figure_content(experiment_id: int, name: str) -> str:
-    """What figure ``name`` draws for one experiment, hashed (queries.NotFound if it does not exist)."""
-    from services.figures import load_runs
+    """What figure ``name`` draws for one experiment, hashed (queries.NotFound if it does not exist).
 
-    runs = [asdict(run) for run in load_runs([experiment_id])]
-    for run in runs:
-        # A running stage's seconds grow with the clock; no figure draws them.
-        run["stages"] = [{key: value for key, value in stage.items() if key != "seconds"} for stage in run["stages"]]
-    return _digest({"figure": name, "runs": runs})
+    A figure draws services.figures.load_runs: the history and stages, and a label, cuts and
+    kind that the experiment's name and stored config determine; those are hashed as stored,
+    without validating the config per request."""
+    from db.session import session_scope
+    from services import queries
+
+    with session_scope() as session:
+        experiment = queries.get_experiment(session, experiment_id)
+        content = {
+            "figure": name,
+            "name": experiment.name,
+            "config": experiment.config,
+            "history": queries.history(session, experiment_id),
+            # A running stage's seconds grow with the clock; no figure draws them.
+            "stages": [
+                {key: value for key, value in stage.items() if key != "seconds"}
+                for stage in queries.stages(session, experiment_id)
+            ],
+        }
+    return _digest(content)
 
 
 def _drawn_folder(experiment_id: int, name: str, digest: str) -> Path:
