@@ -176,7 +176,7 @@ def main(argv=None) -> dict:
                 for name, values in rows.items()
             )
         )
-    report["headline"] = " | ".join(headline)
+    report["headline"] = " · ".join(headline)
     report["machine"] = machine()
     return write_report(report, args.out)
 
