@@ -445,6 +445,11 @@ class DetectorConfig(_Section):
     # its out-of-domain sets), recorded in every checkpoint trained with it. `foldwise calibrate`
     # fits one on your own labelled photographs instead.
     calibration: Literal["tiers", "shipped"] = "tiers"
+    # With several views and the texture check, detection runs in two passes: one view (the
+    # largest test size, upright) and the check first, every view only for images where the
+    # texture confirmed nothing (bench/README.md, "Detection's speed against its accuracy"). Off:
+    # every view on every image (`foldwise detect --every-view` for one call).
+    cascade: bool = True
     augmentation: AugmentationConfig = AugmentationConfig()
 
     @model_validator(mode="after")

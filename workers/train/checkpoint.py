@@ -572,6 +572,7 @@ def detect_object(
     test_sizes: Sequence[int] | None = None,
     test_turns: Sequence[int] | None = None,
     texture_check: bool = True,
+    every_view: bool = False,
 ) -> list[dict[str, np.ndarray]]:
     """Detections per image: ``boxes`` (n, 4) float32 xyxy in that image's pixels, ``scores``
     (n,) float32, ``labels`` (n,) int64 0-based class indices, best score first.
@@ -586,9 +587,9 @@ def detect_object(
     boxes the texture confirmed; ``texture_check=False`` gives the network's alone.
 
     A detector with several views and a texture check detects in two passes where its
-    ``cascade`` says so (:class:`Cascade`): every view only for the images one view leaves unsure.
-    ``test_sizes`` or ``test_turns`` given, or ``detector.cascade`` None: the views asked for, in
-    one pass.
+    ``cascade`` says so (:class:`Cascade`) and its config's ``cascade`` is on: every view only for
+    the images one view leaves unsure. ``test_sizes`` or ``test_turns`` given, ``every_view``, the
+    config's ``cascade`` off, or ``detector.cascade`` None: the views asked for, in one pass.
     """
     if batch_size < 1:
         raise ValueError(f"batch_size must be at least 1, got {batch_size}")
@@ -604,6 +605,8 @@ def detect_object(
     cascade = detector.cascade
     if (
         checker is None
+        or every_view
+        or not detector.config.cascade
         or test_sizes is not None
         or test_turns is not None
         or len(sizes or (0,)) * len(turns or (0,)) < 2

@@ -534,6 +534,14 @@ def detect(
             "(R-CNN families; default: the checkpoint's detector.test_turns).",
         ),
     ] = None,
+    every_view: Annotated[
+        bool,
+        typer.Option(
+            "--every-view",
+            help="Run every view on every image: off the checkpoint's cascade (detector.cascade), which "
+            "runs one view and the texture check first and the rest only where the texture confirmed nothing.",
+        ),
+    ] = False,
     json_path: Annotated[
         Path | None,
         typer.Option(
@@ -575,7 +583,12 @@ def detect(
 
     try:
         detections = detect_ensemble(
-            detectors, pictures, batch_size=batch_size, test_sizes=test_sizes, test_turns=test_turns
+            detectors,
+            pictures,
+            batch_size=batch_size,
+            test_sizes=test_sizes,
+            test_turns=test_turns,
+            every_view=every_view,
         )
     except ValueError as error:  # e.g. --sizes or --turns for a yolo detector, or ensemble members of other classes
         _fail(str(error))

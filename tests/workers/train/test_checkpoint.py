@@ -718,6 +718,13 @@ def test_the_cascade_runs_every_view_only_where_one_view_leaves_the_image_unsure
     detect_object(detector, arrays, batch_size=4, test_turns=(0, 1))
     detect_object(detector, arrays, batch_size=4, texture_check=False)
     assert forwards == [4, 4]
+    # Every view asked for in the call (foldwise detect --every-view), or by the config's
+    # detector.cascade off: one pass at every view, the same detections as without a cascade.
+    forwards.clear()
+    assert same_detections(detect_object(detector, arrays, batch_size=4, every_view=True), every_view)
+    detector.meta = {**detector.meta, "config": {**detector.meta["config"], "cascade": False}}
+    assert same_detections(detect_object(detector, arrays, batch_size=4), every_view)
+    assert forwards == [4, 4]
 
 
 def test_the_cascades_rule_goes_on_where_nothing_is_confirmed_or_a_box_is_unsure():

@@ -564,3 +564,21 @@ def test_lookalikes_are_refused_for_a_model_without_textures_and_written_into_on
     loaded = load_detector(pair)
     assert set(loaded.lookalikes) == {"other form"} and loaded.lookalikes["other form"].shape == (40, 30)
     assert load_detector(write_lookalikes(pair, {}, tmp_path / "none.pt")).lookalikes is None
+
+
+def test_detect_every_view_turns_the_cascade_off_for_the_call(trained, dataset, tmp_path, monkeypatch):
+    from workers.train import checkpoint
+
+    images = [str(sorted((dataset / "images").glob("*.png"))[0])]
+    asked = []
+    detect_ensemble = checkpoint.detect_ensemble
+    monkeypatch.setattr(
+        checkpoint,
+        "detect_ensemble",
+        lambda *args, **options: asked.append(options) or detect_ensemble(*args, **options),
+    )
+    model = ["--model", str(trained["checkpoints"]["faster_rcnn"])]
+    for flag in ([], ["--every-view"]):
+        result = runner.invoke(make_app(), ["detect", *model, *images, "--out-dir", str(tmp_path), *flag])
+        assert result.exit_code == 0, result.output
+    assert [options["every_view"] for options in asked] == [False, True]
