@@ -143,4 +143,8 @@ async def drawn(
             files = _index(folder)  # drawn while this request waited
             if files is None:
                 files = await run_in_threadpool(_draw_into, folder, draw)
+                # Drawing leaves matplotlib's modules and caches for the process's life.
+                from services.api.app import settle_heap
+
+                settle_heap()
     return folder, files

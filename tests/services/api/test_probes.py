@@ -147,3 +147,28 @@ def test_a_status_read_hands_over_to_a_thread_once(database_url, seeded, hand_ov
     response = client.get(path.format(id=seeded["experiment"]), headers=AUTH)
     assert response.status_code == 200
     assert hand_overs == ["read_with.<locals>.run"]
+
+
+def test_starting_the_api_compiles_the_status_reads_before_the_first_request(seeded, database_url):
+    """The lifespan runs the status reads once on the newest experiment: the crowd that polls a
+    freshly started API finds their SQL compiled instead of each compiling it at once."""
+    from db.session import get_engine
+
+    engine = get_engine(database_url)
+    before = len(engine._compiled_cache)
+    with TestClient(create_app(broker_timeout_s=0.5, ping_timeout_s=0.3)) as client:
+        prepared = len(engine._compiled_cache)
+        assert prepared > before
+        for path in ("", "/stages", "/history"):
+            assert client.get(f"/experiments/{seeded['finished']}{path}").status_code == 200
+        assert len(engine._compiled_cache) == prepared  # nothing left to compile
+
+
+def test_the_api_starts_on_a_database_that_cannot_answer(tmp_path):
+    """Preparing the reads is best effort: an unreachable database is /health's to report."""
+    settings = get_settings().model_copy(
+        update={"database_url": f"sqlite:///{tmp_path / 'missing' / 'api.db'}", "broker_url": "memory://"}
+    )
+    with TestClient(create_app(settings, broker_timeout_s=0.5, ping_timeout_s=0.3)) as client:
+        health = client.get("/health")
+    assert health.status_code == 503 and health.json()["status"] == "error"
