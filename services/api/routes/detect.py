@@ -26,6 +26,7 @@ from typing import Annotated, Any, NamedTuple
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, status
 from pydantic import BaseModel, Field
+from sqlalchemy import select
 from starlette.concurrency import run_in_threadpool
 
 # The Celery app (celery and kombu; neither torch nor bpy) is loaded with the API: imported by
@@ -172,15 +173,16 @@ async def detect(
 
 
 def _checkpoint_of(session, model_id: int) -> str:
-    model = session.get(Model, model_id)
-    if model is None:
+    # Two columns, not the row: its training statistics are a document decoded for nothing here.
+    row = session.execute(select(Model.status, Model.checkpoint_path).where(Model.id == model_id)).first()
+    if row is None:
         raise HTTPException(status.HTTP_404_NOT_FOUND, f"model {model_id} does not exist")
-    if model.status != ModelStatus.evaluated or not model.checkpoint_path:
+    model_status, checkpoint = row
+    if model_status != ModelStatus.evaluated or not checkpoint:
         raise HTTPException(
             status.HTTP_409_CONFLICT,
-            f"model {model_id} is {model.status.value}: only a trained and evaluated model can detect",
+            f"model {model_id} is {model_status.value}: only a trained and evaluated model can detect",
         )
-    checkpoint = model.checkpoint_path
     session.close()  # the reply may take a while; hold no connection meanwhile
     return checkpoint
 
