@@ -13,8 +13,11 @@ to one thread with :func:`read_with`.
 """
 
 # No `from __future__ import annotations`: FastAPI resolves these annotations at runtime.
+import asyncio
 import secrets
+import threading
 from collections.abc import AsyncIterator, Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Annotated, Any, TypeVar
 
 import anyio
@@ -22,7 +25,6 @@ from fastapi import Depends, HTTPException, Path, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from sqlalchemy import Engine
 from sqlalchemy.orm import Session, sessionmaker
-from starlette.concurrency import run_in_threadpool
 
 from db.session import get_engine, get_sessionmaker
 from foldwise.settings import Settings
@@ -88,13 +90,36 @@ async def get_session(settings: SettingsDep) -> AsyncIterator[Session]:
 SessionDep = Annotated[Session, Depends(get_session)]
 
 
+# The threads that run the reads (read_with), started with the API (start_readers) and kept for
+# its life. A crowd of reads on the shared pool made it start a thread for nearly each one, and
+# every start waits for the new thread to take the GIL from the busy ones: the event loop, and
+# every request, stalled for milliseconds per thread.
+READ_THREADS = 8
+_readers = ThreadPoolExecutor(max_workers=READ_THREADS, thread_name_prefix="foldwise-read")
+
+
+async def start_readers() -> None:
+    """Start every reader thread now (each of the first READ_THREADS reads would start one)."""
+    gate = threading.Barrier(READ_THREADS)
+
+    def hold() -> None:
+        try:
+            gate.wait(timeout=5)  # held until all are running: each on a thread of its own
+        except threading.BrokenBarrierError:
+            pass
+
+    loop = asyncio.get_running_loop()
+    await asyncio.gather(*(loop.run_in_executor(_readers, hold) for _ in range(READ_THREADS)))
+
+
 async def read_with(session: Session, read: Callable[..., T], *args: Any) -> T:
-    """``read(session, *args)`` on a worker thread, the session closed on that thread after it.
+    """``read(session, *args)`` on a reader thread, the session closed on that thread after it.
 
     A read route declared ``async def`` that reads through this hands over to a thread once:
     FastAPI runs a plain ``def`` route on a thread, then validates its answer on another hand-over,
     and :func:`get_session` would close the session on a third. ``read`` must return plain data
-    (dicts, lists, schema models): the ORM objects it read are detached once it returns."""
+    (dicts, lists, schema models): the ORM objects it read are detached once it returns. A read
+    that the client stops waiting for still runs to its end, and closes its session."""
 
     def run() -> T:
         try:
@@ -102,7 +127,12 @@ async def read_with(session: Session, read: Callable[..., T], *args: Any) -> T:
         finally:
             session.close()
 
-    return await run_in_threadpool(run)
+    return await run_read(run)
+
+
+async def run_read(function: Callable[..., T], *args: Any) -> T:
+    """``function(*args)`` on a reader thread (a read that opens its own session)."""
+    return await asyncio.get_running_loop().run_in_executor(_readers, function, *args)
 
 
 async def get_broker(request: Request) -> BrokerProbe:

@@ -135,7 +135,9 @@ async def drawn(
 ) -> tuple[Path, dict[str, str]]:
     """The folder of figure ``name`` drawn from the record's present content, and its files by
     extension: drawn now if that content was never drawn, else as drawn before."""
-    digest = await run_in_threadpool(content)
+    from services.api.deps import run_read
+
+    digest = await run_read(content)
     folder = _drawn_folder(experiment_id, name, digest)
     files = _index(folder)
     if files is None:

@@ -9,8 +9,9 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Response, status
 from fastapi.security import HTTPAuthorizationCredentials
 from sqlalchemy.orm import Session
+from starlette.concurrency import run_in_threadpool
 
-from services.api.deps import BrokerDep, SchemaCheckDep, SessionDep, SettingsDep, bearer, read_with
+from services.api.deps import BrokerDep, SchemaCheckDep, SessionDep, SettingsDep, bearer
 from services.api.schemas import Health
 
 router = APIRouter(tags=["status"])
@@ -38,7 +39,9 @@ async def health(
         session.close()  # a silent broker keeps this thread for its timeout; not a database connection too
         return database, broker.check()
 
-    database, broker_state = await read_with(session, probe)  # both block: one worker thread for the two
+    # Both block: one thread for the two, from the shared pool rather than the readers' (a
+    # silent broker holds it for its timeout, which no status read should wait behind).
+    database, broker_state = await run_in_threadpool(probe, session)
     if database["status"] != "ok":
         overall = "error"
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE

@@ -121,17 +121,28 @@ def test_the_schema_check_reads_the_recorded_revision(database_url, tmp_path):
 
 @pytest.fixture
 def hand_overs(monkeypatch):
-    """Every function the app hands to a worker thread, in order."""
+    """Every function the app hands to a worker thread (the shared pool's or an executor's), in order."""
+    import asyncio.base_events
+
     import anyio.to_thread
 
     calls: list[str] = []
     run_sync = anyio.to_thread.run_sync
+    run_in_executor = asyncio.base_events.BaseEventLoop.run_in_executor
+
+    def name(function) -> str:
+        return getattr(getattr(function, "func", function), "__qualname__", repr(function))
 
     async def counted(function, *args, **kwargs):
-        calls.append(getattr(getattr(function, "func", function), "__qualname__", repr(function)))
+        calls.append(name(function))
         return await run_sync(function, *args, **kwargs)
 
+    def counted_in_executor(loop, executor, function, *args):
+        calls.append(name(function))
+        return run_in_executor(loop, executor, function, *args)
+
     monkeypatch.setattr(anyio.to_thread, "run_sync", counted)
+    monkeypatch.setattr(asyncio.base_events.BaseEventLoop, "run_in_executor", counted_in_executor)
     return calls
 
 
@@ -146,7 +157,7 @@ def test_a_status_read_hands_over_to_a_thread_once(database_url, seeded, hand_ov
     hand_overs.clear()
     response = client.get(path.format(id=seeded["experiment"]), headers=AUTH)
     assert response.status_code == 200
-    assert hand_overs == ["read_with.<locals>.run"]
+    assert hand_overs == ["health.<locals>.probe" if path == "/health" else "read_with.<locals>.run"]
 
 
 def test_starting_the_api_compiles_the_status_reads_before_the_first_request(seeded, database_url):
