@@ -3,10 +3,10 @@ detects against one API process and one detect worker.
 
 Everything is the bench's own and is removed afterwards: a temporary data folder and SQLite
 database, a redis-server on a free port without persistence, the API as compose runs it
-(``foldwise api``: one uvicorn process, access log on) and ``foldwise worker detect
---concurrency 1``. A 64-px YOLO is trained on eight renders first (about 10 s) so that the
-worker runs a real network, and each figure is fetched once (drawn, then served from the API's
-cache while the record does not change). Then, for ``--duration`` seconds, each client sends
+(``foldwise api``: one uvicorn process on uvloop and httptools, access log on) and
+``foldwise worker detect --concurrency 1``. A 64-px YOLO is trained on eight renders first
+(about 10 s) so that the worker runs a real network, and each figure is fetched once (drawn,
+then served from the API's cache while the record does not change). Then, for ``--duration`` seconds, each client sends
 requests one after another:
 
 - status clients: ``/health`` and ``/experiments/{id}``, ``/stages``, ``/history``, waiting
@@ -548,7 +548,8 @@ def main() -> None:
                 "load_average_before_load": load_average,  # 1, 5 and 15 minutes, with the stack started
             },
             "setup": {
-                "api": "foldwise api (as compose.yaml runs it: one uvicorn process, access log on), SQLite, loopback",
+                "api": "foldwise api (as compose.yaml runs it: one uvicorn process on uvloop and httptools, access "
+                "log on), SQLite, loopback",
                 "detect_worker": "foldwise worker detect --concurrency 1 (64-px YOLO, CPU)",
                 "broker": "a redis-server of the bench's own",
                 "max_detects_in_flight": MAX_IN_FLIGHT,
