@@ -29,6 +29,7 @@ INDEX = "files.json"
 KEEP_PREVIOUS = 1
 
 _drawing_locks: dict[int, asyncio.Lock] = {}
+_settled: set[str] = set()  # figures drawn once by this process, the heap settled after
 
 
 def _drawing_lock() -> asyncio.Lock:
@@ -145,8 +146,12 @@ async def drawn(
             files = _index(folder)  # drawn while this request waited
             if files is None:
                 files = await run_in_threadpool(_draw_into, folder, draw)
-                # Drawing leaves matplotlib's modules and caches for the process's life.
-                from services.api.app import settle_heap
+                if name not in _settled:
+                    # A figure's first drawing leaves matplotlib's modules and caches for the
+                    # process's life: out of the collector's sight, as the API's own are. Later
+                    # drawings leave little; a collection then would only hold the requests.
+                    from services.api.app import settle_heap
 
-                settle_heap()
+                    settle_heap()
+                    _settled.add(name)
     return folder, files
