@@ -472,6 +472,34 @@ async def _post_image(app, path, image):
         return await client.post(path, content=image, headers={**AUTH, "Content-Type": "image/png"})
 
 
+def test_waiting_replies_are_looked_for_in_one_round_trip(redis_url, monkeypatch):
+    """Every reply waited for is asked about with one MGET: a result comes back as it was
+    stored, a task that raised as Failed with its exception, and each collected is forgotten;
+    a reply still pending is left to wait."""
+    import redis
+    from celery.result import AsyncResult
+
+    import workers.app
+    from services.api.routes import detect
+
+    distributed = workers.app.create_app(get_settings().model_copy(update={"broker_url": redis_url, "eager": False}))
+    backend = distributed.backend
+    backend.mark_as_done("answered", {"detections": []})
+    backend.mark_as_failure("raised", ValueError("no such checkpoint"))
+    looks = []
+    mget = type(backend).mget
+    monkeypatch.setattr(type(backend), "mget", lambda self, keys: looks.append(len(keys)) or mget(self, keys))
+    answered, raised, pending = (AsyncResult(i, app=distributed) for i in ("answered", "raised", "pending"))
+
+    outcomes = detect._collect([answered, raised, pending])
+
+    assert looks == [3]
+    assert outcomes[answered] == {"detections": []} and pending not in outcomes
+    assert isinstance(outcomes[raised], detect.Failed) and str(outcomes[raised].error) == "no such checkpoint"
+    assert redis.Redis.from_url(redis_url).exists("celery-task-meta-answered", "celery-task-meta-raised") == 0
+    distributed.close()
+
+
 def test_detect_messages_expire_when_the_request_stops_waiting(database_url, redis_url, monkeypatch):
     """Through a Redis of its own with no worker: every request is a 504 or a 503 in time, and
     the messages left in the queue carry an expiry, so a worker that comes later drops them."""
