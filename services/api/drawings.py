@@ -128,6 +128,32 @@ def _draw_into(folder: Path, draw: Callable[[Path], dict[str, Path]]) -> dict[st
     return _index(folder) or files
 
 
+# Digests being read, by event loop, experiment and figure.
+_reading: dict[tuple[int, int, str], asyncio.Task] = {}
+
+
+async def _content_digest(experiment_id: int, name: str, content: Callable[[], str]) -> str:
+    """``content()`` read on a reader thread; requests for the same figure that arrive while it
+    is being read share that read (a dashboard's crowd asks for the same few figures at once),
+    and so see the record as it was a moment before they came."""
+    from services.api.deps import run_read
+
+    loop = asyncio.get_running_loop()
+    key = (id(loop), experiment_id, name)
+    reading = _reading.get(key)
+    if reading is None or reading.get_loop() is not loop:
+        reading = _reading[key] = loop.create_task(run_read(content))
+
+        def done(task: asyncio.Task) -> None:
+            if _reading.get(key) is task:
+                del _reading[key]
+            if not task.cancelled():
+                task.exception()  # retrieved: each waiter gets it (a 404), or none is left
+
+        reading.add_done_callback(done)
+    return await asyncio.shield(reading)  # a client that hangs up leaves the read to the others
+
+
 async def drawn(
     experiment_id: int,
     name: str,
@@ -136,9 +162,7 @@ async def drawn(
 ) -> tuple[Path, dict[str, str]]:
     """The folder of figure ``name`` drawn from the record's present content, and its files by
     extension: drawn now if that content was never drawn, else as drawn before."""
-    from services.api.deps import run_read
-
-    digest = await run_read(content)
+    digest = await _content_digest(experiment_id, name, content)
     folder = _drawn_folder(experiment_id, name, digest)
     files = _index(folder)
     if files is None:
