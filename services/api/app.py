@@ -24,7 +24,7 @@ from starlette.concurrency import run_in_threadpool
 from foldwise.config import ExperimentConfig
 from foldwise.settings import Settings, get_settings
 from services import queries
-from services.api.deps import start_readers
+from services.api.deps import start_threads
 from services.api.middleware import BodyLimit, BodyRule, SecurityHeaders
 from services.api.probes import BrokerProbe, SchemaCheck
 from services.api.routes import artifacts, assets, dashboard, detect, experiments, health, models, queues
@@ -106,7 +106,7 @@ def prepare_reads(app: FastAPI) -> None:
 @asynccontextmanager
 async def lifespan(app: FastAPI) -> AsyncIterator[None]:
     """Before the first request: what the first requests would otherwise each do while others wait."""
-    await start_readers()
+    await start_threads()
     await detect.prepare_broker()
     await run_in_threadpool(prepare_reads, app)
     settle_heap()

@@ -90,26 +90,40 @@ async def get_session(settings: SettingsDep) -> AsyncIterator[Session]:
 SessionDep = Annotated[Session, Depends(get_session)]
 
 
-# The threads that run the reads (read_with), started with the API (start_readers) and kept for
-# its life. A crowd of reads on the shared pool made it start a thread for nearly each one, and
-# every start waits for the new thread to take the GIL from the busy ones: the event loop, and
-# every request, stalled for milliseconds per thread.
+# The threads that run the reads (read_with) and /health's probes (run_probe), started with
+# the API (start_threads) and kept for its life. A crowd of requests on the shared pool made it
+# start a thread for nearly each one, and every start waits for the new thread to take the GIL
+# from the busy ones: the event loop, and every request, stalled for milliseconds per thread.
+# The probes have threads of their own: a silent broker holds one for its timeout, which no
+# status read should wait behind.
 READ_THREADS = 8
+PROBE_THREADS = 4
 _readers = ThreadPoolExecutor(max_workers=READ_THREADS, thread_name_prefix="foldwise-read")
+_probers = ThreadPoolExecutor(max_workers=PROBE_THREADS, thread_name_prefix="foldwise-probe")
 
 
-async def start_readers() -> None:
-    """Start every reader thread now (each of the first READ_THREADS reads would start one)."""
-    gate = threading.Barrier(READ_THREADS)
+async def start_threads() -> None:
+    """Start every reader and probe thread now (each of the first requests would start one)."""
 
-    def hold() -> None:
-        try:
-            gate.wait(timeout=5)  # held until all are running: each on a thread of its own
-        except threading.BrokenBarrierError:
-            pass
+    async def start(pool: ThreadPoolExecutor, count: int) -> None:
+        gate = threading.Barrier(count)
 
-    loop = asyncio.get_running_loop()
-    await asyncio.gather(*(loop.run_in_executor(_readers, hold) for _ in range(READ_THREADS)))
+        def hold() -> None:
+            try:
+                gate.wait(timeout=5)  # held until all are running: each on a thread of its own
+            except threading.BrokenBarrierError:
+                pass
+
+        loop = asyncio.get_running_loop()
+        await asyncio.gather(*(loop.run_in_executor(pool, hold) for _ in range(count)))
+
+    await start(_readers, READ_THREADS)
+    await start(_probers, PROBE_THREADS)
+
+
+async def run_probe(function: Callable[..., T], *args: Any) -> T:
+    """``function(*args)`` on a probe thread (/health's database and broker checks)."""
+    return await asyncio.get_running_loop().run_in_executor(_probers, function, *args)
 
 
 async def read_with(session: Session, read: Callable[..., T], *args: Any) -> T:

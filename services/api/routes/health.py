@@ -9,9 +9,8 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Response, status
 from fastapi.security import HTTPAuthorizationCredentials
 from sqlalchemy.orm import Session
-from starlette.concurrency import run_in_threadpool
 
-from services.api.deps import BrokerDep, SchemaCheckDep, SessionDep, SettingsDep, bearer
+from services.api.deps import BrokerDep, SchemaCheckDep, SessionDep, SettingsDep, bearer, run_probe
 from services.api.schemas import Health
 
 router = APIRouter(tags=["status"])
@@ -39,9 +38,7 @@ async def health(
         session.close()  # a silent broker keeps this thread for its timeout; not a database connection too
         return database, broker.check()
 
-    # Both block: one thread for the two, from the shared pool rather than the readers' (a
-    # silent broker holds it for its timeout, which no status read should wait behind).
-    database, broker_state = await run_in_threadpool(probe, session)
+    database, broker_state = await run_probe(probe, session)  # both block: one probe thread for the two
     if database["status"] != "ok":
         overall = "error"
         response.status_code = status.HTTP_503_SERVICE_UNAVAILABLE
