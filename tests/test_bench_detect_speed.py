@@ -22,14 +22,14 @@ CLASSES = ["astronaut", "coffee"]
 def test_every_way_of_running_the_views_is_scored_on_each_set_against_the_keypoint_recipe(tmp_path, capsys):
     import cv2
 
-    from tests.test_bench_texture_matching import _sheet_set
+    from tests.sheet_sets import sheet_set
     from tests.workers.train.training_helpers import config
     from workers.train.checkpoint import load_detector, save_ensemble
     from workers.train.data import read_image_rgb
     from workers.train.training import train_detector
 
     textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}
-    samples = _sheet_set(tmp_path / "sheets", 4, textures)
+    samples = sheet_set(tmp_path / "sheets", 4, textures)
     views = {"test_sizes": [64, 96], "test_turns": [0, 1], "view_vote": 0.7}
     checked = config(family="faster_rcnn", texture_check=True, texture_search=True, **views)
     members = []

@@ -20,12 +20,12 @@ CLASSES = ["astronaut", "coffee"]
 
 
 def test_each_case_runs_in_its_own_process_and_the_cache_changes_the_time_not_the_answer(tmp_path, capsys):
-    from tests.test_bench_texture_matching import _sheet_set
+    from tests.sheet_sets import sheet_set
     from tests.workers.train.training_helpers import config
     from workers.train.training import train_detector
 
     textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}
-    samples = _sheet_set(tmp_path / "sheets", 2, textures)
+    samples = sheet_set(tmp_path / "sheets", 2, textures)
     model = tmp_path / "checked.pt"
     train_detector(
         samples,

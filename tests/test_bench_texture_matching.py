@@ -8,7 +8,6 @@ import json
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import skimage.data
@@ -17,42 +16,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench import texture_matching  # noqa: E402
+from tests.sheet_sets import CLASSES, sheet_set  # noqa: E402
 from workers.train import texture_check  # noqa: E402
-
-CLASSES = ["astronaut", "coffee"]
-
-
-def _sheet_set(folder: Path, n: int, textures: dict) -> list:
-    """``n`` 200x150 images, each a texture of CLASSES (in turn) shrunk to 110 px wide, turned a
-    little and placed on a blurred noise ground, as a COCO folder; the samples."""
-    from workers.train.data import Sample
-
-    rng = np.random.default_rng(5)
-    (folder / "images").mkdir(parents=True)
-    samples, images, annotations = [], [], []
-    for index in range(n):
-        label = index % len(CLASSES)
-        texture = textures[CLASSES[label]]
-        ground = cv2.GaussianBlur(rng.integers(0, 255, (150, 200, 3)).astype(np.uint8), (0, 0), 3)
-        affine = cv2.getRotationMatrix2D((0, 0), float(rng.uniform(-15, 15)), 110 / texture.shape[1])
-        affine[:, 2] += (40 + rng.uniform(-10, 10), 30 + rng.uniform(-10, 10))
-        warped = cv2.warpAffine(texture, affine, (200, 150))
-        mask = cv2.warpAffine(np.full(texture.shape[:2], 255, np.uint8), affine, (200, 150)) > 0
-        ys, xs = np.nonzero(mask)
-        box = [float(xs.min()), float(ys.min()), float(xs.max()), float(ys.max())]
-        path = folder / "images" / f"{index}.png"
-        cv2.imwrite(str(path), cv2.cvtColor(np.where(mask[:, :, None], warped, ground), cv2.COLOR_RGB2BGR))
-        samples.append(Sample(path, np.array([box], np.float32), np.array([label]), condition="fb", difficulty="easy"))
-        images.append({"id": index + 1, "file_name": f"images/{index}.png", "width": 200, "height": 150})
-        x0, y0, x1, y1 = box
-        annotations.append(
-            {"id": index + 1, "image_id": index + 1, "category_id": label + 1, "bbox": [x0, y0, x1 - x0, y1 - y0]}
-        )
-    categories = [{"id": i + 1, "name": name} for i, name in enumerate(CLASSES)]
-    (folder / "annotations.json").write_text(
-        json.dumps({"images": images, "annotations": annotations, "categories": categories})
-    )
-    return samples
 
 
 def test_both_matchers_check_the_same_detections_and_the_report_compares_them(tmp_path, capsys):
@@ -60,7 +25,7 @@ def test_both_matchers_check_the_same_detections_and_the_report_compares_them(tm
     from workers.train.training import train_detector
 
     textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}
-    samples = _sheet_set(tmp_path / "sheets", 4, textures)
+    samples = sheet_set(tmp_path / "sheets", 4, textures)
     model = tmp_path / "checked.pt"
     searching = config(family="faster_rcnn", texture_check=True, texture_search=True)
     train_detector(samples, None, 1, searching, CLASSES, model, seed=0, textures=textures)

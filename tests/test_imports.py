@@ -88,3 +88,21 @@ def test_core_and_services_import_no_worker_package() -> None:
                 if ("import" in code) and ("workers.render" in code or "workers.train" in code):
                     offenders.append(f"{path.relative_to(ROOT)}:{number}: {line.strip()}")
     assert not offenders, "\n".join(offenders)
+
+
+def test_no_test_module_imports_another():
+    """Shared fixtures live in conftest.py and helpers in modules of their own: a test module
+    imported by another would run its tests' collection twice and tie unrelated tests together."""
+    import ast
+
+    offenders = []
+    for path in sorted((ROOT / "tests").rglob("test_*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            names = [node.module or ""] if isinstance(node, ast.ImportFrom) else []
+            names += [alias.name for alias in node.names] if isinstance(node, ast.Import) else []
+            offenders += [
+                f"{path.relative_to(ROOT)} imports {name}"
+                for name in names
+                if name.startswith("tests.") and name.rsplit(".", 1)[-1].startswith("test_")
+            ]
+    assert not offenders, offenders
