@@ -632,7 +632,7 @@ def detect_object(
             else:
                 first_size = cascade.first_size(sizes)
                 # The image's keypoints are found on a thread of their own while one view runs:
-                # neither keeps 2 cores busy alone (0.39 -> 0.34 s an image at 640x480 on 2 cores).
+                # neither keeps 2 cores busy alone (bench/README.md, "Detection's speed against its accuracy").
                 with ThreadPoolExecutor(1) as keypoints:
                     pending = [keypoints.submit(checker.matches, array) for array, _ in arrays]
                     with _test_views(model, () if first_size is None else (first_size,), ()):

@@ -94,20 +94,18 @@ SEARCH_SHEETS_PER_CLASS = 4  # sheets of one class looked for per image, one aft
 SEARCH_RANSAC_FRACTION = 0.02
 SEARCH_MIN_SIDE = 8  # px: an outline narrower than this in the frame is no sheet to report
 CONTRAST_THRESHOLD = 0.02  # OpenCV's default 0.04
-# The image's unsharp mask before SIFT (``sharpen``; the textures are left as they are), off: amount
-# 1 at sigma 1 px raised make run's pair on foldwise's three out-of-domain sets from 0.744 / 0.807 /
-# 0.735 to 0.761 / 0.832 / 0.739 (in domain 0.913 -> 0.921), but lowered the fourth, 640x480 set,
-# held out of that choice, from 0.844 to 0.785 (1.5: 0.807) and doubled the check's time there: a
-# gain that depends on the frame's size is no default for photographs of any size (bench/README.md,
-# "Sharpening the image before SIFT"; bench/texture_matching.py --sharpen measures it again).
+# The image's unsharp mask before SIFT (``sharpen``; the textures are left as they are), off: it
+# raised make run's pair on the smaller out-of-domain frames but lowered a 640x480 set held out of
+# that choice and doubled the check's time there, and a gain that depends on the frame's size is
+# no default for photographs of any size (bench/README.md, "Sharpening the image before SIFT";
+# bench/texture_matching.py --sharpen measures it again).
 SHARPEN_AMOUNT = 0.0
 SHARPEN_SIGMA = 1.0
 # Each texture's keypoints are also taken from views of it tilted (Morel & Yu's ASIFT): SIFT
 # matches a sheet seen at most ~45-60° off straight on, and the wild's sheets lie on the ground,
 # curl and face cameras low over it. Tilts √2 and 2 (45° and 60°) in four directions, 8 views
-# beside the texture itself: on make run's pair, out of domain 0.721 / 0.748 / 0.699 -> 0.729 /
-# 0.805 / 0.729, in domain 0.912 -> 0.916, for 7x the texture keypoints to match against
-# (bench/README.md, "Tilted views of the textures").
+# beside the texture itself, for 7x the texture keypoints to match against: out of domain and in
+# domain, make run's pair scored higher with them (bench/README.md, "Tilted views of the textures").
 TEXTURE_TILTS = (2**0.5, 2.0)
 TEXTURE_TILT_DIRECTIONS = (0.0, 45.0, 90.0, 135.0)
 # Two texture keypoints closer than this in one texture are one point (the ratio test's rival is
