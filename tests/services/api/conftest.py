@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import shutil
-import subprocess
 from datetime import timedelta
 
 import pytest
@@ -25,8 +24,7 @@ from db.session import get_sessionmaker, reset_engines
 from foldwise.config import ExperimentConfig
 from foldwise.settings import get_settings
 from services.api.app import create_app
-from tests.services.api.helpers import T0, TOKEN, TestClient, closed_port
-from tests.waiting import poll
+from tests.services.api.helpers import T0, TOKEN, OwnRedis, TestClient, closed_port
 
 
 @pytest.fixture
@@ -177,30 +175,9 @@ def seeded(database_url) -> dict:
 @pytest.fixture
 def redis_url():
     """A Redis server of the test's own on a free port (never the shared one), empty."""
-    server = shutil.which("redis-server")
-    if server is None:
-        pytest.skip("redis-server is not installed: a live-broker test needs a Redis of its own")
-    import redis
-
-    port = closed_port()
-    process = subprocess.Popen(
-        [server, "--port", str(port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
-    )
-    client = redis.Redis(port=port)
-
-    def answers() -> bool:
-        try:
-            return client.ping()
-        except redis.ConnectionError:
-            return False
-
+    server = OwnRedis()
     try:
-        if not poll(answers, timeout=5, interval=0.025):
-            pytest.skip("redis-server did not start")
-        yield f"redis://127.0.0.1:{port}/0"
+        server.start()
+        yield server.url
     finally:
-        client.close()
-        process.terminate()
-        process.wait(timeout=10)
+        server.stop()

@@ -4,19 +4,23 @@ ASGI call that says how much of the body the app read."""
 from __future__ import annotations
 
 import asyncio
+import shutil
 import socket
+import subprocess
 import warnings
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from datetime import UTC, datetime
 from pathlib import Path
 
+import pytest
 from sqlalchemy import func, select
 
 from db.models import Experiment
 from db.session import get_sessionmaker
 from foldwise.settings import get_settings
 from services.api.app import create_app
+from tests.waiting import poll
 
 with warnings.catch_warnings():
     # Starlette's test client asks for the `httpx2` fork; plain httpx works and is what is installed.
@@ -114,3 +118,53 @@ def png_claiming(width: int, height: int, data: bytes | None = None) -> bytes:
     header = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
     data = zlib.compress(b"\x00" * 64) if data is None else data
     return b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", data) + chunk(b"IEND", b"")
+
+
+class OwnRedis:
+    """A redis-server of the test's own on a free port (never the shared one), empty, without
+    persistence; it can be stopped and started again on the same port."""
+
+    def __init__(self) -> None:
+        self.server = shutil.which("redis-server")
+        if self.server is None:
+            pytest.skip("redis-server is not installed: a live-broker test needs a Redis of its own")
+        self.port = closed_port()
+        self.url = f"redis://127.0.0.1:{self.port}/0"
+        self.process: subprocess.Popen | None = None
+
+    def start(self) -> None:
+        import redis
+
+        self.process = subprocess.Popen(
+            [self.server, "--port", str(self.port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+        )
+        client = redis.Redis(port=self.port)
+
+        def answers() -> bool:
+            try:
+                return client.ping()
+            except redis.ConnectionError:
+                return False
+
+        try:
+            if not poll(answers, timeout=5, interval=0.025):
+                pytest.skip("redis-server did not start")
+        finally:
+            client.close()
+
+    def stop(self) -> None:
+        if self.process is not None and self.process.poll() is None:
+            self.process.terminate()
+            self.process.wait(timeout=10)
+
+    def connections_received(self) -> int:
+        """Connections the server has accepted, this question's own included."""
+        import redis
+
+        client = redis.Redis(port=self.port)
+        try:
+            return int(client.info("stats")["total_connections_received"])
+        finally:
+            client.close()

@@ -3,9 +3,6 @@ status read hands over to a worker thread once (services/api/probes.py, services
 
 from __future__ import annotations
 
-import shutil
-import subprocess
-
 import pytest
 from sqlalchemy import text
 
@@ -13,65 +10,17 @@ from db.session import get_sessionmaker
 from foldwise.settings import get_settings
 from services.api.app import create_app
 from services.api.probes import BrokerProbe, SchemaCheck
-from tests.services.api.helpers import AUTH, TestClient, closed_port
-from tests.waiting import poll
-
-
-class OwnRedis:
-    """A redis-server of the test's own on a fixed port, to stop and start again."""
-
-    def __init__(self) -> None:
-        self.server = shutil.which("redis-server")
-        if self.server is None:
-            pytest.skip("redis-server is not installed")
-        self.port = closed_port()
-        self.url = f"redis://127.0.0.1:{self.port}/0"
-        self.process: subprocess.Popen | None = None
-
-    def start(self) -> None:
-        import redis
-
-        self.process = subprocess.Popen(
-            [self.server, "--port", str(self.port), "--bind", "127.0.0.1", "--save", "", "--appendonly", "no"],
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.DEVNULL,
-        )
-        client = redis.Redis(port=self.port)
-
-        def answers() -> bool:
-            try:
-                return client.ping()
-            except redis.ConnectionError:
-                return False
-
-        try:
-            if not poll(answers, timeout=5, interval=0.025):
-                pytest.skip("redis-server did not start")
-        finally:
-            client.close()
-
-    def stop(self) -> None:
-        if self.process is not None and self.process.poll() is None:
-            self.process.terminate()
-            self.process.wait(timeout=10)
-
-    def connections_received(self) -> int:
-        """Connections the server has accepted, this question's own included."""
-        import redis
-
-        client = redis.Redis(port=self.port)
-        try:
-            return int(client.info("stats")["total_connections_received"])
-        finally:
-            client.close()
+from tests.services.api.helpers import AUTH, OwnRedis, TestClient
 
 
 @pytest.fixture
 def own_redis():
     server = OwnRedis()
-    server.start()
-    yield server
-    server.stop()
+    try:
+        server.start()
+        yield server
+    finally:
+        server.stop()
 
 
 def probe_of(url: str) -> BrokerProbe:
