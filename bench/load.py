@@ -344,38 +344,30 @@ async def run_load(
     def connection() -> Connection:
         return Connection(where.hostname, where.port)
 
-    async def status_client(index: int) -> None:
+    async def read_in_turn(index: int, paths: list[str], group, named) -> None:
+        """GET ``paths`` in turn from ``index`` on, ``think_s`` apart: each latency under
+        ``group(path)``, each answer but a 200 counted under ``named(path)`` and its code."""
         client = connection()
         try:
             for n in range(per_client):
                 if time.monotonic() > stop_at:
                     return
-                path = status_paths[(index + n) % len(status_paths)]
+                path = paths[(index + n) % len(paths)]
                 began = time.perf_counter()
                 code, _, _ = await client.request("GET", path)
-                latencies["health" if path == "/health" else "status"].append(time.perf_counter() - began)
+                latencies[group(path)].append(time.perf_counter() - began)
                 if code != 200:
-                    other_errors[f"GET {path} {code}"] = other_errors.get(f"GET {path} {code}", 0) + 1
-                await asyncio.sleep(think_s)
-        finally:
-            client.close()
-
-    async def figure_client(index: int) -> None:
-        client = connection()
-        try:
-            for n in range(per_client):
-                if time.monotonic() > stop_at:
-                    return
-                path = figure_paths[(index + n) % len(figure_paths)]
-                began = time.perf_counter()
-                code, _, _ = await client.request("GET", path)
-                latencies["figures"].append(time.perf_counter() - began)
-                if code != 200:
-                    key = f"GET {path.rsplit('/', 1)[-1]} {code}"
+                    key = f"GET {named(path)} {code}"
                     other_errors[key] = other_errors.get(key, 0) + 1
                 await asyncio.sleep(think_s)
         finally:
             client.close()
+
+    async def status_client(index: int) -> None:
+        await read_in_turn(index, status_paths, lambda path: "health" if path == "/health" else "status", str)
+
+    async def figure_client(index: int) -> None:
+        await read_in_turn(index, figure_paths, lambda path: "figures", lambda path: path.rsplit("/", 1)[-1])
 
     async def detect_client(index: int) -> None:
         client = connection()
