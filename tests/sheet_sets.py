@@ -11,6 +11,13 @@ import numpy as np
 CLASSES = ["astronaut", "coffee"]
 
 
+def class_textures() -> dict:
+    """Each of CLASSES' texture (scikit-image's sample photographs), RGB."""
+    import skimage.data
+
+    return {name: getattr(skimage.data, name)() for name in CLASSES}
+
+
 def sheet_set(folder: Path, n: int, textures: dict) -> list:
     """``n`` 200x150 images, each a texture of CLASSES (in turn) shrunk to 110 px wide, turned a
     little and placed on a blurred noise ground, as a COCO folder; the samples."""

@@ -9,26 +9,23 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import skimage.data
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench import detect_speed  # noqa: E402
-
-CLASSES = ["astronaut", "coffee"]
+from tests.sheet_sets import CLASSES, class_textures, sheet_set  # noqa: E402
 
 
 def test_every_way_of_running_the_views_is_scored_on_each_set_against_the_keypoint_recipe(tmp_path, capsys):
     import cv2
 
-    from tests.sheet_sets import sheet_set
     from tests.workers.train.training_helpers import config
     from workers.train.checkpoint import load_detector, save_ensemble
     from workers.train.data import read_image_rgb
     from workers.train.training import train_detector
 
-    textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}
+    textures = class_textures()
     samples = sheet_set(tmp_path / "sheets", 4, textures)
     views = {"test_sizes": [64, 96], "test_turns": [0, 1], "view_vote": 0.7}
     checked = config(family="faster_rcnn", texture_check=True, texture_search=True, **views)

@@ -9,22 +9,19 @@ import sys
 from pathlib import Path
 
 import pytest
-import skimage.data
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench import detect_startup  # noqa: E402
-
-CLASSES = ["astronaut", "coffee"]
+from tests.sheet_sets import CLASSES, class_textures, sheet_set  # noqa: E402
 
 
 def test_each_case_runs_in_its_own_process_and_the_cache_changes_the_time_not_the_answer(tmp_path, capsys):
-    from tests.sheet_sets import sheet_set
     from tests.workers.train.training_helpers import config
     from workers.train.training import train_detector
 
-    textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}
+    textures = class_textures()
     samples = sheet_set(tmp_path / "sheets", 2, textures)
     model = tmp_path / "checked.pt"
     train_detector(

@@ -10,13 +10,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import skimage.data
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench import texture_matching  # noqa: E402
-from tests.sheet_sets import CLASSES, sheet_set  # noqa: E402
+from tests.sheet_sets import CLASSES, class_textures, sheet_set  # noqa: E402
 from workers.train import texture_check  # noqa: E402
 
 
@@ -24,7 +23,7 @@ def test_both_matchers_check_the_same_detections_and_the_report_compares_them(tm
     from tests.workers.train.training_helpers import config
     from workers.train.training import train_detector
 
-    textures = {"astronaut": skimage.data.astronaut(), "coffee": skimage.data.coffee()}
+    textures = class_textures()
     samples = sheet_set(tmp_path / "sheets", 4, textures)
     model = tmp_path / "checked.pt"
     searching = config(family="faster_rcnn", texture_check=True, texture_search=True)
