@@ -84,12 +84,12 @@ class Cascade:
     sheet), or, with ``unsure``, where a box it did not confirm scores at least that after the
     check. Where the texture confirmed a box, the first pass's detections are the answer.
 
-    On make run's ensemble, one view at 320 px had a box confirmed in 47-75% of the images of
-    three out-of-domain sets (320x240 to 640x480), and the cascade's mAP was within 0.001 of
-    every view's or above it on each (boxes the texture confirmed at one view come without the
-    high-scored clutter twenty views' vote adds); ``unsure`` 0.8 sent 6-17% more of the images
-    on, for less mAP on two of the three (bench/README.md, "Detection's speed against its
-    accuracy"). An ONNX export holds every view: the check, and so the cascade, runs outside it.
+    On make run's ensemble one view confirmed a box in most images of foldwise's out-of-domain
+    sets, and the cascade scored as every view did or above (boxes the texture confirmed at one
+    view come without the high-scored clutter twenty views' vote adds); ``unsure`` sent more
+    images on for less mAP (bench/README.md, "Detection's speed against its accuracy", and
+    bench/results/detect_speed.json). An ONNX export holds every view: the check, and so the
+    cascade, runs outside it.
     """
 
     size: int | None = None
