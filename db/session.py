@@ -44,8 +44,20 @@ def get_engine(url: str | None = None) -> Engine:
     return _ENGINES[url]
 
 
+# Each URL's session factory, beside the engine it was made for. Each sessionmaker defines a
+# Session subclass of its own, and SQLAlchemy sets up that class's event dispatch on its first
+# query: a factory made per session cost about as much again as the session's first read.
+_SESSIONMAKERS: dict[str, tuple[Engine, sessionmaker[Session]]] = {}
+
+
 def get_sessionmaker(url: str | None = None) -> sessionmaker[Session]:
-    return sessionmaker(get_engine(url), expire_on_commit=False)
+    """One session factory per URL and engine (made again when reset_engines replaced the engine)."""
+    url = url or get_settings().resolved_database_url
+    engine = get_engine(url)
+    made = _SESSIONMAKERS.get(url)
+    if made is None or made[0] is not engine:
+        made = _SESSIONMAKERS[url] = (engine, sessionmaker(engine, expire_on_commit=False))
+    return made[1]
 
 
 @contextmanager
@@ -64,6 +76,7 @@ def session_scope(url: str | None = None) -> Iterator[Session]:
 
 def reset_engines() -> None:
     """Dispose of every engine (tests that switch databases, processes after a fork)."""
+    _SESSIONMAKERS.clear()
     while _ENGINES:
         _, engine = _ENGINES.popitem()
         engine.dispose()

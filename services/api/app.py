@@ -89,10 +89,10 @@ def prepare_reads(app: FastAPI) -> None:
     from sqlalchemy import func, select
 
     from db.models import Experiment
-    from services.api.deps import _sessionmaker
+    from db.session import get_sessionmaker
 
     try:
-        with _sessionmaker(app.state.settings.resolved_database_url)() as session:
+        with get_sessionmaker(app.state.settings.resolved_database_url)() as session:
             app.state.schema_check.check(session)
             newest = session.scalar(select(func.max(Experiment.id)))
             if newest is not None:

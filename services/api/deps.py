@@ -23,10 +23,9 @@ from typing import Annotated, Any, TypeVar
 import anyio
 from fastapi import Depends, HTTPException, Path, Request, status
 from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
-from sqlalchemy import Engine
-from sqlalchemy.orm import Session, sessionmaker
+from sqlalchemy.orm import Session
 
-from db.session import get_engine, get_sessionmaker
+from db.session import get_sessionmaker
 from foldwise.settings import Settings
 from services.api.probes import BrokerProbe, SchemaCheck
 from services.queries import MAX_ID
@@ -50,21 +49,6 @@ async def get_app_settings(request: Request) -> Settings:
 SettingsDep = Annotated[Settings, Depends(get_app_settings)]
 
 
-# The session factory of each database URL, beside the engine it was made for. Each sessionmaker
-# defines a Session subclass of its own, and SQLAlchemy sets up that class's event dispatch on its
-# first query: a factory made per request cost about as much again as the session's first read.
-_SESSIONMAKERS: dict[str, tuple[Engine, sessionmaker[Session]]] = {}
-
-
-def _sessionmaker(url: str) -> sessionmaker[Session]:
-    """``url``'s session factory, made again when its engine was replaced (db.session.reset_engines)."""
-    engine = get_engine(url)
-    made = _SESSIONMAKERS.get(url)
-    if made is None or made[0] is not engine:
-        made = _SESSIONMAKERS[url] = (engine, get_sessionmaker(url))
-    return made[1]
-
-
 async def get_session(settings: SettingsDep) -> AsyncIterator[Session]:
     """A session per request; uncommitted work (a request that failed half way) is rolled back on close.
 
@@ -76,7 +60,7 @@ async def get_session(settings: SettingsDep) -> AsyncIterator[Session]:
     cancellation (a client that hangs up), which would otherwise leave the connection out. A
     session that holds no transaction (never used, or closed by the route) has nothing to return
     and is closed here."""
-    session = _sessionmaker(settings.resolved_database_url)()
+    session = get_sessionmaker(settings.resolved_database_url)()
     try:
         yield session
     finally:
