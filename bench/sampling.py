@@ -79,8 +79,7 @@ def read_run(data_dir: Path, database: Path | None = None) -> dict:
     try:
         with Session(engine) as session:
             experiment = session.scalars(select(Experiment).order_by(Experiment.id)).first()
-            # P: the score the run's loop read (the stored config holds every key).
-            column = (experiment.config.get("evaluation") or {}).get("loop_score", "map")
+            column = queries.loop_score(experiment)  # P: the score the run's loop read
             scores = sorted(queries.history(session, experiment.id), key=lambda entry: (entry["stage"], entry["k"]))
             spent = queries.test_set_render_seconds(session, experiment.id)
             final = session.get(Model, experiment.final_model_id) if experiment.final_model_id else None

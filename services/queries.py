@@ -239,14 +239,19 @@ def test_set_render_seconds(session: Session, experiment_id: int) -> float:
     return float(total or 0.0)
 
 
+def loop_score(experiment: Experiment) -> str:
+    """The evaluation column P was read from (``evaluation.loop_score``): one key of the stored
+    config, which holds every key (model_dump), read without validating the config."""
+    return (experiment.config.get("evaluation") or {}).get("loop_score", "map")
+
+
 def stages(session: Session, experiment_id: int) -> list[dict[str, Any]]:
     experiment = get_experiment(session, experiment_id)
-    # The stored config holds every key (model_dump): one key read, no validation per request.
-    loop_score = (experiment.config.get("evaluation") or {}).get("loop_score", "map")
+    loop_score_column = loop_score(experiment)
     scores: dict[int, list[tuple[int, float | None, int]]] = {}
     p_of: dict[int, float | None] = {}  # each model's P, the score its loop read
     for stage_id, increment, model_id, score, p in session.execute(
-        select(Model.stage_id, Model.increment, Model.id, Evaluation.map, getattr(Evaluation, loop_score))
+        select(Model.stage_id, Model.increment, Model.id, Evaluation.map, getattr(Evaluation, loop_score_column))
         .join(Evaluation, Evaluation.model_id == Model.id)
         .where(Model.experiment_id == experiment_id)
         .order_by(Model.increment)
@@ -278,7 +283,7 @@ def stages(session: Session, experiment_id: int) -> list[dict[str, Any]]:
                 "best_map": best if best is not None else (max(finite) if finite else None),
                 # P (evaluation.loop_score) of the model the stage started from and of its best:
                 # a stage that learned raised it.
-                "loop_score": loop_score,
+                "loop_score": loop_score_column,
                 "start_p": p_of.get(stage.init_model_id) if stage.init_model_id is not None else None,
                 "best_p": p_of.get(stage.best_model_id)
                 if stage.best_model_id is not None
