@@ -137,8 +137,7 @@ def main(argv=None) -> dict:
 
         detect_object(detector, images[:1], test_sizes=(first_size,), test_turns=())  # warm: first calls allocate
         row("every view alone", lambda: views_alone(detector, images))
-        detector.cascade = None
-        row("as built", lambda: detect_object(detector, images, batch_size=args.batch_size))
+        row("as built", lambda: detect_object(detector, images, batch_size=args.batch_size, every_view=True))
         detector.cascade = Counted(**asdict(cascade))
         went_on.clear()
         row("cascade", lambda: detect_object(detector, images, batch_size=args.batch_size))
