@@ -26,7 +26,7 @@ SUFFIX_FORMATS = {
 IMAGE_SUFFIXES = tuple(SUFFIX_FORMATS)
 # Below these sides an asset cannot be drawn (a 1x1 background or occluder made every θ that
 # drew it fail, silently); above MAX_PIXELS it is refused rather than decoded.
-MIN_SIDE = {"objects": 16, "backgrounds": 16, "occluders": 8}
+MIN_SIDE = {"objects": 16, "backgrounds": 16, "occluders": 8, "lookalikes": 16}
 MAX_PIXELS = 64_000_000
 
 
@@ -135,7 +135,7 @@ def check_image_file(path: Path, what: str) -> tuple[int, int]:
 
 def _user_folders(config):
     """(kind, folder) for each asset folder an ``AssetsConfig`` names (None: the built-in defaults)."""
-    for what in ("objects", "backgrounds", "occluders"):
+    for what in ("objects", "backgrounds", "occluders", "lookalikes"):
         folder = None if config is None else getattr(config, what)
         if folder is not None:
             yield what, folder
@@ -160,14 +160,15 @@ def check_asset_roots(config, roots: list[Path], uploads: Path | None = None) ->
             )
 
 
-def check_class_names(files: list[Path]) -> None:
-    """AssetError naming both files when two object images would name the same class (the
-    class of an object image is its file name without the extension: workers/render/assets.py)."""
+def check_class_names(files: list[Path], what: str = "objects") -> None:
+    """AssetError naming both files when two object (or lookalike) images would take the same
+    name (an object image's class is its file name without the extension: workers/render/assets.py)."""
     first_with: dict[str, Path] = {}
     for path in files:
         if path.stem in first_with:
+            named = "the class" if what == "objects" else "the lookalike"
             raise AssetError(
-                f"assets.objects: {str(first_with[path.stem])!r} and {str(path)!r} both name the class "
+                f"assets.{what}: {str(first_with[path.stem])!r} and {str(path)!r} both name {named} "
                 f"{path.stem!r}: rename one"
             )
         first_with[path.stem] = path
@@ -177,8 +178,8 @@ def validate_assets(config) -> None:
     """Check every user folder of an ``AssetsConfig`` (None, or a default folder: nothing to check)."""
     for what, folder in _user_folders(config):
         files = image_files(folder, what)
-        if what == "objects":
-            check_class_names(files)
+        if what in ("objects", "lookalikes"):
+            check_class_names(files, what)
         for path in files:
             check_image_file(path, what)
 

@@ -96,6 +96,10 @@ class AssetsConfig(_Section):
     objects: Path | None = None
     backgrounds: Path | None = None
     occluders: Path | None = None
+    # Printed sheets of the objects' kind that are none of them (the user's other forms or
+    # covers): one or two lie beside the targets in every render, and the detector's texture
+    # check carries them, so neither the network nor the check takes them for an object.
+    lookalikes: Path | None = None
     # How many of the built-in object textures to use as classes (the paper uses 5).
     n_objects: int = Field(default=5, ge=1, le=5)
 

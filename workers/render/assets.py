@@ -137,9 +137,16 @@ def _builtin(names, keep_alpha: bool) -> list[Asset]:
 
 
 class AssetCatalog:
-    """Objects (the detector's classes), backgrounds and occluders, each a list of named images."""
+    """Objects (the detector's classes), backgrounds and occluders, each a list of named images;
+    and lookalikes where the config gives them (sheets of the objects' kind that are none of them)."""
 
-    def __init__(self, objects: list[Asset], backgrounds: list[Asset], occluders: list[Asset]):
+    def __init__(
+        self,
+        objects: list[Asset],
+        backgrounds: list[Asset],
+        occluders: list[Asset],
+        lookalikes: list[Asset] | None = None,
+    ):
         for what, assets in (("objects", objects), ("backgrounds", backgrounds), ("occluders", occluders)):
             if not assets:
                 raise AssetError(f"asset catalog: no {what}")
@@ -147,6 +154,12 @@ class AssetCatalog:
             if len(set(names)) != len(names):
                 raise AssetError(f"asset catalog: duplicate {what} names")
         self.objects = list(objects)
+        self.lookalikes = list(lookalikes or [])
+        clash = sorted({a.name for a in self.lookalikes} & set(self.classes))
+        if clash:
+            raise AssetError(
+                f"assets.lookalikes: {clash} share a name with an object; a lookalike is none of the objects"
+            )
         self.backgrounds = list(backgrounds)
         self.occluders = list(occluders)
         # Photographs pre-shrunk by powers of PHOTO_LEVEL_STEP, per (name, level): a crop is
@@ -159,6 +172,7 @@ class AssetCatalog:
             "objects": {a.name: a for a in self.objects},
             "backgrounds": {a.name: a for a in self.backgrounds},
             "occluders": {a.name: a for a in self.occluders},
+            "lookalikes": {a.name: a for a in self.lookalikes},
         }
 
     def __repr__(self) -> str:
@@ -186,6 +200,16 @@ class AssetCatalog:
         procedural patterns ("occluders/…", "backgrounds/…"); never an object's texture."""
         return [f"occluders/{a.name}" for a in self.occluders] + [f"backgrounds/{a.name}" for a in self.backgrounds]
 
+    @property
+    def lookalike_sheets(self) -> list[str]:
+        """The lookalikes as distractor names ("lookalikes/…"): every image shows one or two of
+        them beside its targets (layers.py); empty where the config gives none."""
+        return [f"lookalikes/{a.name}" for a in self.lookalikes]
+
+    def lookalike_textures(self) -> dict[str, np.ndarray]:
+        """Each lookalike's image by name: what a detector's texture check must not confirm."""
+        return {a.name: a.load() for a in self.lookalikes}
+
     def distractor(self, name: str, rng: np.random.Generator, size: int = 256) -> np.ndarray:
         """(h, w, 3) uint8 RGB of distractor ``name`` (see ``distractors``): the photograph
         (read-only, cached), or a procedural pattern of ``size`` pixels drawn from ``rng``."""
@@ -198,7 +222,11 @@ class AssetCatalog:
                 return procedural_background(asset_name[len(PROCEDURAL_PREFIX) :], size, rng)
             photo = asset.load()
             return photo if photo.shape[2] == 3 else np.ascontiguousarray(photo[:, :, :3])
-        raise AssetError(f"unknown distractor {name!r}: expected occluders/<name> or backgrounds/<name>")
+        if kind == "lookalikes":
+            return self._get("lookalikes", asset_name).load()
+        raise AssetError(
+            f"unknown distractor {name!r}: expected occluders/<name>, backgrounds/<name> or lookalikes/<name>"
+        )
 
     def _get(self, kind: str, name: str) -> Asset:
         try:
@@ -490,12 +518,14 @@ def procedural_background(kind: str, size: int, rng: np.random.Generator) -> np.
 
 def _config_key(config) -> tuple:
     if config is None:
-        return (None, None, None, 5)
+        return (None, None, None, 5, None)
+    folder = lambda path: None if path is None else str(Path(path).expanduser().resolve())  # noqa: E731
     return (
-        None if config.objects is None else str(Path(config.objects).expanduser().resolve()),
-        None if config.backgrounds is None else str(Path(config.backgrounds).expanduser().resolve()),
-        None if config.occluders is None else str(Path(config.occluders).expanduser().resolve()),
+        folder(config.objects),
+        folder(config.backgrounds),
+        folder(config.occluders),
         config.n_objects,
+        folder(config.lookalikes),
     )
 
 
@@ -506,7 +536,7 @@ def load_assets(config=None) -> AssetCatalog:
 
 @lru_cache(maxsize=16)
 def _load_assets_cached(key: tuple) -> AssetCatalog:
-    objects_dir, backgrounds_dir, occluders_dir, n_objects = key
+    objects_dir, backgrounds_dir, occluders_dir, n_objects, lookalikes_dir = key
     if objects_dir is None:
         objects = _builtin(BUILTIN_OBJECTS[:n_objects], keep_alpha=False)
     else:
@@ -524,4 +554,9 @@ def _load_assets_cached(key: tuple) -> AssetCatalog:
         occluders = _builtin(BUILTIN_OCCLUDERS, keep_alpha=True)
     else:
         occluders = _folder_assets(Path(occluders_dir), "occluders", keep_alpha=True, name_by_stem=False)
-    return AssetCatalog(objects, backgrounds, occluders)
+    lookalikes = []
+    if lookalikes_dir is not None:
+        lookalikes = _folder_assets(Path(lookalikes_dir), "lookalikes", keep_alpha=False, name_by_stem=True)
+        for asset in lookalikes:  # few, and drawn in every image: a broken one fails before any work
+            asset.load()
+    return AssetCatalog(objects, backgrounds, occluders, lookalikes)

@@ -17,6 +17,10 @@ interpenetrate, which the placements below keep). Flat distractor shapes are 2D 
   any in-plane angle, a tilt up to 60°. A front distractor that would hide more than half of
   what a target still shows is left out (the pipeline checks), so clutter never buries the
   object it is meant to distract from.
+* Lookalikes (``assets.lookalikes``): sheets of the targets' kind that are none of them (the
+  user's other forms or covers). One or two lie behind the targets in every image, negatives
+  included, bent like a distractor sheet and sized like a target (``LOOKALIKE_SCALE`` × θ's
+  scale): the detector learns that a sheet of that kind is not yet its object.
 """
 
 from __future__ import annotations
@@ -39,6 +43,8 @@ DISTRACTOR_SCALE = (0.2, 0.65)
 DISTRACTOR_MAX_TILT = math.radians(60.0)
 SHAPE_SIZE = (0.12, 0.4)  # flat shapes: side as a share of the image size
 SHAPE_SHARE = 0.35  # of distractors, flat shapes rather than sheets
+LOOKALIKES_PER_IMAGE = (1, 2)  # lookalike sheets in every image where the assets give some
+LOOKALIKE_SCALE = (0.6, 1.0)  # × θ's scale: printed on the same paper as the target
 
 
 @dataclass(frozen=True)
@@ -124,9 +130,11 @@ def instance_placements(theta, camera: Camera, objects: list[str], rng: np.rando
 
 
 def distractor_placements(
-    theta, camera: Camera, textures: list[str], rng: np.random.Generator
+    theta, camera: Camera, textures: list[str], rng: np.random.Generator, lookalikes: list[str] = ()
 ) -> list[SheetPlacement | ShapePlacement]:
-    """θ's ``clutter`` distractors (module notes), in drawing order."""
+    """θ's ``clutter`` distractors, then the ``lookalikes`` sheets (module notes), in drawing
+    order. The lookalikes draw from ``rng`` after the clutter, so a θ renders its clutter alike
+    with or without them."""
     placements: list[SheetPlacement | ShapePlacement] = []
     width, height = camera.width, camera.height
     for _ in range(int(theta.clutter)):
@@ -156,4 +164,25 @@ def distractor_placements(
                 seed=seed,
             )
         )
+    if lookalikes:
+        low, high = LOOKALIKES_PER_IMAGE
+        for _ in range(int(rng.integers(low, high + 1))):
+            pixel = (float(rng.uniform(0.05, 0.95) * width), float(rng.uniform(0.05, 0.95) * height))
+            placements.append(
+                SheetPlacement(
+                    object=None,
+                    texture=lookalikes[int(rng.integers(len(lookalikes)))],
+                    rulings=int(rng.integers(0, 4)),
+                    scale=float(theta.scale) * float(rng.uniform(*LOOKALIKE_SCALE)),
+                    roll=0.0,
+                    pitch=0.0,
+                    yaw=0.0,
+                    rotation=float(rng.uniform(-math.pi, math.pi)),
+                    tilt=float(rng.uniform(0.0, DISTRACTOR_MAX_TILT)),
+                    tilt_azimuth=float(rng.uniform(0.0, 2 * math.pi)),
+                    translation=tuple(float(v) for v in world_point(camera, pixel, -rng.uniform(*BEHIND_DEPTHS))),
+                    front=False,
+                    seed=int(rng.integers(0, 2**31 - 1)),
+                )
+            )
     return placements

@@ -12,7 +12,8 @@
 5. ``render``: the 3D backend, ``raster`` (raster.py) or ``blender`` (blender.py);
 6. ``instances`` (θ.instances ≠ 1): every target sheet placed and rendered as its own layer
    (layers.py); none for an image without the object;
-7. ``clutter`` (θ.clutter > 0): the distractors, each its own layer (layers.py);
+7. ``clutter`` (θ.clutter > 0, or lookalike sheets in the assets): the distractors and
+   lookalikes, each its own layer (layers.py);
 8. ``amodal``: each target's whole silhouette, off-image part included (for the amodal box and
    the visible fraction);
 9. ``occlusion`` (θ's visible fraction < 1): place the occluder on the first target; a
@@ -260,7 +261,10 @@ def _clutter_layers(theta: Theta, scene, shared: dict, assets, render, size: int
 
     behind: list[tuple[float, _Layer]] = []
     front: list[tuple[float, _Layer]] = []
-    for placement in distractor_placements(theta, scene.camera, assets.distractors, _rng(theta, _CLUTTER)):
+    placements = distractor_placements(
+        theta, scene.camera, assets.distractors, _rng(theta, _CLUTTER), lookalikes=assets.lookalike_sheets
+    )
+    for placement in placements:
         rng = np.random.default_rng(placement.seed)
         texture = assets.distractor(placement.texture, rng)
         if isinstance(placement, SheetPlacement):
@@ -364,7 +368,7 @@ def render_theta(theta, backend: str = "raster", assets=None, samples: int = 16,
         layers += _instance_layers(theta, scene, shared, assets, render)
         lap("instances")
 
-    if theta.clutter > 0:
+    if theta.clutter > 0 or assets.lookalike_sheets:
         behind, front = _clutter_layers(theta, scene, shared, assets, render, size)
         layers = behind + layers
         lap("clutter")

@@ -172,10 +172,15 @@ def _named_buffers(model: nn.Module) -> dict[str, list]:
 
 
 def save_checkpoint(
-    model: nn.Module, meta: dict[str, Any], path: str | Path, textures: Mapping[str, np.ndarray] | None = None
+    model: nn.Module,
+    meta: dict[str, Any],
+    path: str | Path,
+    textures: Mapping[str, np.ndarray] | None = None,
+    lookalikes: Mapping[str, np.ndarray] | None = None,
 ) -> Path:
     """Write ``model`` and ``meta`` to ``path`` atomically; returns the path. ``textures`` (class
-    name to an RGB or grayscale uint8 image) go in grayscale, for the texture check."""
+    name to an RGB or grayscale uint8 image) and ``lookalikes`` (sheets that are none of the
+    classes, by name) go in grayscale, for the texture check."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     meta = dict(meta)
@@ -186,13 +191,14 @@ def save_checkpoint(
         "meta": meta,
         "state_dict": {name: tensor.detach().cpu() for name, tensor in model.state_dict().items()},
     }
-    if textures:
-        from workers.train.texture_check import grayscale
+    from workers.train.texture_check import grayscale
 
-        payload["textures"] = {
-            str(name): torch.from_numpy(grayscale(np.asarray(image, dtype=np.uint8)).copy())
-            for name, image in textures.items()
-        }
+    for key, images in (("textures", textures), ("lookalikes", lookalikes)):
+        if images:
+            payload[key] = {
+                str(name): torch.from_numpy(grayscale(np.asarray(image, dtype=np.uint8)).copy())
+                for name, image in images.items()
+            }
     return _write_atomically(payload, path)
 
 

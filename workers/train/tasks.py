@@ -281,6 +281,7 @@ def _run_claimed_increment(model_id: int, task_id: str = "direct") -> str:
             out=store.resolve(relative),
             seed=seed,
             textures=load_assets(config.assets).textures(classes) if config.detector.texture_check else None,
+            lookalikes=load_assets(config.assets).lookalike_textures() if config.detector.texture_check else None,
             on_no_room=wait_for_room,
         )
         train_seconds = time.perf_counter() - started

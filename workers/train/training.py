@@ -173,20 +173,24 @@ def train_detector(
     on_step: Callable[[int], None] | None = None,
     textures: Mapping[str, np.ndarray] | None = None,
     on_no_room: Callable[[NoRoomError], None] | None = None,
+    lookalikes: Mapping[str, np.ndarray] | None = None,
 ) -> TrainStats:
     """Train ``iterations`` steps from ω_in (``init``; None: fresh weights per
     ``config.pretrained``) on ``samples`` and write the checkpoint ω to ``out``.
 
     ``init`` may equal ``out`` (ω_in is read before ω is written). ``on_step(steps_done)`` is
     called after every step (progress display). With ``config.texture_check`` the checkpoint
-    carries the classes' ``textures`` (None: ω_in's, where it has them). When the volume has no
+    carries the classes' ``textures`` (None: ω_in's, where it has them) and the ``lookalikes``
+    its texture check must not confirm (``assets.lookalikes``). When the volume has no
     room for ω (:class:`NoRoomError`; the file at ``out`` is then as it was), ``on_no_room(error)``
     is called: it returns to have the write tried again (having waited for room), or raises to
     give up; without it the error is raised, and the trained weights are lost.
     """
     _validate(samples, iterations, classes, config)
     with torch_threads(config.num_threads):
-        return _train(samples, init, iterations, config, list(classes), Path(out), seed, on_step, textures, on_no_room)
+        return _train(
+            samples, init, iterations, config, list(classes), Path(out), seed, on_step, textures, on_no_room, lookalikes
+        )
 
 
 def _train(
@@ -200,6 +204,7 @@ def _train(
     on_step: Callable[[int], None] | None = None,
     textures: Mapping[str, np.ndarray] | None = None,
     on_no_room: Callable[[NoRoomError], None] | None = None,
+    lookalikes: Mapping[str, np.ndarray] | None = None,
 ) -> TrainStats:
     started = time.perf_counter()
     device = resolve_device(config.device)
@@ -317,7 +322,7 @@ def _train(
     kept = {name: np.asarray(textures[name]) for name in classes} if config.texture_check and textures else None
     while True:
         try:
-            save_checkpoint(model, meta, out, textures=kept)
+            save_checkpoint(model, meta, out, textures=kept, lookalikes=lookalikes if kept else None)
             break
         except NoRoomError as error:
             if on_no_room is None:

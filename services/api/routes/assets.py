@@ -105,7 +105,9 @@ def _as_sent(error: Exception, staging: Path) -> HTTPException:
         },
     },
 )
-async def upload_assets(kind: Literal["objects", "backgrounds", "occluders"], request: Request) -> dict[str, Any]:
+async def upload_assets(
+    kind: Literal["objects", "backgrounds", "occluders", "lookalikes"], request: Request
+) -> dict[str, Any]:
     """Keep the uploaded images as one asset folder of the artifact store and answer its path,
     to put in a config as ``assets.<kind>``."""
     async with request.form(max_files=MAX_FILES + 1, max_fields=MAX_FILES + 1) as form:
@@ -160,9 +162,9 @@ def _keep(kind: str, files: list[UploadFile]) -> dict[str, Any]:
             described.append(
                 {"name": name, "sha256": hashlib.sha256(payload).hexdigest(), "width": width, "height": height}
             )
-        if kind == "objects":
+        if kind in ("objects", "lookalikes"):
             try:
-                check_class_names(sorted(staging.iterdir()))
+                check_class_names(sorted(staging.iterdir()), kind)
             except AssetError as error:
                 raise _as_sent(error, staging) from None
         described.sort(key=lambda entry: entry["name"])

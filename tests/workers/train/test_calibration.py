@@ -172,3 +172,30 @@ def test_lookalikes_given_to_the_check_stop_a_shared_template_from_confirming():
     assert results["lookalike"][1]["confirmed"].tolist() == [False]
     assert results["lookalike"][1]["evidence"][0][inliers] < results["lookalike"][0]["evidence"][0][inliers]
     assert results["sheet"][1]["confirmed"].tolist() == [True]
+
+
+def test_a_checkpoint_carries_the_lookalikes_for_its_texture_check(tmp_path):
+    """What training saves with ``assets.lookalikes`` (save_checkpoint's ``lookalikes``) is what
+    the loaded detector's texture check knows as no class."""
+    from foldwise.config import load_config
+    from workers.render.assets import load_assets
+    from workers.train.checkpoint import load_detector, save_checkpoint
+    from workers.train.detectors import build_detector
+
+    config = load_config("configs/smoke.yaml").detector.model_copy(update={"texture_check": True})
+    classes = ["astronaut", "coffee"]
+    model = build_detector(config, num_classes=len(classes))
+    textures = load_assets().textures(classes)
+    meta = {
+        "family": config.family,
+        "backbone": config.backbone,
+        "classes": classes,
+        "input_size": config.input_size,
+        "config": config.model_dump(mode="json"),
+    }
+    path = save_checkpoint(
+        model, meta, tmp_path / "m.pt", textures=textures, lookalikes={"form-b": np.full((96, 68, 3), 200, np.uint8)}
+    )
+    detector = load_detector(path)
+    assert set(detector.lookalikes) == {"form-b"}
+    assert detector.texture_check().lookalikes == ["form-b"]
