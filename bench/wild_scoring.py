@@ -45,13 +45,22 @@ def _at_threshold(predictions, truth, classes, score_threshold: float, iou_thres
     result = precision_recall_at(predictions, truth, classes, score_threshold, iou_threshold)
     drawn = result.true_positives + result.false_positives
     targets = result.true_positives + result.false_negatives
-    return {
+    report = {
         "precision": result.precision if drawn else None,
         "recall": result.recall if targets else None,
         "drawn": drawn,
         "true": result.true_positives,
         "targets": targets,
     }
+    if predictions and all("confirmed" in found for found in predictions):
+        # Of those, the boxes the texture confirmed (the rest stand on the network's word alone):
+        # where the false ones come from.
+        confirmed = [
+            {key: found[key][found["confirmed"]] for key in ("boxes", "scores", "labels")} for found in predictions
+        ]
+        alone = precision_recall_at(confirmed, truth, classes, score_threshold, iou_threshold)
+        report["confirmed"] = {"drawn": alone.true_positives + alone.false_positives, "true": alone.true_positives}
+    return report
 
 
 def _scores(

@@ -325,6 +325,25 @@ def test_the_class_agnostic_score_counts_a_found_sheet_whatever_class_it_is_give
     assert aware.map == 0.0 and aware.map_unthresholded == 1.0  # its right class only at 0.6, under the cut
 
 
+def test_what_a_user_sees_at_the_cut_is_split_by_the_textures_confirmation():
+    """Drawn boxes at the cut, and of them the ones the texture confirmed: a true confirmed box,
+    a false unconfirmed one over the cut, and one under it that is not drawn."""
+    predictions = [
+        {
+            "boxes": np.array([[10, 10, 50, 40], [60, 60, 90, 90], [0, 0, 5, 5]], np.float32),
+            "scores": np.array([0.95, 0.85, 0.5], np.float32),
+            "labels": np.array([0, 0, 0]),
+            "confirmed": np.array([True, False, False]),
+        }
+    ]
+    truth = [{"boxes": np.array([[10, 10, 50, 40], [0, 0, 5, 5]], np.float32), "labels": np.array([0, 0])}]
+    seen = wild_scoring._at_threshold(predictions, truth, ["a"], 0.8, 0.5)
+    assert (seen["drawn"], seen["true"], seen["targets"]) == (2, 1, 2)
+    assert seen["confirmed"] == {"drawn": 1, "true": 1}
+    unchecked = [{key: value for key, value in predictions[0].items() if key != "confirmed"}]
+    assert "confirmed" not in wild_scoring._at_threshold(unchecked, truth, ["a"], 0.8, 0.5)
+
+
 def test_test_sizes_are_read_as_the_config_reads_them_and_bad_ones_refused(capsys):
     assert wild._test_sizes_argument("128,256") == (128, 256)
     for bad, problem in (
