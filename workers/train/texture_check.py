@@ -143,6 +143,11 @@ COVER_GRID = 8
 # A box at least this much inside a better-scored box the texture confirmed is a piece of that
 # sheet: one box per sheet is drawn.
 PIECE_INSIDE = 0.8
+# Without evidence, boxes of any class overlapping a better-scored box at this IoU (or either
+# PIECE_INSIDE of the other) are that sheet named again: they drop under the cut, in their order
+# ([0.8, 0.9) to [0.7, 0.8)), so one box per sheet is drawn (bench/README.md, "One box per sheet").
+SHEET_IOU = 0.3
+SECOND_NAME_FLOOR = PAPER_CUT - (CONFIRMED_FLOOR - PAPER_CUT)
 
 
 def grayscale(image: np.ndarray) -> np.ndarray:
@@ -470,6 +475,11 @@ class TextureCheck:
                 confirmed[keep],
                 evidence[keep],
             )
+            if self.calibration is None:  # a calibrated score already says what such a box is worth
+                again = _named_again(boxes, scores, confirmed)
+                scores[again] = np.where(
+                    scores[again] >= PAPER_CUT, SECOND_NAME_FLOOR + (scores[again] - PAPER_CUT), scores[again]
+                ).astype(np.float32)
         order = np.argsort(-scores, kind="stable")
         checked_detections = {
             "boxes": boxes[order],
@@ -671,6 +681,33 @@ def _one_per_sheet(boxes: np.ndarray, scores: np.ndarray, confirmed: np.ndarray)
         if not inside:
             kept.append(int(index))
     return np.array(sorted(kept), np.int64)
+
+
+def _named_again(boxes: np.ndarray, scores: np.ndarray, confirmed: np.ndarray) -> np.ndarray:
+    """The indices of boxes the texture did not confirm that a better-scored box standing for a
+    sheet (of any class) already covers: IoU ≥ ``SHEET_IOU``, or either ``PIECE_INSIDE`` of the
+    other. The network names one sheet as several classes, and boxes a piece of it or more
+    around it; the better-scored box is kept."""
+    order = np.argsort(-scores, kind="stable")
+    areas = np.maximum(boxes[:, 2] - boxes[:, 0], 0) * np.maximum(boxes[:, 3] - boxes[:, 1], 0)
+    kept: list[int] = []
+    again: list[int] = []
+    for index in order:
+        box = boxes[index]
+        named = False
+        if not confirmed[index]:
+            for other in kept:
+                width = min(box[2], boxes[other, 2]) - max(box[0], boxes[other, 0])
+                height = min(box[3], boxes[other, 3]) - max(box[1], boxes[other, 1])
+                if width <= 0 or height <= 0:
+                    continue
+                overlap = width * height
+                union = areas[index] + areas[other] - overlap
+                if overlap >= SHEET_IOU * union or overlap >= PIECE_INSIDE * min(areas[index], areas[other]):
+                    named = True
+                    break
+        (again if named else kept).append(int(index))
+    return np.array(sorted(again), np.int64)
 
 
 def _clipped_extent(corners: np.ndarray, width: int, height: int) -> np.ndarray | None:

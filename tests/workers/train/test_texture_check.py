@@ -12,6 +12,7 @@ import pytest
 import skimage.data
 
 from workers.train import texture_cache, texture_check
+from workers.train.calibration import FEATURES, Calibration
 from workers.train.texture_check import (
     CONFIRMED_FLOOR,
     MIN_AXIS_RATIO,
@@ -232,6 +233,30 @@ def test_without_evidence_boxes_stay_on_their_side_of_the_cut_below_the_confirme
     assert (
         empty["boxes"].shape == (0, 4) and len(empty["scores"]) == len(empty["labels"]) == len(empty["confirmed"]) == 0
     )
+
+
+def test_a_sheet_named_again_without_evidence_drops_under_the_cut_in_its_order(checker, textures):
+    """No keypoints, so no evidence: of boxes on one place, whatever their classes, the best scored
+    is drawn; the same place named as another class, a piece of it and a box around it rank on,
+    under the cut; a box elsewhere is drawn too."""
+    blank = np.full((240, 320, 3), 90, np.uint8)
+    found = detections(
+        ([20, 20, 120, 120], 0.99, 0),  # the sheet
+        ([25, 22, 118, 125], 0.97, 1),  # the same sheet, named as the other class
+        ([30, 30, 60, 60], 0.96, 0),  # a piece of it
+        ([200, 100, 300, 200], 0.95, 1),  # another sheet
+        ([10, 10, 160, 150], 0.9, 1),  # a box around the first
+    )
+    checked = checker.apply(blank, found)
+    assert not checked["confirmed"].any()
+    drawn = checked["scores"] >= PAPER_CUT
+    np.testing.assert_array_equal(checked["boxes"][drawn], found["boxes"][[0, 3]])
+    again = checked["scores"][~drawn]
+    np.testing.assert_array_equal(checked["boxes"][~drawn], found["boxes"][[1, 2, 4]])
+    assert np.all(again >= PAPER_CUT - (CONFIRMED_FLOOR - PAPER_CUT)) and np.all(np.diff(again) < 0)
+    even = Calibration(weights=(0.0,) * len(FEATURES), bias=0.0)  # every box: a chance of one half
+    calibrated = TextureCheck(textures, CLASSES, calibration=even)
+    assert (calibrated.apply(blank, found)["scores"] == np.float32(0.5)).all()  # the calibration's word stands
 
 
 def test_grayscale_images_and_textures_work_and_a_missing_texture_is_named(textures, scene):
