@@ -15,6 +15,9 @@ of the keypoint recipe's on the same images. Rows:
 - ``cascade``: the detector's default (``checkpoint.Cascade``): one view and the check first,
   every view only for the images that leave a box unsure; ``second_pass`` is the share of images
   that went on;
+- ``cascade, every name drawn``: the same, with a sheet the texture did not confirm drawn under
+  each class the network names it (``TextureCheck.every_name``), as the check drew it before it
+  kept one box per sheet;
 - ``one view``: the cascade's first pass alone (the largest size, upright, both members);
 - ``keypoints``: bench/keypoint_baseline.py.
 
@@ -142,6 +145,10 @@ def main(argv=None) -> dict:
         went_on.clear()
         row("cascade", lambda: detect_object(detector, images, batch_size=args.batch_size))
         rows["cascade"]["second_pass"] = float(np.mean(went_on)) if went_on else 0.0
+        checker = detector.texture_check()
+        checker.every_name = True
+        row("cascade, every name drawn", lambda: detect_object(detector, images, batch_size=args.batch_size))
+        checker.every_name = False
         detector.cascade = cascade
         row(
             "one view",

@@ -256,6 +256,7 @@ class TextureCheck:
         sharpen: float = SHARPEN_AMOUNT,
         calibration=None,
         lookalikes: Mapping[str, np.ndarray] | None = None,
+        every_name: bool = False,
     ) -> None:
         """``exact``: compare each image keypoint with every texture keypoint (brute force) instead of
         searching FLANN's KD-trees (bench/texture_matching.py measures the two side by side).
@@ -267,12 +268,14 @@ class TextureCheck:
         ``lookalikes``: sheets of the classes' kind that are none of them (the user's other forms
         or covers): their keypoints join the index as no class's, so a keypoint a lookalike shares
         with a class's texture (a letterhead, a table head) fails the ratio test and is no
-        evidence, and one that matches a lookalike best is none either."""
+        evidence, and one that matches a lookalike best is none either. ``every_name``: leave a
+        sheet named again over the cut (``SHEET_IOU``; bench/detect_speed.py measures both)."""
         import cv2
 
         if not sharpen >= 0:
             raise ValueError(f"texture check: sharpen must be at least 0 (0: none), got {sharpen}")
         self.sharpen = float(sharpen)
+        self.every_name = every_name
 
         missing = [name for name in classes if name not in textures]
         if missing:
@@ -475,7 +478,7 @@ class TextureCheck:
                 confirmed[keep],
                 evidence[keep],
             )
-            if self.calibration is None:  # a calibrated score already says what such a box is worth
+            if self.calibration is None and not self.every_name:  # a calibrated score says what such a box is worth
                 again = _named_again(boxes, scores, confirmed)
                 scores[again] = np.where(
                     scores[again] >= PAPER_CUT, SECOND_NAME_FLOOR + (scores[again] - PAPER_CUT), scores[again]
