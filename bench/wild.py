@@ -366,7 +366,30 @@ def main(argv=None) -> dict:
             ratios.append(report[f"ratio{key}"])
     report["goal"] = {"ratio_at_least": 0.8, "met": all(ratio is not None and ratio >= 0.8 for ratio in ratios)}
     report["machine"] = machine()
+    report["headline"] = headline(report)
     return write_report(report, args.out)
+
+
+def headline(report: dict) -> str:
+    """Each scored set in one line: foldwise's mAP, precision and recall at the threshold beside
+    the keypoint recipe's."""
+
+    def figures(scores: dict) -> str:
+        seen = scores["at_threshold"]
+        shown = lambda value: "–" if value is None else f"{value:.2f}"  # noqa: E731
+        return f"{scores['map']:.3f} (P {shown(seen['precision'])}, R {shown(seen['recall'])})"
+
+    parts = []
+    for key, scores in report.items():
+        if not (key.startswith("out_of_domain") or key == "in_domain") or not isinstance(scores, dict):
+            continue
+        name = key.replace("out_of_domain", "out of domain").replace("_", " ").strip()
+        line = f"{name}: foldwise {figures(scores)}"
+        baseline = report.get(f"baseline_{key}")
+        if baseline:
+            line += f", keypoints {figures(baseline)}"
+        parts.append(line)
+    return "mAP at the cut (precision, recall at it): " + "; ".join(parts)
 
 
 if __name__ == "__main__":

@@ -199,6 +199,11 @@ def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
             assert scored["seconds_per_image"] >= 0.0
     for part in ("in_domain", "out_of_domain"):  # finding the sheet is never harder than naming it too
         assert report[part]["class_agnostic"]["map_unthresholded"] >= report[part]["map_unthresholded"] - 1e-9
+    # One line for the results table: every scored set, foldwise beside the recipe.
+    assert report["headline"] == wild.headline(report)
+    for name in ("in domain: foldwise", "out of domain hard: foldwise", "out of domain large: foldwise"):
+        assert name in report["headline"]
+    assert report["headline"].count(", keypoints ") == 6
 
 
 def test_the_in_domain_set_is_shared_by_configs_that_render_alike(tmp_path):
