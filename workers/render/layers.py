@@ -147,42 +147,36 @@ def distractor_placements(
             placements.append(ShapePlacement(texture, pixel, side, float(rng.uniform(0, 2 * math.pi)), front, seed))
             continue
         depth = float(rng.uniform(*FRONT_DEPTHS) if front else -rng.uniform(*BEHIND_DEPTHS))
-        placements.append(
-            SheetPlacement(
-                object=None,
-                texture=texture,
-                rulings=int(rng.integers(0, 4)),
-                scale=float(rng.uniform(*DISTRACTOR_SCALE)),
-                roll=0.0,
-                pitch=0.0,
-                yaw=0.0,
-                rotation=float(rng.uniform(-math.pi, math.pi)),
-                tilt=float(rng.uniform(0.0, DISTRACTOR_MAX_TILT)),
-                tilt_azimuth=float(rng.uniform(0.0, 2 * math.pi)),
-                translation=tuple(float(v) for v in world_point(camera, pixel, depth)),
-                front=front,
-                seed=seed,
-            )
-        )
+        at = world_point(camera, pixel, depth)
+        placements.append(_loose_sheet(texture, at, 1.0, DISTRACTOR_SCALE, front, seed, rng))
     if lookalikes:
         low, high = LOOKALIKES_PER_IMAGE
         for _ in range(int(rng.integers(low, high + 1))):
             pixel = (float(rng.uniform(0.05, 0.95) * width), float(rng.uniform(0.05, 0.95) * height))
-            placements.append(
-                SheetPlacement(
-                    object=None,
-                    texture=lookalikes[int(rng.integers(len(lookalikes)))],
-                    rulings=int(rng.integers(0, 4)),
-                    scale=float(theta.scale) * float(rng.uniform(*LOOKALIKE_SCALE)),
-                    roll=0.0,
-                    pitch=0.0,
-                    yaw=0.0,
-                    rotation=float(rng.uniform(-math.pi, math.pi)),
-                    tilt=float(rng.uniform(0.0, DISTRACTOR_MAX_TILT)),
-                    tilt_azimuth=float(rng.uniform(0.0, 2 * math.pi)),
-                    translation=tuple(float(v) for v in world_point(camera, pixel, -rng.uniform(*BEHIND_DEPTHS))),
-                    front=False,
-                    seed=int(rng.integers(0, 2**31 - 1)),
-                )
-            )
+            texture = lookalikes[int(rng.integers(len(lookalikes)))]
+            at = world_point(camera, pixel, -rng.uniform(*BEHIND_DEPTHS))
+            seed = int(rng.integers(0, 2**31 - 1))
+            placements.append(_loose_sheet(texture, at, float(theta.scale), LOOKALIKE_SCALE, False, seed, rng))
     return placements
+
+
+def _loose_sheet(
+    texture: str, at: np.ndarray, scale: float, scale_range: tuple[float, float], front: bool, seed: int, rng
+) -> SheetPlacement:
+    """A sheet that is no target (a distractor or a lookalike) at world point ``at``: its bend,
+    size (``scale`` × a draw from ``scale_range``), in-plane turn and tilt drawn from ``rng``."""
+    return SheetPlacement(
+        object=None,
+        texture=texture,
+        rulings=int(rng.integers(0, 4)),
+        scale=float(scale * rng.uniform(*scale_range)),
+        roll=0.0,
+        pitch=0.0,
+        yaw=0.0,
+        rotation=float(rng.uniform(-math.pi, math.pi)),
+        tilt=float(rng.uniform(0.0, DISTRACTOR_MAX_TILT)),
+        tilt_azimuth=float(rng.uniform(0.0, 2 * math.pi)),
+        translation=tuple(float(v) for v in at),
+        front=front,
+        seed=seed,
+    )

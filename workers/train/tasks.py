@@ -272,6 +272,7 @@ def _run_claimed_increment(model_id: int, task_id: str = "direct") -> str:
         if not train_rows:
             raise RuntimeError(f"no rendered training image for stage {stage.order} increment {model.increment}")
         started = time.perf_counter()
+        catalog = load_assets(config.assets)
         stats = train_detector(
             _samples(train_rows),
             init=parent_path,
@@ -280,8 +281,8 @@ def _run_claimed_increment(model_id: int, task_id: str = "direct") -> str:
             classes=classes,
             out=store.resolve(relative),
             seed=seed,
-            textures=load_assets(config.assets).textures(classes) if config.detector.texture_check else None,
-            lookalikes=load_assets(config.assets).lookalike_textures() if config.detector.texture_check else None,
+            textures=catalog.textures(classes) if config.detector.texture_check else None,
+            lookalikes=catalog.lookalike_textures() if config.detector.texture_check else None,
             on_no_room=wait_for_room,
         )
         train_seconds = time.perf_counter() - started

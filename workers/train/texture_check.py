@@ -674,11 +674,7 @@ def _one_per_sheet(boxes: np.ndarray, scores: np.ndarray, confirmed: np.ndarray)
         box = boxes[index]
         inside = False
         for other in kept:
-            if not confirmed[other]:
-                continue
-            width = min(box[2], boxes[other, 2]) - max(box[0], boxes[other, 0])
-            height = min(box[3], boxes[other, 3]) - max(box[1], boxes[other, 1])
-            if width > 0 and height > 0 and width * height >= PIECE_INSIDE * max(areas[index], 1e-6):
+            if confirmed[other] and _intersection(box, boxes[other]) >= PIECE_INSIDE * max(areas[index], 1e-6):
                 inside = True
                 break
         if not inside:
@@ -700,17 +696,22 @@ def _named_again(boxes: np.ndarray, scores: np.ndarray, confirmed: np.ndarray) -
         named = False
         if not confirmed[index]:
             for other in kept:
-                width = min(box[2], boxes[other, 2]) - max(box[0], boxes[other, 0])
-                height = min(box[3], boxes[other, 3]) - max(box[1], boxes[other, 1])
-                if width <= 0 or height <= 0:
+                overlap = _intersection(box, boxes[other])
+                if overlap <= 0:
                     continue
-                overlap = width * height
                 union = areas[index] + areas[other] - overlap
                 if overlap >= SHEET_IOU * union or overlap >= PIECE_INSIDE * min(areas[index], areas[other]):
                     named = True
                     break
         (again if named else kept).append(int(index))
     return np.array(sorted(again), np.int64)
+
+
+def _intersection(box: np.ndarray, other: np.ndarray) -> float:
+    """The area two xyxy boxes share (0 where they do not overlap)."""
+    width = min(box[2], other[2]) - max(box[0], other[0])
+    height = min(box[3], other[3]) - max(box[1], other[1])
+    return float(width * height) if width > 0 and height > 0 else 0.0
 
 
 def _clipped_extent(corners: np.ndarray, width: int, height: int) -> np.ndarray | None:
