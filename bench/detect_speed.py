@@ -16,8 +16,7 @@ of the keypoint recipe's on the same images. Rows:
   every view only for the images that leave a box unsure; ``second_pass`` is the share of images
   that went on;
 - ``cascade, every name drawn``: the same, with a sheet the texture did not confirm drawn under
-  each class the network names it (``TextureCheck.every_name``), as the check drew it before it
-  kept one box per sheet;
+  each class the network names it (``TextureCheck.every_name``) instead of once;
 - ``one view``: the cascade's first pass alone (the largest size, upright, both members);
 - ``keypoints``: bench/keypoint_baseline.py.
 

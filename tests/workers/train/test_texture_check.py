@@ -255,7 +255,7 @@ def test_a_sheet_named_again_without_evidence_drops_under_the_cut_in_its_order(c
     np.testing.assert_array_equal(checked["boxes"][~drawn], found["boxes"][[1, 2, 4]])
     assert np.all(again >= PAPER_CUT - (CONFIRMED_FLOOR - PAPER_CUT)) and np.all(np.diff(again) < 0)
     every_name = TextureCheck(textures, CLASSES, every_name=True).apply(blank, found)
-    assert (every_name["scores"] >= PAPER_CUT).all()  # as the check drew them before
+    assert (every_name["scores"] >= PAPER_CUT).all()  # every name over the cut
     even = Calibration(weights=(0.0,) * len(FEATURES), bias=0.0)  # every box: a chance of one half
     calibrated = TextureCheck(textures, CLASSES, calibration=even)
     assert (calibrated.apply(blank, found)["scores"] == np.float32(0.5)).all()  # the calibration's word stands
