@@ -141,7 +141,7 @@ def sweep(
             else:  # the fresh model checks with the same textures
                 train_detector(
                     pool[:n], init=None, iterations=iterations, config=config, classes=classes, out=path, seed=member_seed,
-                    textures=payload_textures(payload),
+                    textures=payload_textures(payload), lookalikes=payload_textures(payload, "lookalikes"),
                 )  # fmt: skip
         if len(paths) > 1:
             save_ensemble(paths, target)

@@ -282,7 +282,8 @@ def _run_claimed_increment(model_id: int, task_id: str = "direct") -> str:
             out=store.resolve(relative),
             seed=seed,
             textures=catalog.textures(classes) if config.detector.texture_check else None,
-            lookalikes=catalog.lookalike_textures() if config.detector.texture_check else None,
+            # None where the config names none: a parent's lookalikes are inherited then.
+            lookalikes=(catalog.lookalike_textures() or None) if config.detector.texture_check else None,
             on_no_room=wait_for_room,
         )
         train_seconds = time.perf_counter() - started

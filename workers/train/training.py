@@ -138,8 +138,9 @@ def _initial_model(
     config: DetectorConfig,
     classes: Sequence[str],
     seed: int,
-) -> tuple[nn.Module, int, str | None, dict[str, np.ndarray] | None]:
-    """(model, iterations already trained, parent path, ω_in's textures) for a fresh or warm start."""
+) -> tuple[nn.Module, int, str | None, dict[str, np.ndarray] | None, dict[str, np.ndarray] | None]:
+    """(model, iterations already trained, parent path, ω_in's textures, ω_in's lookalikes) for a
+    fresh or warm start."""
     from workers.train.detectors import build_detector
 
     boxes = [sample.boxes for sample in samples]
@@ -152,14 +153,20 @@ def _initial_model(
     torch.manual_seed(seed)
     if init is None:
         model = build_detector(config, len(classes), train_boxes, train_image_sizes=train_sizes)
-        return model, 0, None, None
+        return model, 0, None, None, None
     payload = read_checkpoint(init)
     meta = payload["meta"]
     check_compatible(meta, config, classes, init)
     # ω_in's state replaces the initial weights (no ImageNet file needed).
     model = build_detector(config, len(classes), train_boxes, train_image_sizes=train_sizes, load_pretrained=False)
     load_state(model, payload["state_dict"], init)
-    return model, int(meta.get("iterations", 0)), str(init), payload_textures(payload)
+    return (
+        model,
+        int(meta.get("iterations", 0)),
+        str(init),
+        payload_textures(payload),
+        payload_textures(payload, "lookalikes"),
+    )
 
 
 def train_detector(
@@ -180,7 +187,7 @@ def train_detector(
 
     ``init`` may equal ``out`` (ω_in is read before ω is written). ``on_step(steps_done)`` is
     called after every step (progress display). With ``config.texture_check`` the checkpoint
-    carries the classes' ``textures`` (None: ω_in's, where it has them) and the ``lookalikes``
+    carries the classes' ``textures`` and the ``lookalikes`` (each None: ω_in's, where it has them)
     its texture check must not confirm (``assets.lookalikes``). When the volume has no
     room for ω (:class:`NoRoomError`; the file at ``out`` is then as it was), ``on_no_room(error)``
     is called: it returns to have the write tried again (having waited for room), or raises to
@@ -212,9 +219,13 @@ def _train(
     for sample, image in zip(samples, images):
         for box in sample.boxes:
             validate_box(box, image.shape[1], image.shape[0], str(sample.image_path))
-    model, prior_iterations, parent, init_textures = _initial_model(samples, images, init, config, classes, seed)
+    model, prior_iterations, parent, init_textures, init_lookalikes = _initial_model(
+        samples, images, init, config, classes, seed
+    )
     if config.texture_check:
+        # What the parent's check knew is inherited where the caller gives nothing new.
         textures = init_textures if textures is None else textures
+        lookalikes = init_lookalikes if lookalikes is None else lookalikes
         missing = [name for name in classes if not textures or name not in textures]
         if missing:
             raise ValueError(

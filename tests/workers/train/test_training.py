@@ -92,6 +92,29 @@ def test_warm_start_continues_from_the_checkpoint_weights(tmp_path):
     assert read_checkpoint(child)["meta"]["iterations"] == 6
 
 
+def test_warm_start_inherits_the_parents_textures_and_lookalikes_unless_given_new_ones(tmp_path):
+    """A curriculum's stage, or a finetune, starts from a checkpoint whose texture check knows its
+    lookalikes: the child's check must know them too, or it confirms them again."""
+    from workers.train.checkpoint import payload_textures
+
+    samples = synthetic_samples(tmp_path / "images", n=3)
+    checked = config(texture_check=True)
+    textures = {name: np.full((40, 30, 3), 60 * i, np.uint8) for i, name in enumerate(CLASSES)}
+    form = np.full((40, 30, 3), 200, np.uint8)
+    parent = tmp_path / "parent.pt"
+    train_detector(samples, None, 1, checked, CLASSES, parent, textures=textures, lookalikes={"form": form})
+
+    inherited = tmp_path / "inherited.pt"
+    train_detector(samples, parent, 1, checked, CLASSES, inherited)
+    payload = read_checkpoint(inherited)
+    assert set(payload_textures(payload)) == set(CLASSES)
+    np.testing.assert_array_equal(payload_textures(payload, "lookalikes")["form"], form[:, :, 0])  # grey as stored
+
+    replaced = tmp_path / "replaced.pt"
+    train_detector(samples, parent, 1, checked, CLASSES, replaced, lookalikes={"letter": form[:20]})
+    assert set(payload_textures(read_checkpoint(replaced), "lookalikes")) == {"letter"}
+
+
 def test_warm_start_from_another_family_or_class_list_is_a_clear_error(tmp_path):
     samples = synthetic_samples(tmp_path / "images", n=3)
     parent = tmp_path / "parent.pt"
