@@ -1,7 +1,7 @@
 """The sets bench/wild.py scores on, each a COCO folder reused while its recipe is unchanged.
 
 ``make_ood_set``: the out-of-domain scene (bench/wild_scene.py) rendered for an ``OodRecipe``;
-``make_in_domain_set``: foldwise's own renders of a config's curriculum; ``make_reframed_set``
+``make_in_domain_set``: foldwise's own renders of what a config's loop scores; ``make_reframed_set``
 and ``make_rotated_set``: the in-domain images in 4:3 / 3:4 frames and turned by quarter turns.
 """
 
@@ -106,7 +106,8 @@ def make_ood_set(out: Path, recipe: OodRecipe, echo=print, assets=None, lookalik
 
 
 def make_in_domain_set(config, out: Path, n_per_pair: int, seed: int, echo=print) -> Path:
-    """foldwise's own renders of the config's curriculum (every stage, mixed included).
+    """foldwise's own renders of what the config's loop scores (``test_pairs``: every condition of
+    its curriculum at every difficulty, and its mixed stages), ``n_per_pair`` each.
 
     The cache key holds what the renders depend on (the curriculum's conditions and
     difficulties, the render size and backend, the assets, the count and the seed), not the rest
@@ -114,9 +115,9 @@ def make_in_domain_set(config, out: Path, n_per_pair: int, seed: int, echo=print
     from workers.render.assets import load_assets
     from workers.render.cli import render_dataset
 
-    stages = config.stage_order()
+    pairs = config.test_pairs()
     conditions = sorted(
-        {condition for condition, _ in stages if condition != "canonical"}, key=[c for c, _ in stages].index
+        {condition for condition, _ in pairs if condition != "canonical"}, key=[c for c, _ in pairs].index
     )
     difficulties = list(config.curriculum.difficulties)
     recipe = [

@@ -229,6 +229,20 @@ def test_the_in_domain_set_is_shared_by_configs_that_render_alike(tmp_path):
     assert {(image["width"], image["height"]) for image in coco["images"]} == {(48, 48)}
 
 
+def test_the_in_domain_set_holds_every_pair_the_loop_scores(tmp_path):
+    """quick.yaml trains mixed stages only, yet its loop scores every condition at every
+    difficulty besides them (``test_pairs``): so does the in-domain set, not the mixed ones alone."""
+    from foldwise.config import load_config
+
+    config = load_config(ROOT / "configs" / "quick.yaml")
+    small = config.model_copy(update={"render": config.render.model_copy(update={"image_size": 32})})
+    out = wild_sets.make_in_domain_set(small, tmp_path / "in", 1, seed=3, echo=lambda _line: None)
+    coco = json.loads((out / "annotations.json").read_text())
+    pairs = [(image["condition"], image["difficulty"]) for image in coco["images"]]
+    assert sorted(pairs) == sorted(config.test_pairs())
+    assert {condition for condition, _ in pairs} > {"mixed"}
+
+
 def test_a_plain_scene_is_a_flat_sheet_seen_from_above_at_half_the_frame():
     """With every factor off the scene is plain: a flat, unrotated sheet straight below a 40°
     camera filling half the frame's width, and nothing else in view."""
