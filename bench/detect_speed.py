@@ -17,8 +17,12 @@ of the keypoint recipe's on the same images. Rows:
   that went on;
 - ``cascade, every name drawn``: the same, with a sheet the texture did not confirm drawn under
   each class the network names it (``TextureCheck.every_name``) instead of once;
+- ``cascade, unmatched drawn``: the same, with a box whose many keypoints match nothing of its
+  texture left over the cut (``TextureCheck.unmatched_drawn``) instead of dropped under it;
 - ``one view``: the cascade's first pass alone (the largest size, upright, both members);
 - ``keypoints``: bench/keypoint_baseline.py.
+
+``--rows`` names the rows to run (default: all).
 
 Beside the rows, each set's ``check_keypoints_seconds_per_image``: the texture check's keypoints
 and matches alone (every row but the recipe's finds them once an image).
@@ -41,6 +45,16 @@ sys.path.insert(0, str(ROOT))
 
 from bench.report import machine, write_report  # noqa: E402
 from bench.wild_scoring import _scores  # noqa: E402
+
+ROWS = (
+    "every view alone",
+    "as built",
+    "cascade",
+    "cascade, every name drawn",
+    "cascade, unmatched drawn",
+    "one view",
+    "keypoints",
+)
 
 
 def views_alone(detector, images: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
@@ -90,7 +104,16 @@ def main(argv=None) -> dict:
     parser.add_argument("--threshold", type=float, default=0.8)
     parser.add_argument("--iou", type=float, default=0.5)
     parser.add_argument("--out", type=Path)
+    parser.add_argument(
+        "--rows",
+        type=lambda text: [name.strip() for name in text.split(",")],
+        default=list(ROWS),
+        help=f"comma list of rows to run (default: all of {', '.join(ROWS)})",
+    )
     args = parser.parse_args(argv)
+    unknown = [name for name in args.rows if name not in ROWS]
+    if unknown:
+        parser.error(f"--rows: no row {unknown}; the rows are {', '.join(ROWS)}")
 
     from dataclasses import asdict
 
@@ -132,6 +155,8 @@ def main(argv=None) -> dict:
         rows = {}
 
         def row(name, detect):
+            if name not in args.rows:
+                return
             started = time.perf_counter()
             found = detect()
             seconds = time.perf_counter() - started
@@ -143,11 +168,16 @@ def main(argv=None) -> dict:
         detector.cascade = Counted(**asdict(cascade))
         went_on.clear()
         row("cascade", lambda: detect_object(detector, images, batch_size=args.batch_size))
-        rows["cascade"]["second_pass"] = float(np.mean(went_on)) if went_on else 0.0
+        if "cascade" in rows:
+            rows["cascade"]["second_pass"] = float(np.mean(went_on)) if went_on else 0.0
         checker = detector.texture_check()
-        checker.every_name = True
-        row("cascade, every name drawn", lambda: detect_object(detector, images, batch_size=args.batch_size))
-        checker.every_name = False
+        for switch, name in (
+            ("every_name", "cascade, every name drawn"),
+            ("unmatched_drawn", "cascade, unmatched drawn"),
+        ):
+            setattr(checker, switch, True)
+            row(name, lambda: detect_object(detector, images, batch_size=args.batch_size))
+            setattr(checker, switch, False)
         detector.cascade = cascade
         row(
             "one view",
@@ -157,9 +187,10 @@ def main(argv=None) -> dict:
         )
         baseline = KeypointBaseline(detector.textures, classes)
         row("keypoints", lambda: [baseline.detect(image) for image in images])
-        keypoint_seconds = rows["keypoints"]["seconds_per_image"]
-        for values in rows.values():
-            values["times_keypoints"] = values["seconds_per_image"] / keypoint_seconds
+        if "keypoints" in rows:
+            keypoint_seconds = rows["keypoints"]["seconds_per_image"]
+            for values in rows.values():
+                values["times_keypoints"] = values["seconds_per_image"] / keypoint_seconds
         # What every row but the recipe's spends before any box is checked: the texture check's
         # keypoints of the image and their matches (SIFT on the image enlarged, FLANN).
         check = detector.texture_check()

@@ -9,6 +9,7 @@ import sys
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -62,11 +63,14 @@ def test_every_way_of_running_the_views_is_scored_on_each_set_against_the_keypoi
             "as built",
             "cascade",
             "cascade, every name drawn",
+            "cascade, unmatched drawn",
             "one view",
             "keypoints",
         ]
         # Drawing every name a sheet is given draws at least the boxes one name per sheet does.
-        assert rows["cascade, every name drawn"]["at_threshold"]["drawn"] >= rows["cascade"]["at_threshold"]["drawn"]
+        # Each rule only takes boxes from over the cut: without it at least as many are drawn.
+        for name in ("cascade, every name drawn", "cascade, unmatched drawn"):
+            assert rows[name]["at_threshold"]["drawn"] >= rows["cascade"]["at_threshold"]["drawn"]
         assert rows["every view alone"]["map"] == rows["as built"]["map"]
         assert rows["every view alone"]["at_threshold"] == rows["as built"]["at_threshold"]
         assert 0.0 <= rows["cascade"]["second_pass"] <= 1.0
@@ -76,6 +80,15 @@ def test_every_way_of_running_the_views_is_scored_on_each_set_against_the_keypoi
             assert values["times_keypoints"] == values["seconds_per_image"] / rows["keypoints"]["seconds_per_image"]
     assert "sheets (4 images, 200x150): every view alone" in report["headline"]
     assert {"cpu", "cores", "commit"} <= set(report["machine"])
+
+    # --rows runs the rows named, in the table's order; a row that does not exist is named.
+    some = detect_speed.main(["--model", str(model), "--data", str(large), "--rows", "keypoints,cascade"])
+    capsys.readouterr()
+    assert list(some["sets"]["large"]["rows"]) == ["cascade", "keypoints"]
+    assert some["sets"]["large"]["rows"]["cascade"]["map"] == report["sets"]["large"]["rows"]["cascade"]["map"]
+    with pytest.raises(SystemExit):
+        detect_speed.main(["--model", str(model), "--data", str(large), "--rows", "cascade,fastest"])
+    assert "no row ['fastest']" in capsys.readouterr().err
 
     # The plain row is the detector's own answer, box for box.
     from workers.train.checkpoint import detect_object

@@ -148,6 +148,12 @@ PIECE_INSIDE = 0.8
 # ([0.8, 0.9) to [0.7, 0.8)), so one box per sheet is drawn (bench/README.md, "One box per sheet").
 SHEET_IOU = 0.3
 SECOND_NAME_FLOOR = PAPER_CUT - (CONFIRMED_FLOOR - PAPER_CUT)
+# A box the texture did not confirm that holds at least this many of the image's keypoints, not
+# one of which matches its class's texture, shows something printed that is not its sheet: its
+# own sheet, sharp enough for that many keypoints, would match somewhere. It drops under the cut
+# as a second name does. Fewer keypoints (a small or blurred box) are no evidence either way
+# (bench/README.md, "Evidence against a box").
+UNMATCHED_KEYPOINTS = 10
 
 
 def grayscale(image: np.ndarray) -> np.ndarray:
@@ -257,6 +263,7 @@ class TextureCheck:
         calibration=None,
         lookalikes: Mapping[str, np.ndarray] | None = None,
         every_name: bool = False,
+        unmatched_drawn: bool = False,
     ) -> None:
         """``exact``: compare each image keypoint with every texture keypoint (brute force) instead of
         searching FLANN's KD-trees (bench/texture_matching.py measures the two side by side).
@@ -269,13 +276,16 @@ class TextureCheck:
         or covers): their keypoints join the index as no class's, so a keypoint a lookalike shares
         with a class's texture (a letterhead, a table head) fails the ratio test and is no
         evidence, and one that matches a lookalike best is none either. ``every_name``: leave a
-        sheet named again over the cut (``SHEET_IOU``; bench/detect_speed.py measures both)."""
+        sheet named again over the cut (``SHEET_IOU``; bench/detect_speed.py measures both).
+        ``unmatched_drawn``: leave a box over the cut whose keypoints match nothing of its texture
+        (``UNMATCHED_KEYPOINTS``; bench/detect_speed.py measures both)."""
         import cv2
 
         if not sharpen >= 0:
             raise ValueError(f"texture check: sharpen must be at least 0 (0: none), got {sharpen}")
         self.sharpen = float(sharpen)
         self.every_name = every_name
+        self.unmatched_drawn = unmatched_drawn
 
         missing = [name for name in classes if name not in textures]
         if missing:
@@ -394,6 +404,7 @@ class TextureCheck:
         labels = np.array(detections["labels"], dtype=np.int64, copy=True)
         checked = np.flatnonzero(scores >= MIN_SCORE)
         confirmed = np.zeros(len(scores), dtype=bool)
+        unmatched = np.zeros(len(scores), dtype=bool)  # evidence against: see UNMATCHED_KEYPOINTS
         evidence = np.zeros((len(scores), len(FEATURES)), np.float32)
         evidence[:, 0] = network_logit(scores)
         if len(checked) or self.search:
@@ -436,6 +447,7 @@ class TextureCheck:
                 share = counts[candidate] / max(keypoints, 1)
                 evidence[index, 2:] = (np.log1p(inliers), coverage, np.log1p(keypoints), share)
                 if outline is None:
+                    unmatched[index] = keypoints >= UNMATCHED_KEYPOINTS and counts[label] == 0
                     continue
                 labels[index] = candidate
                 boxes[index] = outline
@@ -468,20 +480,24 @@ class TextureCheck:
                 scores = np.concatenate([scores, found_scores.astype(np.float32)])
                 labels = np.concatenate([labels, found_labels])
                 confirmed = np.concatenate([confirmed, np.ones(len(found), dtype=bool)])
+                unmatched = np.concatenate([unmatched, np.zeros(len(found), dtype=bool)])
                 evidence = np.concatenate([evidence, found_evidence])
             keep = _merge(boxes, scores, labels)
             keep = keep[_one_per_sheet(boxes[keep], scores[keep], confirmed[keep])]
-            boxes, scores, labels, confirmed, evidence = (
+            boxes, scores, labels, confirmed, unmatched, evidence = (
                 boxes[keep],
                 scores[keep],
                 labels[keep],
                 confirmed[keep],
+                unmatched[keep],
                 evidence[keep],
             )
-            if self.calibration is None and not self.every_name:  # a calibrated score says what such a box is worth
-                again = _named_again(boxes, scores, confirmed)
-                scores[again] = np.where(
-                    scores[again] >= PAPER_CUT, SECOND_NAME_FLOOR + (scores[again] - PAPER_CUT), scores[again]
+            if self.calibration is None:  # a calibrated score says what such a box is worth
+                below = unmatched.copy() if not self.unmatched_drawn else np.zeros(len(scores), dtype=bool)
+                if not self.every_name:  # a box dropped for its keypoints stands for no sheet
+                    below[_named_again(boxes, scores, confirmed, standing=~below)] = True
+                scores[below] = np.where(
+                    scores[below] >= PAPER_CUT, SECOND_NAME_FLOOR + (scores[below] - PAPER_CUT), scores[below]
                 ).astype(np.float32)
         order = np.argsort(-scores, kind="stable")
         checked_detections = {
@@ -682,12 +698,17 @@ def _one_per_sheet(boxes: np.ndarray, scores: np.ndarray, confirmed: np.ndarray)
     return np.array(sorted(kept), np.int64)
 
 
-def _named_again(boxes: np.ndarray, scores: np.ndarray, confirmed: np.ndarray) -> np.ndarray:
+def _named_again(
+    boxes: np.ndarray, scores: np.ndarray, confirmed: np.ndarray, standing: np.ndarray | None = None
+) -> np.ndarray:
     """The indices of boxes the texture did not confirm that a better-scored box standing for a
     sheet (of any class) already covers: IoU ≥ ``SHEET_IOU``, or either ``PIECE_INSIDE`` of the
     other. The network names one sheet as several classes, and boxes a piece of it or more
-    around it; the better-scored box is kept."""
+    around it; the better-scored box is kept. ``standing`` (n,) bool: the boxes that may stand
+    for a sheet (None: all); the others are neither kept nor named again."""
     order = np.argsort(-scores, kind="stable")
+    if standing is not None:
+        order = order[standing[order]]
     areas = np.maximum(boxes[:, 2] - boxes[:, 0], 0) * np.maximum(boxes[:, 3] - boxes[:, 1], 0)
     kept: list[int] = []
     again: list[int] = []

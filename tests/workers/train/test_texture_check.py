@@ -261,6 +261,28 @@ def test_a_sheet_named_again_without_evidence_drops_under_the_cut_in_its_order(c
     assert (calibrated.apply(blank, found)["scores"] == np.float32(0.5)).all()  # the calibration's word stands
 
 
+def test_a_box_whose_many_keypoints_match_nothing_of_its_texture_drops_under_the_cut(checker, textures):
+    """Something printed that is not the sheet (a checkerboard, boxed as the astronaut) holds
+    many keypoints and not one of them matches the astronaut: evidence against the box,
+    which drops under the cut in its order. A blank box holds no keypoints, so no evidence either
+    way: it stays over the cut. ``unmatched_drawn`` leaves both drawn."""
+    image = np.full((240, 320, 3), 90, np.uint8)
+    image[20:100, 20:140] = cv2.resize(skimage.data.checkerboard(), (120, 80))[:, :, None]
+    found = detections(([20, 20, 140, 100], 0.95, 0), ([220, 150, 300, 230], 0.9, 0))
+    every_keypoint, matched, _, _ = checker.matches(image)
+    assert texture_check._inside(every_keypoint, found["boxes"][0]).sum() >= texture_check.UNMATCHED_KEYPOINTS
+    assert not texture_check._inside(matched, found["boxes"][0]).any()
+    checked = checker.apply(image, found, with_evidence=True)
+    assert not checked["confirmed"].any()
+    np.testing.assert_array_equal(checked["boxes"], found["boxes"][[1, 0]])  # the blank box now ranks first
+    blank_score, cat_score = checked["scores"]
+    assert PAPER_CUT <= blank_score < CONFIRMED_FLOOR
+    assert PAPER_CUT - (CONFIRMED_FLOOR - PAPER_CUT) <= cat_score < PAPER_CUT
+    assert checked["evidence"][1][FEATURES.index("match_share")] == 0
+    drawn = TextureCheck(textures, CLASSES, unmatched_drawn=True).apply(image, found)
+    assert (drawn["scores"] >= PAPER_CUT).all()
+
+
 def test_grayscale_images_and_textures_work_and_a_missing_texture_is_named(textures, scene):
     image, box = scene
     gray = {name: cv2.cvtColor(t, cv2.COLOR_RGB2GRAY) for name, t in textures.items()}
