@@ -23,6 +23,10 @@ sheet lies: the texture's outline, mapped into the image and clipped to the fram
   matching nothing) keeps its class and its place against the paper's 0.8 cut: no evidence is
   not evidence against. Those at or above the cut rank below the confirmed ones
   (``0.8 + 0.5 * (score - 0.8)``, in [0.8, 0.9)), as the texture is the stronger evidence.
+- Two exceptions, each dropping a box under the cut in its order ([0.8, 0.9) to [0.7, 0.8)): a
+  box that a better-scored box of any class already covers is that sheet named again
+  (``SHEET_IOU``); and a box holding ``UNMATCHED_KEYPOINTS`` or more of the image's keypoints, not
+  one of which matches its class's texture, shows something printed that is not its sheet.
 
 With ``search`` (``detector.texture_search``) the texture also finds sheets the network gave no
 box for: over the whole image, each class's matches are fitted by RANSAC as above, one sheet
