@@ -1,8 +1,10 @@
 """Fit the detector's score calibration on one half of out-of-domain sets and report on the other.
 
-Per COCO set (``--data``, any number): the network detects once (its detections without the
-texture check, kept in ``--cache`` so a second run reads them back), the texture check measures
-each detection's evidence, and each detection is labelled true or false against the set's boxes
+Per COCO set (``--data``, any number): the network detects once at the cascade's first view and
+once at every view (its detections without the texture check, kept in ``--cache`` so a second run
+reads them back), the texture check measures the evidence of each detection the detector draws
+(the first view's where the texture confirmed a box there, every view's elsewhere, as
+``detect_object``'s cascade does), and each detection is labelled true or false against the set's boxes
 (``workers.train.evaluation.true_detections``, the mAP's matching). The images are split by index: even ones
 fit the calibration (``workers/train/calibration.fit``), odd ones report it, so no score below
 is measured on images the fit saw. Reported side by side on the odd half of each set, under the
@@ -38,22 +40,39 @@ from bench.report import machine, write_report  # noqa: E402
 from bench.wild_scoring import _scores  # noqa: E402
 
 
-def network_detections(detector, samples, classes, cache: Path | None) -> tuple[list[dict], float]:
-    """The network's detections (no texture check) on ``samples``, read from ``cache`` when there;
-    and the seconds the network took (0 when read back)."""
+def network_detections(detector, samples, classes, cache: Path | None, first_size: int | None) -> tuple[dict, float]:
+    """The network's detections (no texture check) on ``samples``: ``{"first": ..., "every": ...}``,
+    at the cascade's first view (at ``first_size``, upright; None where the detector runs no
+    cascade) and at every view; read from ``cache`` when there. And the seconds the network took
+    (0 when read back)."""
     from workers.train.evaluation import detector_predictions
 
     if cache is not None and cache.is_file():
         with open(cache, "rb") as handle:
             return pickle.load(handle), 0.0
     started = time.perf_counter()
-    predictions, _truth, _groups, _classes = detector_predictions(detector, samples, classes, texture_check=False)
+    predictions = {"first": None}
+    if first_size is not None:
+        predictions["first"], *_ = detector_predictions(
+            detector, samples, classes, texture_check=False, test_sizes=(first_size,), test_turns=()
+        )
+    predictions["every"], *_ = detector_predictions(detector, samples, classes, texture_check=False)
     seconds = time.perf_counter() - started
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
         with open(cache, "wb") as handle:
             pickle.dump(predictions, handle)
     return predictions, seconds
+
+
+def cascaded(check, image, network: dict, index: int, cascade, matches) -> dict:
+    """Image ``index``'s detections as the detector draws them, with their evidence: the first
+    view's, checked, unless ``cascade`` (None: none) sends the image on to every view's."""
+    if cascade is not None:
+        checked = check.apply(image, network["first"][index], with_evidence=True, matches=matches)
+        if not cascade.again(checked):
+            return checked
+    return check.apply(image, network["every"][index], with_evidence=True, matches=matches)
 
 
 def _confirmed_only(checked: dict) -> dict:
@@ -88,7 +107,7 @@ def main(argv=None) -> dict:
 
     from bench.keypoint_baseline import KeypointBaseline
     from workers.train.calibration import fit
-    from workers.train.checkpoint import combine_detectors, load_detector
+    from workers.train.checkpoint import Cascade, combine_detectors, load_detector
     from workers.train.data import load_coco_dataset, read_image_rgb
     from workers.train.evaluation import true_detections
     from workers.train.texture_check import TextureCheck
@@ -103,6 +122,11 @@ def main(argv=None) -> dict:
 
         given = {path.stem: read_sheet(path) for path in image_files(args.lookalikes, "lookalikes")}
     check = TextureCheck(detector.textures, classes, search=config.texture_search, lookalikes=given)
+    sizes = tuple(getattr(detector.model, "test_sizes", ()))
+    turns = tuple(getattr(detector.model, "test_turns", ()))
+    views = max(len(sizes), 1) * max(len(turns), 1)
+    cascade = (detector.cascade or Cascade()) if config.cascade and views > 1 else None
+    first_size = cascade.first_size(sizes) if cascade is not None else None
     baseline = KeypointBaseline(detector.textures, classes)
     # The models' paths name their detections in the cache: the same models, the same file, in any process.
     digest = hashlib.sha256("\n".join(str(path.resolve()) for path in args.model).encode()).hexdigest()[:12]
@@ -112,20 +136,21 @@ def main(argv=None) -> dict:
     for data in args.data:
         samples, set_classes = load_coco_dataset(data)
         network, network_seconds = network_detections(
-            detector, samples, set_classes, args.cache / f"{key}-{data.name}.pkl"
+            detector, samples, set_classes, args.cache / f"{key}-{data.name}-{first_size}.pkl", first_size
         )
         to_model = np.array([classes.index(name) for name in set_classes], np.int64)
         truth = [{"boxes": s.boxes, "labels": to_model[np.asarray(s.labels, np.int64)]} for s in samples]
         groups = [{"condition": s.condition, "difficulty": s.difficulty} for s in samples]
         images = [read_image_rgb(s.image_path) for s in samples]
         started = time.perf_counter()
-        checked = [check.apply(image, found, with_evidence=True) for image, found in zip(images, network)]
+        matches = [check.matches(image) for image in images]
+        checked = [cascaded(check, image, network, i, cascade, matches[i]) for i, image in enumerate(images)]
         check_seconds = time.perf_counter() - started
-        sets.append((data, samples, truth, groups, images, network, checked, network_seconds, check_seconds))
+        sets.append((data, samples, truth, groups, images, network, matches, checked, network_seconds, check_seconds))
 
     # Fit on the even images of every set.
     features, labels = [], []
-    for _data, _samples, truth, _groups, _images, _network, checked, *_ in sets:
+    for _data, _samples, truth, _groups, _images, _network, _matches, checked, *_ in sets:
         for index in range(0, len(truth), 2):
             features.append(checked[index]["evidence"])
             labels.append(true_detections(checked[index], truth[index], args.iou))
@@ -142,12 +167,13 @@ def main(argv=None) -> dict:
         "models": [str(p) for p in args.model],
         "lookalikes": sorted(given) if given else None,
         "calibration": calibration.to_dict(),
+        "cascade": first_size is not None,
         "sets": {},
     }
-    for data, samples, truth, groups, images, network, checked, network_seconds, check_seconds in sets:
+    for data, samples, truth, groups, images, network, matches, checked, network_seconds, check_seconds in sets:
         odd = list(range(1, len(samples), 2))
         pick = lambda items: [items[i] for i in odd]  # noqa: E731
-        calibrated = [calibrated_check.apply(images[i], network[i]) for i in odd]
+        calibrated = [cascaded(calibrated_check, images[i], network, i, cascade, matches[i]) for i in odd]
         started = time.perf_counter()
         keypoints = [baseline.detect(images[i]) for i in odd]
         baseline_seconds = time.perf_counter() - started

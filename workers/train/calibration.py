@@ -128,19 +128,18 @@ def fit(features: np.ndarray, truths: Sequence[bool], fitted_on: str = "", itera
 
 def calibrate_detector(detector, samples, classes: Sequence[str], iou: float = 0.5, fitted_on: str = "") -> Calibration:
     """A calibration fitted on labelled images (``workers.train.data.Sample``, class names
-    ``classes``): the detector's network detects, its texture check measures the evidence, and
-    each detection is labelled true or false against the images' boxes."""
-    from workers.train.data import read_image_rgb
+    ``classes``): the detector detects as it does when used (its views, cascade, texture check and
+    lookalikes), the check measures each detection's evidence, and each detection is labelled true
+    or false against the images' boxes. A calibration the detector already records is left out
+    of the fit."""
+    from dataclasses import replace
+
     from workers.train.evaluation import detector_predictions, true_detections
-    from workers.train.texture_check import TextureCheck
 
     if not detector.textures:
         raise ValueError("calibration: the detector carries no textures, so there is no texture evidence to calibrate")
-    network, truth, _groups, _classes = detector_predictions(detector, samples, classes, texture_check=False)
-    check = TextureCheck(detector.textures, detector.classes, search=detector.config.texture_search)
-    features, truths = [], []
-    for sample, found, target in zip(samples, network, truth):
-        checked = check.apply(read_image_rgb(sample.image_path), found, with_evidence=True)
-        features.append(checked["evidence"])
-        truths.append(true_detections(checked, target, iou))
+    uncalibrated = replace(detector, meta={key: value for key, value in detector.meta.items() if key != "calibration"})
+    checked, truth, _groups, _classes = detector_predictions(uncalibrated, samples, classes, with_evidence=True)
+    features = [found["evidence"] for found in checked]
+    truths = [true_detections(found, target, iou) for found, target in zip(checked, truth)]
     return fit(np.concatenate(features), np.concatenate(truths), fitted_on=fitted_on)

@@ -579,6 +579,7 @@ def detect_object(
     test_turns: Sequence[int] | None = None,
     texture_check: bool = True,
     every_view: bool = False,
+    with_evidence: bool = False,
 ) -> list[dict[str, np.ndarray]]:
     """Detections per image: ``boxes`` (n, 4) float32 xyxy in that image's pixels, ``scores``
     (n,) float32, ``labels`` (n,) int64 0-based class indices, best score first.
@@ -591,6 +592,8 @@ def detect_object(
     The detector's texture check (``detector.texture_check``, where the checkpoint carries the
     textures) runs on every image's detections, which then also hold ``confirmed`` (n,) bool, the
     boxes the texture confirmed; ``texture_check=False`` gives the network's alone.
+    ``with_evidence``: each image's detections also hold the check's ``evidence`` (what a
+    calibration reads, ``TextureCheck.apply``).
 
     A detector with several views and a texture check detects in two passes where its
     ``cascade`` says so (:class:`Cascade`) and its config's ``cascade`` is on: every view only for
@@ -634,7 +637,9 @@ def detect_object(
             if cascade is None:
                 for (array, _), output in zip(arrays, model(tensors)):
                     found = _found(output)
-                    results.append(checker.apply(array, found) if checker is not None else found)
+                    results.append(
+                        checker.apply(array, found, with_evidence=with_evidence) if checker is not None else found
+                    )
             else:
                 first_size = cascade.first_size(sizes)
                 # The image's keypoints are found on a thread of their own while one view runs:
@@ -645,13 +650,15 @@ def detect_object(
                         first = model(tensors)
                     matches = [found.result() for found in pending]
                 checked = [
-                    checker.apply(array, _found(output), matches=found)
+                    checker.apply(array, _found(output), with_evidence=with_evidence, matches=found)
                     for (array, _), output, found in zip(arrays, first, matches)
                 ]
                 again = [index for index, found in enumerate(checked) if cascade.again(found)]
                 if again:
                     for index, output in zip(again, model([tensors[index] for index in again])):
-                        checked[index] = checker.apply(arrays[index][0], _found(output), matches=matches[index])
+                        checked[index] = checker.apply(
+                            arrays[index][0], _found(output), with_evidence=with_evidence, matches=matches[index]
+                        )
                 results.extend(checked)
             if on_batch is not None:
                 on_batch(len(results))

@@ -523,13 +523,14 @@ def detector_predictions(
     test_sizes: Sequence[int] | None = None,
     test_turns: Sequence[int] | None = None,
     texture_check: bool = True,
+    with_evidence: bool = False,
 ) -> tuple[list[dict], list[dict], list[dict], list[str]]:
     """(predictions, ground truth, groups, the detector's class names) for ``evaluate_predictions``:
     ``detect_object`` on the samples' images, and their boxes with labels mapped to the detector's
     own class list by name (a dataset whose categories come in another order still scores right;
     a dataset class the detector does not know is an error). Groups are condition and difficulty.
     ``test_sizes`` and ``test_turns`` override the detector config's, ``texture_check=False`` leaves
-    out the detector's texture check (see ``detect_object``).
+    out the detector's texture check, ``with_evidence`` adds its evidence (see ``detect_object``).
     ``detector`` may be a list of detectors of one class list, scored as one (``detect_ensemble``)."""
     from workers.train.checkpoint import detect_ensemble
 
@@ -549,6 +550,7 @@ def detector_predictions(
         test_sizes=test_sizes,
         test_turns=test_turns,
         texture_check=texture_check,
+        with_evidence=with_evidence,
     )
     ground_truth = [
         {"boxes": sample.boxes, "labels": to_model[np.asarray(sample.labels, dtype=np.int64)]} for sample in samples

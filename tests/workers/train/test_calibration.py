@@ -199,3 +199,39 @@ def test_a_checkpoint_carries_the_lookalikes_for_its_texture_check(tmp_path):
     detector = load_detector(path)
     assert set(detector.lookalikes) == {"form-b"}
     assert detector.texture_check().lookalikes == ["form-b"]
+
+
+def test_a_calibration_is_fitted_on_the_detections_the_detector_draws(tmp_path, monkeypatch):
+    """``calibrate_detector`` reads the evidence of what the detector gives when used: its
+    cascade's passes (one view first, every view where the texture confirmed nothing), its
+    lookalikes; a calibration the detector already records does not change the fit."""
+    from dataclasses import replace
+
+    from tests.sheet_sets import CLASSES, class_textures, sheet_set
+    from tests.workers.train.training_helpers import config
+    from workers.train.calibration import calibrate_detector
+    from workers.train.checkpoint import Cascade, detect_object, load_detector
+    from workers.train.evaluation import true_detections
+    from workers.train.training import train_detector
+
+    textures = class_textures()
+    samples = sheet_set(tmp_path / "sheets", 4, textures)
+    views = config(texture_check=True, test_sizes=[64, 96], test_turns=[0, 1], view_vote=0.7)
+    path = tmp_path / "model.pt"
+    form = _page(seed=2)
+    train_detector(samples, None, 2, views, CLASSES, path, textures=textures, lookalikes={"form": form})
+    detector = load_detector(path)
+    passes = []
+    monkeypatch.setattr(Cascade, "again", lambda self, checked: passes.append(1) or not checked["confirmed"].any())
+    fitted = calibrate_detector(detector, samples, CLASSES)
+    assert len(passes) == len(samples)  # every image went through the cascade's first pass
+
+    drawn = detect_object(detector, [sample.image_path for sample in samples], with_evidence=True)
+    assert detector.texture_check().lookalikes == ["form"]
+    features = np.concatenate([found["evidence"] for found in drawn])
+    truths = np.concatenate(
+        [true_detections(found, {"boxes": s.boxes, "labels": s.labels}) for found, s in zip(drawn, samples)]
+    )
+    assert fitted == fit(features, truths)
+    recorded = replace(detector, meta={**detector.meta, "calibration": Calibration((9.0,) * 6, -9.0).to_dict()})
+    assert calibrate_detector(recorded, samples, CLASSES) == fitted
