@@ -473,17 +473,17 @@ def test_a_lookalike_lies_beside_the_target_in_cycles_as_in_the_raster_backend(r
     """``assets.lookalikes`` on the Blender backend: the lookalike sheet is rendered by Cycles
     where the raster backend puts it, behind the target, whose box it leaves as it was."""
     from foldwise.sampling import generate_parameters  # noqa: PLC0415
-    from tests.workers.render.test_lookalikes import MAGENTA, _catalog, _changed, _sheet  # noqa: PLC0415
+    from tests.workers.render.lookalike_helpers import MAGENTA, catalog, changed, sheet  # noqa: PLC0415
     from workers.render.pipeline import render_theta  # noqa: PLC0415
 
-    catalog = _catalog({"other-form": _sheet(MAGENTA)})
+    lookalikes = catalog({"other-form": sheet(MAGENTA)})
     theta = generate_parameters("po", "canonical", 1, seed=1, image_size=64)[0]
     shown = {}
     for backend in ("blender", "raster"):
         plain = render_theta(theta, backend=backend, samples=SAMPLES)
-        result = render_theta(theta, backend=backend, assets=catalog, samples=SAMPLES)
+        result = render_theta(theta, backend=backend, assets=lookalikes, samples=SAMPLES)
         np.testing.assert_allclose(result.box, plain.box, atol=1e-6)
-        shown[backend] = _changed(result.image, plain.image) & ~np.any(result.masks, axis=0)
+        shown[backend] = changed(result.image, plain.image) & ~np.any(result.masks, axis=0)
     assert shown["raster"].sum() >= 20
     overlap = (shown["blender"] & shown["raster"]).sum() / (shown["blender"] | shown["raster"]).sum()
     assert overlap >= 0.7

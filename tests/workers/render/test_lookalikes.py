@@ -8,33 +8,13 @@ import pytest
 
 from foldwise.config import AssetsConfig, load_config
 from foldwise.sampling import generate_parameters
+from tests.workers.render.lookalike_helpers import MAGENTA, catalog, changed, sheet
 from workers.render.assets import Asset, AssetCatalog, AssetError, load_assets
 from workers.render.layers import LOOKALIKES_PER_IMAGE, SheetPlacement, distractor_placements
 from workers.render.pipeline import render_theta
 from workers.render.scene import Camera
 
 SIZE = 128
-MAGENTA = (255, 0, 255)
-
-
-def _sheet(colour, size=(96, 68)) -> np.ndarray:
-    image = np.empty((*size, 3), np.uint8)
-    image[:] = colour
-    return image
-
-
-def _catalog(lookalikes: dict[str, np.ndarray]) -> AssetCatalog:
-    builtin = load_assets()
-    return AssetCatalog(
-        builtin.objects,
-        builtin.backgrounds,
-        builtin.occluders,
-        [Asset(name, (lambda image=image: image), source=name) for name, image in lookalikes.items()],
-    )
-
-
-def _changed(image: np.ndarray, reference: np.ndarray) -> np.ndarray:
-    return np.abs(image.astype(np.int32) - reference.astype(np.int32)).sum(axis=2) > 30
 
 
 def test_lookalikes_follow_theta_clutter_and_leave_it_as_it_was():
@@ -59,18 +39,18 @@ def test_lookalikes_follow_theta_clutter_and_leave_it_as_it_was():
 
 
 def test_every_render_shows_a_lookalike_that_gets_no_box():
-    catalog = _catalog({"other-form": _sheet(MAGENTA)})
+    assets = catalog({"other-form": sheet(MAGENTA)})
     shown = 0
     for seed in range(6):
         theta = generate_parameters("po", "canonical", 1, seed=seed, image_size=SIZE)[0]
         assert theta.clutter == 0  # no θ clutter: whatever changed is the lookalike
         plain = render_theta(theta)
-        result = render_theta(theta, assets=catalog)
+        result = render_theta(theta, assets=assets)
         assert [obj.box for obj in result.objects] == [obj.box for obj in plain.objects]
-        changed = _changed(result.image, plain.image)
+        moved = changed(result.image, plain.image)
         target = np.any(result.masks, axis=0)
-        assert (changed & target).sum() <= 0.02 * target.sum()  # behind the target: it stays in full view
-        shown += bool((changed & ~target).sum() >= 20)
+        assert (moved & target).sum() <= 0.02 * target.sum()  # behind the target: it stays in full view
+        shown += bool((moved & ~target).sum() >= 20)
     assert shown >= 4  # sometimes one falls behind the target or out of the frame
 
 
@@ -79,7 +59,7 @@ def test_lookalikes_are_read_from_the_config_folder(tmp_path):
 
     folder = tmp_path / "lookalikes"
     folder.mkdir()
-    cv2.imwrite(str(folder / "invoice-2.png"), _sheet((0, 128, 255)))
+    cv2.imwrite(str(folder / "invoice-2.png"), sheet((0, 128, 255)))
     catalog = load_assets(AssetsConfig(lookalikes=folder))
     assert catalog.lookalike_sheets == ["lookalikes/invoice-2"]
     assert catalog.distractor("lookalikes/invoice-2", np.random.default_rng(0)).shape == (96, 68, 3)
@@ -91,7 +71,7 @@ def test_a_lookalike_named_like_an_object_is_refused():
     builtin = load_assets()
     with pytest.raises(AssetError, match=r"assets.lookalikes: \['astronaut'\] share a name with an object"):
         AssetCatalog(
-            builtin.objects, builtin.backgrounds, builtin.occluders, [Asset("astronaut", lambda: _sheet(MAGENTA))]
+            builtin.objects, builtin.backgrounds, builtin.occluders, [Asset("astronaut", lambda: sheet(MAGENTA))]
         )
 
 

@@ -563,11 +563,7 @@ def test_evaluate_detector_maps_labels_by_class_name(monkeypatch, tmp_path):
         },
     }
     fake = types.ModuleType("workers.train.checkpoint")
-    fake.detect_ensemble = (
-        lambda detectors, images, batch_size=8, on_batch=None, test_sizes=None, test_turns=None, texture_check=True: [
-            outputs[Path(p).name] for p in images
-        ]
-    )
+    fake.detect_ensemble = lambda detectors, images, on_batch=None, **options: [outputs[Path(p).name] for p in images]
     monkeypatch.setitem(sys.modules, "workers.train.checkpoint", fake)
     detector = types.SimpleNamespace(meta={"classes": detector_classes})
     dataset_classes = ["b", "a"]  # category order of the dataset differs
