@@ -107,7 +107,7 @@ def main(argv=None) -> dict:
 
     from bench.keypoint_baseline import KeypointBaseline
     from workers.train.calibration import fit
-    from workers.train.checkpoint import Cascade, combine_detectors, load_detector
+    from workers.train.checkpoint import combine_detectors, load_detector
     from workers.train.data import load_coco_dataset, read_image_rgb
     from workers.train.evaluation import true_detections
     from workers.train.texture_check import TextureCheck
@@ -122,11 +122,8 @@ def main(argv=None) -> dict:
 
         given = {path.stem: read_sheet(path) for path in image_files(args.lookalikes, "lookalikes")}
     check = TextureCheck(detector.textures, classes, search=config.texture_search, lookalikes=given)
-    sizes = tuple(getattr(detector.model, "test_sizes", ()))
-    turns = tuple(getattr(detector.model, "test_turns", ()))
-    views = max(len(sizes), 1) * max(len(turns), 1)
-    cascade = (detector.cascade or Cascade()) if config.cascade and views > 1 else None
-    first_size = cascade.first_size(sizes) if cascade is not None else None
+    cascade = detector.active_cascade()  # as detect_object runs the detector's views
+    first_size = cascade.first_size(detector.model.test_sizes) if cascade is not None else None
     baseline = KeypointBaseline(detector.textures, classes)
     # The models' paths name their detections in the cache: the same models, the same file, in any process.
     digest = hashlib.sha256("\n".join(str(path.resolve()) for path in args.model).encode()).hexdigest()[:12]

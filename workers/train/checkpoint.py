@@ -46,7 +46,7 @@ import numpy as np
 import torch
 from torch import nn
 
-from foldwise.config import DetectorConfig
+from foldwise.config import DetectorConfig, view_count
 
 CHECKPOINT_FORMAT = "foldwise-detector"
 CHECKPOINT_VERSION = 1
@@ -143,6 +143,15 @@ class Detector:
                 lookalikes=self.lookalikes,
             )
         return self._texture_check
+
+    def active_cascade(self) -> Cascade | None:
+        """The cascade ``detect_object`` runs at this detector's own views: its ``cascade`` where
+        its config's ``cascade`` is on, it has a texture check to tell sure from unsure and
+        several views; None where it detects in one pass."""
+        views = view_count(getattr(self.model, "test_sizes", ()), getattr(self.model, "test_turns", ()))
+        if not (self.config.texture_check and self.textures) or not self.config.cascade or views < 2:
+            return None
+        return self.cascade
 
     @property
     def calibration(self):
@@ -610,17 +619,10 @@ def detect_object(
     model = detector.model
     model.eval()
     checker = detector.texture_check() if texture_check else None
-    sizes, turns = tuple(getattr(model, "test_sizes", ())), tuple(getattr(model, "test_turns", ()))
-    cascade = detector.cascade
-    if (
-        checker is None
-        or every_view
-        or not detector.config.cascade
-        or test_sizes is not None
-        or test_turns is not None
-        or len(sizes or (0,)) * len(turns or (0,)) < 2
-    ):
-        cascade = None  # one view asked for or built, or no check to tell sure from unsure
+    sizes = tuple(getattr(model, "test_sizes", ()))
+    # Views asked for, every view, or no check to tell sure from unsure: one pass.
+    asked = checker is None or every_view or test_sizes is not None or test_turns is not None
+    cascade = None if asked else detector.active_cascade()
     results: list[dict[str, np.ndarray]] = []
     threads = int(detector.meta.get("config", {}).get("num_threads", 0))
     with torch.no_grad(), torch_threads(threads), _test_views(model, test_sizes, test_turns):
