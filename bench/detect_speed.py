@@ -8,16 +8,20 @@ beforehand), the paper's mAP, precision and recall at the threshold, and its tim
 of the keypoint recipe's on the same images. Rows:
 
 - ``every view alone``: the model's views (``make run``'s ensemble: 5 sizes × 4 turns × 2
-  members), each member, view and image one R-CNN forward, as the views ran before they were
-  batched (40 forwards an image);
-- ``as built``: the same views and detections, run together (``detect_at_views``: one trunk pass
-  per view for both members, the turns of one shape in one batch);
-- ``cascade``: the detector's default (``checkpoint.Cascade``): one view and the check first,
-  every view only for the images that leave a box unsure; ``second_pass`` is the share of images
-  that went on;
-- ``cascade, every name drawn``: the same, with a sheet the texture did not confirm drawn under
+  members), each member, view and image one R-CNN forward in torch, as the views ran before they
+  were batched (40 forwards an image);
+- ``every view together``: the same views and detections, run together in torch
+  (``detect_at_views``: one trunk pass per view for both members, the turns of one shape in one
+  batch);
+- ``every view, onnxruntime``: the same views through the checkpoint's runtime graph
+  (``workers/train/export.py``; the bench writes it beside the model where it is missing);
+- ``cascade``: the detector as built (``checkpoint.Cascade``): one view and the check first,
+  every view (through the runtime graph) only for the images that leave a box unsure;
+  ``second_pass`` is the share of images that went on;
+- ``cascade, torch``: the same with the views in torch (no runtime graph);
+- ``cascade, every name drawn``: the cascade, with a sheet the texture did not confirm drawn under
   each class the network names it (``TextureCheck.every_name``) instead of once;
-- ``cascade, unmatched drawn``: the same, with a box whose many keypoints match nothing of its
+- ``cascade, unmatched drawn``: the cascade, with a box whose many keypoints match nothing of its
   texture left over the cut (``TextureCheck.unmatched_drawn``) instead of dropped under it;
 - ``one view``: the cascade's first pass alone (the largest size, upright, both members);
 - ``keypoints``: bench/keypoint_baseline.py.
@@ -48,8 +52,10 @@ from bench.wild_scoring import _scores  # noqa: E402
 
 ROWS = (
     "every view alone",
-    "as built",
+    "every view together",
+    "every view, onnxruntime",
     "cascade",
+    "cascade, torch",
     "cascade, every name drawn",
     "cascade, unmatched drawn",
     "one view",
@@ -120,8 +126,13 @@ def main(argv=None) -> dict:
     from bench.keypoint_baseline import KeypointBaseline
     from workers.train.checkpoint import Cascade, detect_object, load_detector
     from workers.train.data import load_coco_dataset, read_image_rgb
+    from workers.train.export import runtime_graph_path, write_runtime_graph
 
     detector = load_detector(args.model, device="cpu")
+    if detector.runtime is None:  # what make run hands over has its runtime graph beside it
+        write_runtime_graph(args.model, detector)
+        detector = load_detector(args.model, device="cpu")
+    runtime = detector.runtime
     cascade = detector.cascade or Cascade()
     went_on: list[bool] = []
 
@@ -140,6 +151,7 @@ def main(argv=None) -> dict:
         "views": {"sizes": list(model.test_sizes), "turns": list(model.test_turns)},
         "members": len(getattr(model, "members", [model])),
         "cascade": asdict(cascade),
+        "runtime_graph": str(runtime_graph_path(args.model)),
         "batch_size": args.batch_size,
         "sets": {},
     }
@@ -162,21 +174,39 @@ def main(argv=None) -> dict:
             seconds = time.perf_counter() - started
             rows[name] = _scores(found, truth, classes, groups, args.threshold, args.iou, seconds)
 
-        detect_object(detector, images[:1], test_sizes=(first_size,), test_turns=())  # warm: first calls allocate
+        def in_torch(detect):
+            """``detect`` run with the detector's views in torch (its runtime graph set aside)."""
+            detector.runtime = None
+            try:
+                return detect()
+            finally:
+                detector.runtime = runtime
+
+        def every_view():
+            return detect_object(detector, images, batch_size=args.batch_size, every_view=True)
+
+        def cascaded():
+            return detect_object(detector, images, batch_size=args.batch_size)
+
+        # Warm: the first calls of torch and onnxruntime allocate.
+        detect_object(detector, images[:1], test_sizes=(first_size,), test_turns=())
+        detect_object(detector, images[:1], every_view=True)
         row("every view alone", lambda: views_alone(detector, images))
-        row("as built", lambda: detect_object(detector, images, batch_size=args.batch_size, every_view=True))
+        row("every view together", lambda: in_torch(every_view))
+        row("every view, onnxruntime", every_view)
         detector.cascade = Counted(**asdict(cascade))
         went_on.clear()
-        row("cascade", lambda: detect_object(detector, images, batch_size=args.batch_size))
+        row("cascade", cascaded)
         if "cascade" in rows:
             rows["cascade"]["second_pass"] = float(np.mean(went_on)) if went_on else 0.0
+        row("cascade, torch", lambda: in_torch(cascaded))
         checker = detector.texture_check()
         for switch, name in (
             ("every_name", "cascade, every name drawn"),
             ("unmatched_drawn", "cascade, unmatched drawn"),
         ):
             setattr(checker, switch, True)
-            row(name, lambda: detect_object(detector, images, batch_size=args.batch_size))
+            row(name, cascaded)
             setattr(checker, switch, False)
         detector.cascade = cascade
         row(

@@ -10,6 +10,7 @@ from __future__ import annotations
 import logging
 import os
 import sys
+import time
 from datetime import UTC
 from pathlib import Path
 
@@ -103,6 +104,24 @@ def run(
     )
     if not handed_over:
         raise typer.Exit(1)
+
+
+def _write_runtime_graph(checkpoint: Path) -> None:
+    """The handed-over model's runtime graph beside it, so that detection runs its network through
+    onnxruntime (workers/train/export.py); a family that cannot export says so and runs in torch."""
+    from workers.train.export import ExportError, write_runtime_graph
+
+    started = time.perf_counter()
+    try:
+        written = write_runtime_graph(checkpoint)
+    except ExportError as error:
+        console.print(f"no runtime graph: {escape(str(error))}; detection runs the network in torch", highlight=False)
+        return
+    console.print(
+        f"runtime graph: {escape(str(written))} ({time.perf_counter() - started:.0f} s): detection runs the "
+        "network at its views through onnxruntime",
+        highlight=False,
+    )
 
 
 def _print_final_model(config, model_id: int) -> None:
@@ -358,6 +377,7 @@ def _run_members(config, members: int, report_dir: Path | None) -> bool:
             f"final model: {shown}, an ensemble of {models}; foldwise detect --model {shown} IMAGE...", highlight=False
         )
         _print_views(config, shown)
+        _write_runtime_graph(path)
         return True
     console.print("no ensemble written: not every curriculum finished", highlight=False)
     return False

@@ -218,6 +218,9 @@ def test_members_run_side_by_side_and_hand_over_one_ensemble(database, tmp_path)
     assert f"final model: {ensemble_path}, an ensemble of model" in result.output.replace("\n", "")
     ensemble = load_detector(ensemble_path)
     assert len(ensemble.meta["members"]) == 2
+    # Its runtime graph beside it: detection runs the network through onnxruntime.
+    assert f"runtime graph: {ensemble_path}.onnx" in result.output.replace("\n", "")
+    assert ensemble.runtime is not None and ensemble.runtime.classes == ensemble.classes
     for member, final in zip(ensemble.model.members, finals):
         for name, tensor in read_checkpoint(final)["state_dict"].items():
             assert torch.equal(member.state_dict()[name], tensor), name

@@ -122,6 +122,10 @@ class Detector:
     # Detection in two passes (``detect_object``): one view first, every view only where it leaves
     # the image unsure. None: every view on every image.
     cascade: Cascade | None = Cascade()
+    # The network at its own views as an onnxruntime session (``workers.train.export``'s runtime
+    # graph, where the checkpoint has one beside it): ``detect_object`` runs those views through
+    # it instead of torch, the same detections in a third of the time on 2 cores.
+    runtime: Any = None
     _texture_check: Any = field(default=None, init=False, repr=False)
 
     def texture_check(self):
@@ -434,12 +438,16 @@ def load_detector(path: str | Path, device: str | torch.device | None = None) ->
                 lookalikes=payload_textures(member, "lookalikes"),
             )
         )
-    if payload["format"] == CHECKPOINT_FORMAT:
-        return detectors[0]
     try:
-        return combine_detectors(detectors)
+        detector = detectors[0] if payload["format"] == CHECKPOINT_FORMAT else combine_detectors(detectors)
     except ValueError as error:
         raise CheckpointError(f"ensemble {path}: {error}") from None
+    if target.type == "cpu":
+        from workers.train.export import load_runtime_graph
+
+        threads = int(detector.meta.get("config", {}).get("num_threads", 0))
+        detector.runtime = load_runtime_graph(path, detector.classes, threads=threads)
+    return detector
 
 
 class EnsembleModel(nn.Module):
@@ -623,6 +631,15 @@ def detect_object(
     # Views asked for, every view, or no check to tell sure from unsure: one pass.
     asked = checker is None or every_view or test_sizes is not None or test_turns is not None
     cascade = None if asked else detector.active_cascade()
+    # The model's own views run through the runtime graph where the detector has one (the same
+    # detections as torch's); views asked for, and the cascade's first view, run in torch.
+    runtime = detector.runtime if test_sizes is None and test_turns is None else None
+
+    def at_own_views(arrays: list[np.ndarray], tensors: list[torch.Tensor]) -> list[dict[str, np.ndarray]]:
+        if runtime is not None:
+            return [runtime.detect(array) for array in arrays]
+        return [_found(output) for output in model(tensors)]
+
     results: list[dict[str, np.ndarray]] = []
     threads = int(detector.meta.get("config", {}).get("num_threads", 0))
     with torch.no_grad(), torch_threads(threads), _test_views(model, test_sizes, test_turns):
@@ -637,8 +654,7 @@ def detect_object(
                 torch.from_numpy(array).to(detector.device).permute(2, 0, 1).float().div_(255) for array, _ in arrays
             ]
             if cascade is None:
-                for (array, _), output in zip(arrays, model(tensors)):
-                    found = _found(output)
+                for (array, _), found in zip(arrays, at_own_views([array for array, _ in arrays], tensors)):
                     results.append(
                         checker.apply(array, found, with_evidence=with_evidence) if checker is not None else found
                     )
@@ -657,9 +673,12 @@ def detect_object(
                 ]
                 again = [index for index, found in enumerate(checked) if cascade.again(found)]
                 if again:
-                    for index, output in zip(again, model([tensors[index] for index in again])):
+                    found_again = at_own_views(
+                        [arrays[index][0] for index in again], [tensors[index] for index in again]
+                    )
+                    for index, found in zip(again, found_again):
                         checked[index] = checker.apply(
-                            arrays[index][0], _found(output), with_evidence=with_evidence, matches=matches[index]
+                            arrays[index][0], found, with_evidence=with_evidence, matches=matches[index]
                         )
                 results.extend(checked)
             if on_batch is not None:

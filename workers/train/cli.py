@@ -742,7 +742,7 @@ def lookalikes(
 
 def export(
     model: Annotated[Path, typer.Option("--model", help="Checkpoint written by `foldwise train` or an experiment.")],
-    out: Annotated[Path, typer.Option("--out", help="File to write, e.g. model.onnx.")],
+    out: Annotated[Path | None, typer.Option("--out", help="File to write, e.g. model.onnx.")] = None,
     export_format: Annotated[str, typer.Option("--format", help="Export format: onnx.")] = "onnx",
     image_size: Annotated[
         str | None,
@@ -750,12 +750,35 @@ def export(
             "--image-size", help="HxW (or N) the yolo family is exported at (at most its input size; default that)."
         ),
     ] = None,
+    runtime: Annotated[
+        bool,
+        typer.Option(
+            "--runtime",
+            help="Write the checkpoint's runtime graph beside it (<model>.onnx) instead of --out: foldwise detect, "
+            "evaluate and the REST routes then run the network at its views through onnxruntime (faster_rcnn).",
+        ),
+    ] = False,
 ) -> None:
     """Export a detector to run without foldwise (ONNX: faster_rcnn any size, yolo one size; not fast_rcnn)."""
-    from workers.train.export import FORMATS, ExportError, export_onnx
+    from workers.train.export import FORMATS, ExportError, export_onnx, write_runtime_graph
 
     if export_format not in FORMATS:
         _fail(f"unknown export format {export_format!r}; known: {', '.join(FORMATS)}")
+    if runtime:
+        if out is not None or image_size is not None:
+            _fail("--runtime writes the graph beside the checkpoint at its own views: no --out or --image-size")
+        detector = _load_model(model, "cpu")
+        try:
+            written = write_runtime_graph(model, detector)
+        except ExportError as error:
+            _fail(str(error))
+        typer.echo(
+            f"wrote {written} ({written.stat().st_size / 1e6:.1f} MB): the runtime graph of {model}, "
+            "which detection now runs the network through (onnxruntime)"
+        )
+        return
+    if out is None:
+        _fail("--out: the file to write (or --runtime, to write the graph beside the checkpoint)")
     size = None
     if image_size is not None:
         parts = image_size.lower().split("x")

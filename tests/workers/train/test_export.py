@@ -194,6 +194,79 @@ def test_an_ensemble_exports_as_one_graph_of_its_members_and_their_merge(exporte
         assert not np.array_equal(expected["scores"], single["scores"])
 
 
+def test_a_runtime_graph_beside_a_checkpoint_runs_its_views_with_the_same_detections(exported, rendered, tmp_path):
+    """`foldwise export --runtime` writes the checkpoint's graph beside it; the detector read back
+    runs its own views through onnxruntime (every image, none through torch) and finds what
+    torch finds. Views asked for by the caller run in torch."""
+    import cv2
+    import torch
+
+    from workers.train.checkpoint import detect_object, load_detector, save_checkpoint
+    from workers.train.export import runtime_graph_path
+
+    plain = load_detector(exported["faster_rcnn"][0], device="cpu")
+    meta = {**plain.meta, "config": {**plain.meta["config"], "test_sizes": [64, 96], "test_turns": [0, 1]}}
+    checkpoint = save_checkpoint(plain.model, meta, tmp_path / "views.pt")
+    images = rendered_images(rendered)[:3]
+    images.append(cv2.resize(images[0], (96, 80)))
+    in_torch = load_detector(checkpoint, device="cpu")
+    assert in_torch.runtime is None  # no graph beside it yet
+    expected = detect_object(in_torch, images)
+
+    result = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--runtime"])
+    assert result.exit_code == 0, result.output
+    assert f"wrote {runtime_graph_path(checkpoint)}" in result.output and runtime_graph_path(checkpoint).is_file()
+    detector = load_detector(checkpoint, device="cpu")
+    assert detector.runtime is not None
+    ran, detect = [], detector.runtime.detect
+    detector.runtime.detect = lambda image: ran.append(image.shape) or detect(image)
+
+    def no_torch(*_args, **_kwargs):
+        raise AssertionError("the network ran in torch")
+
+    detector.model.forward = no_torch
+    for found, wanted in zip(detect_object(detector, images), expected):
+        assert_same_detections(found, wanted)
+    assert ran == [image.shape for image in images]
+    del detector.model.forward  # the class's own again
+    with torch.no_grad():
+        at_one_size = detect_object(detector, images[:1], test_sizes=(64,), test_turns=())
+    assert len(ran) == len(images)  # asked views: torch
+    assert_same_detections(at_one_size[0], detect_object(in_torch, images[:1], test_sizes=(64,), test_turns=())[0])
+
+
+def test_a_runtime_graph_of_a_changed_checkpoint_or_unreadable_is_not_used(exported, tmp_path):
+    """A graph is used only for the checkpoint it was written from (its SHA-256): rewritten
+    weights make it stale and torch runs. A graph onnxruntime cannot open warns, names the file,
+    and torch runs. Where no graph can stand for the detector, or --runtime meets --out, the
+    command says why."""
+    import shutil
+
+    from workers.train.checkpoint import load_detector, save_checkpoint
+    from workers.train.export import runtime_graph_path, write_runtime_graph
+
+    checkpoint = tmp_path / "model.pt"
+    shutil.copy(exported["faster_rcnn"][0], checkpoint)
+    graph = write_runtime_graph(checkpoint)
+    assert graph == tmp_path / "model.pt.onnx" and load_detector(checkpoint).runtime is not None
+    detector = load_detector(checkpoint)
+    meta = {**detector.meta, "iterations": detector.meta.get("iterations", 0) + 1}  # other bytes, same network
+    save_checkpoint(detector.model, meta, checkpoint)
+    assert load_detector(checkpoint).runtime is None
+
+    runtime_graph_path(checkpoint).write_bytes(b"not an onnx file")
+    with pytest.warns(UserWarning, match="model.pt.onnx: not a runtime graph onnxruntime can open"):
+        assert load_detector(checkpoint).runtime is None
+
+    both = runner.invoke(make_app(), ["export", "--model", str(checkpoint), "--runtime", "--out", str(tmp_path / "x")])
+    assert both.exit_code == 1 and "--runtime writes the graph beside the checkpoint" in both.output
+    neither = runner.invoke(make_app(), ["export", "--model", str(checkpoint)])
+    assert neither.exit_code == 1 and "--out: the file to write" in neither.output
+    yolo = runner.invoke(make_app(), ["export", "--model", str(exported["yolo"][0]), "--runtime"])
+    assert yolo.exit_code == 1 and "the yolo detector has no runtime graph" in yolo.output
+    assert not runtime_graph_path(exported["yolo"][0]).exists()
+
+
 def test_fast_rcnn_cannot_export_and_says_why(exported):
     _, onnx_file, result = exported["fast_rcnn"]
     assert result.exit_code == 1

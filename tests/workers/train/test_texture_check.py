@@ -130,6 +130,24 @@ def test_flann_finds_nearly_every_match_brute_force_does_and_is_the_same_each_ti
     np.testing.assert_allclose(by_flann["boxes"], by_brute_force["boxes"], atol=3.0)
 
 
+def test_keypoints_looked_up_in_parts_on_several_threads_find_the_same_neighbours(checker, scene, monkeypatch):
+    """The image's keypoints are looked up in FLANN's trees in parts, on threads of their own, and
+    several checks of one image may run at once (a served detector): every way gives the
+    neighbours one lookup of them all gives, to the byte."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    gray = texture_check.grayscale(scene[0])
+    monkeypatch.setattr(texture_check, "SEARCH_THREADS", 1)
+    whole = checker._keypoints_and_matches(gray)
+    assert len(whole[0]) >= 2 * texture_check.MIN_SEARCH_PART  # enough keypoints to be split
+    monkeypatch.setattr(texture_check, "SEARCH_THREADS", 4)
+    with ThreadPoolExecutor(3) as pool:
+        at_once = list(pool.map(lambda _: checker._keypoints_and_matches(gray), range(6)))
+    for parts in at_once:
+        for ours, theirs in zip(parts, whole):
+            np.testing.assert_array_equal(ours, theirs)
+
+
 def test_a_texture_with_fewer_keypoints_than_neighbours_looked_at_is_matched_alike(monkeypatch):
     """A texture with fewer keypoints than the ratio test's NEIGHBOURS (a blurred disc, seen
     straight on only; the other class blank): FLANN is asked for no more neighbours than there
