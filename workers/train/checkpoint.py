@@ -324,22 +324,30 @@ def write_calibration(source: str | Path, calibration, path: str | Path) -> Path
     """The checkpoint or ensemble at ``source`` written to ``path`` (atomically; it may be
     ``source``) with ``calibration`` (a :class:`~workers.train.calibration.Calibration`)
     recorded in it: in its meta, or every member's, so that the detector it loads as scores by it."""
+    from workers.train.export import carry_runtime_graph, matching_runtime_graph
+
     payload = _load_payload(source)
+    graph = matching_runtime_graph(source)  # the network is unchanged: its runtime graph comes along
     members = payload["members"] if payload["format"] == ENSEMBLE_FORMAT else [payload]
     for member in members:
         member["meta"] = {**member["meta"], "calibration": calibration.to_dict()}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    return _write_atomically(payload, path)
+    written = _write_atomically(payload, path)
+    if graph is not None:
+        carry_runtime_graph(graph, written, calibration=calibration.to_dict())
+    return written
 
 
 def write_lookalikes(source: str | Path, lookalikes: Mapping[str, np.ndarray], path: str | Path) -> Path:
     """The checkpoint or ensemble at ``source`` written to ``path`` (atomically; it may be
     ``source``) carrying ``lookalikes`` (name to an RGB or grayscale uint8 image; none: it
     carries none) in grayscale, for its texture check."""
+    from workers.train.export import carry_runtime_graph, matching_runtime_graph
     from workers.train.texture_check import grayscale
 
     payload = _load_payload(source)
+    graph = matching_runtime_graph(source)  # the network is unchanged: its runtime graph comes along
     members = payload["members"] if payload["format"] == ENSEMBLE_FORMAT else [payload]
     stored = {
         str(name): torch.from_numpy(grayscale(np.asarray(image, dtype=np.uint8)).copy())
@@ -352,7 +360,10 @@ def write_lookalikes(source: str | Path, lookalikes: Mapping[str, np.ndarray], p
             member.pop("lookalikes", None)
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    return _write_atomically(payload, path)
+    written = _write_atomically(payload, path)
+    if graph is not None:
+        carry_runtime_graph(graph, written)
+    return written
 
 
 def check_compatible(meta: dict[str, Any], config: DetectorConfig, classes: Sequence[str], path: str | Path) -> None:

@@ -16,7 +16,7 @@ onnxruntime (``load_runtime_graph``) and ``detect_object`` runs the network at i
 through it, the same detections as torch's to float rounding in a third of the time on 2 cores
 (bench/README.md, "The network on onnxruntime"). A graph whose checkpoint changed since is not
 used. ``foldwise run`` writes it for the model it hands over; ``foldwise export --runtime`` for
-any checkpoint.
+any checkpoint; a calibration or lookalikes written into a checkpoint carry its graph along.
 
 Which families export, and how:
 
@@ -243,3 +243,37 @@ def load_runtime_graph(checkpoint: str | Path, classes: list[str], threads: int 
     if graph.checkpoint_sha256 != file_sha256(checkpoint) or graph.classes != list(classes) or graph.image_size:
         return None
     return graph
+
+
+def matching_runtime_graph(checkpoint: str | Path):
+    """The checkpoint's runtime graph as an ONNX model (``onnx.ModelProto``) where it has one
+    written for it, else None: for a checkpoint written anew with the same network
+    (``carry_runtime_graph``)."""
+    import onnx
+
+    path = runtime_graph_path(checkpoint)
+    if not path.is_file():
+        return None
+    try:
+        graph = onnx.load(str(path))
+    except Exception:  # a torn or foreign file: nothing to carry
+        return None
+    props = {prop.key: prop.value for prop in graph.metadata_props}
+    return graph if props.get("foldwise.checkpoint_sha256") == file_sha256(checkpoint) else None
+
+
+def carry_runtime_graph(graph, checkpoint: str | Path, calibration: dict | None = None) -> Path:
+    """``graph`` (``matching_runtime_graph`` of a checkpoint whose network ``checkpoint`` holds
+    unchanged: a calibration or lookalikes added) written as ``checkpoint``'s runtime graph, its
+    digest (and ``calibration``, where given) now ``checkpoint``'s."""
+    import onnx
+
+    props = {prop.key: prop.value for prop in graph.metadata_props}
+    props["foldwise.checkpoint_sha256"] = file_sha256(checkpoint)
+    if calibration is not None:
+        props["foldwise.calibration"] = json.dumps(calibration)
+    del graph.metadata_props[:]
+    onnx.helper.set_model_props(graph, props)
+    out = runtime_graph_path(checkpoint)
+    onnx.save(graph, str(out))
+    return out

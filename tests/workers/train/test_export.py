@@ -267,6 +267,35 @@ def test_a_runtime_graph_of_a_changed_checkpoint_or_unreadable_is_not_used(expor
     assert not runtime_graph_path(exported["yolo"][0]).exists()
 
 
+def test_a_calibration_or_lookalikes_written_into_a_checkpoint_carry_its_runtime_graph(exported, tmp_path):
+    """Neither changes the network: the checkpoint written with them has the source's runtime
+    graph beside it, its own digest (and calibration) recorded, and the source keeps its own.
+    A source without a graph gives none."""
+    import json
+    import shutil
+
+    import onnx
+
+    from workers.train.calibration import shipped_calibration
+    from workers.train.checkpoint import load_detector, write_calibration, write_lookalikes
+    from workers.train.export import file_sha256, runtime_graph_path, write_runtime_graph
+
+    source = tmp_path / "model.pt"
+    shutil.copy(exported["faster_rcnn"][0], source)
+    bare = write_calibration(source, shipped_calibration(), tmp_path / "bare-calibrated.pt")
+    assert not runtime_graph_path(bare).exists()
+    write_runtime_graph(source)
+    calibrated = write_calibration(source, shipped_calibration(), tmp_path / "calibrated.pt")
+    sheet = np.full((40, 30, 3), 200, np.uint8)
+    with_lookalikes = write_lookalikes(calibrated, {"other": sheet}, tmp_path / "with-lookalikes.pt")
+    for checkpoint in (source, calibrated, with_lookalikes):
+        detector = load_detector(checkpoint)
+        assert detector.runtime is not None, checkpoint
+        assert detector.runtime.checkpoint_sha256 == file_sha256(checkpoint)
+    props = {p.key: p.value for p in onnx.load(str(runtime_graph_path(calibrated))).metadata_props}
+    assert json.loads(props["foldwise.calibration"]) == shipped_calibration().to_dict()
+
+
 def test_fast_rcnn_cannot_export_and_says_why(exported):
     _, onnx_file, result = exported["fast_rcnn"]
     assert result.exit_code == 1
