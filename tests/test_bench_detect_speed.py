@@ -54,6 +54,7 @@ def test_every_way_of_running_the_views_is_scored_on_each_set_against_the_keypoi
     assert json.loads(out.read_text()) == json.loads(json.dumps(report, default=float))
     assert report["views"] == {"sizes": [64, 96], "turns": [0, 1]} and report["members"] == 2
     assert report["runtime_graph"] == f"{model}.onnx" and Path(report["runtime_graph"]).is_file()  # written
+    assert report["runtime_graph_open_seconds"] > 0
     assert list(report["sets"]) == ["sheets", "large"]
     assert [report["sets"][name]["frame"] for name in ("sheets", "large")] == ["200x150", "400x300"]
     for entry in report["sets"].values():

@@ -32,9 +32,11 @@ ensemble by name.
 from __future__ import annotations
 
 import errno
+import functools
 import io
 import os
 import tempfile
+import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -122,11 +124,29 @@ class Detector:
     # Detection in two passes (``detect_object``): one view first, every view only where it leaves
     # the image unsure. None: every view on every image.
     cascade: Cascade | None = Cascade()
-    # The network at its own views as an onnxruntime session (``workers.train.export``'s runtime
-    # graph, where the checkpoint has one beside it): ``detect_object`` runs those views through
-    # it instead of torch, the same detections in a third of the time on 2 cores.
-    runtime: Any = None
+    # Opens the checkpoint's runtime graph (``workers.train.export``), where it has one beside it:
+    # ``runtime`` calls it on first use.
+    runtime_loader: Callable[[], Any] | None = field(default=None, repr=False)
+    _runtime: Any = field(default=None, init=False, repr=False)
+    _runtime_lock: Any = field(default_factory=threading.Lock, init=False, repr=False)
     _texture_check: Any = field(default=None, init=False, repr=False)
+
+    @property
+    def runtime(self):
+        """The network at its own views as an onnxruntime session (``OnnxDetector``), or None:
+        ``detect_object`` runs those views through it instead of torch, the same detections in
+        half to a third of the time on 2 cores. Opened on first use (about a second, once), so
+        a process whose images never need every view does not pay for it."""
+        with self._runtime_lock:
+            if self.runtime_loader is not None:
+                loader, self.runtime_loader = self.runtime_loader, None
+                self._runtime = loader()
+            return self._runtime
+
+    @runtime.setter
+    def runtime(self, value) -> None:
+        with self._runtime_lock:
+            self.runtime_loader, self._runtime = None, value
 
     def texture_check(self):
         """The :class:`~workers.train.texture_check.TextureCheck` of this detector's textures
@@ -453,11 +473,14 @@ def load_detector(path: str | Path, device: str | torch.device | None = None) ->
         detector = detectors[0] if payload["format"] == CHECKPOINT_FORMAT else combine_detectors(detectors)
     except ValueError as error:
         raise CheckpointError(f"ensemble {path}: {error}") from None
-    if target.type == "cpu":
-        from workers.train.export import load_runtime_graph
+    from workers.train.export import file_sha256, load_runtime_graph, runtime_graph_path
 
+    if target.type == "cpu" and runtime_graph_path(path).is_file():
         threads = int(detector.meta.get("config", {}).get("num_threads", 0))
-        detector.runtime = load_runtime_graph(path, detector.classes, threads=threads)
+        # The digest of the bytes the model was read from: a graph of a later rewrite is no graph of it.
+        detector.runtime_loader = functools.partial(
+            load_runtime_graph, path, detector.classes, threads=threads, sha256=file_sha256(path)
+        )
     return detector
 
 
@@ -643,10 +666,12 @@ def detect_object(
     asked = checker is None or every_view or test_sizes is not None or test_turns is not None
     cascade = None if asked else detector.active_cascade()
     # The model's own views run through the runtime graph where the detector has one (the same
-    # detections as torch's); views asked for, and the cascade's first view, run in torch.
-    runtime = detector.runtime if test_sizes is None and test_turns is None else None
+    # detections as torch's), opened only once they are needed; views asked for, and the
+    # cascade's first view, run in torch.
+    own_views = test_sizes is None and test_turns is None
 
     def at_own_views(arrays: list[np.ndarray], tensors: list[torch.Tensor]) -> list[dict[str, np.ndarray]]:
+        runtime = detector.runtime if own_views else None
         if runtime is not None:
             return [runtime.detect(array) for array in arrays]
         return [_found(output) for output in model(tensors)]

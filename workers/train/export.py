@@ -36,6 +36,8 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import tempfile
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -156,14 +158,18 @@ class OnnxDetector:
     checkpoint_sha256: str | None = None  # a runtime graph's checkpoint (``write_runtime_graph``)
 
     @classmethod
-    def load(cls, path: str | Path, threads: int = 0) -> OnnxDetector:
-        """Open an exported file; ``threads``: onnxruntime's threads within an operator (0: its default)."""
+    def load(cls, path: str | Path, threads: int = 0, optimized: bool = False) -> OnnxDetector:
+        """Open an exported file; ``threads``: onnxruntime's threads within an operator (0: its
+        default); ``optimized``: the graph was optimized when written (a runtime graph), and is
+        not again."""
         import onnxruntime
 
         options = onnxruntime.SessionOptions()
         options.log_severity_level = 3  # errors only: the graph's shape hints are not news
         if threads > 0:
             options.intra_op_num_threads = threads
+        if optimized:
+            options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_DISABLE_ALL
         session = onnxruntime.InferenceSession(str(path), options, providers=["CPUExecutionProvider"])
         meta = session.get_modelmeta().custom_metadata_map
         if "foldwise.family" not in meta:
@@ -223,24 +229,55 @@ def write_runtime_graph(checkpoint: str | Path, detector: Any = None) -> Path:
         raise ExportError(
             f"the {family} detector has no runtime graph: only a graph that takes any image size can stand for it"
         )
-    return export_onnx(detector, runtime_graph_path(checkpoint), checkpoint_sha256=file_sha256(checkpoint))
+    import onnx
+    import onnxruntime
+
+    out = runtime_graph_path(checkpoint)
+    with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as folder:
+        plain = export_onnx(detector, Path(folder) / "plain.onnx", checkpoint_sha256=file_sha256(checkpoint))
+        graph = onnx.load(str(plain))
+        props = {prop.key: prop.value for prop in graph.metadata_props}
+        props["foldwise.onnxruntime"] = onnxruntime.__version__
+        onnx.helper.set_model_props(graph, props)
+        onnx.save(graph, str(plain))
+        # Optimized once here (constants folded, operators fused) and opened later without
+        # optimizing again: 1 s to open instead of 6 s (bench/README.md, "The network on onnxruntime").
+        options = onnxruntime.SessionOptions()
+        options.log_severity_level = 3
+        options.graph_optimization_level = onnxruntime.GraphOptimizationLevel.ORT_ENABLE_EXTENDED
+        options.optimized_model_filepath = str(Path(folder) / "optimized.onnx")
+        onnxruntime.InferenceSession(str(plain), options, providers=["CPUExecutionProvider"])
+        os.replace(Path(folder) / "optimized.onnx", out)
+    return out
 
 
-def load_runtime_graph(checkpoint: str | Path, classes: list[str], threads: int = 0) -> OnnxDetector | None:
+def load_runtime_graph(
+    checkpoint: str | Path, classes: list[str], threads: int = 0, sha256: str | None = None
+) -> OnnxDetector | None:
     """The checkpoint's runtime graph opened with onnxruntime, or None where there is none, it
-    was written for another checkpoint (its digest differs: the checkpoint changed since) or its
-    classes differ. A file onnxruntime cannot open warns and is passed over: torch runs instead."""
+    was written for another checkpoint (its digest differs from ``sha256``, default the file's
+    now: the checkpoint changed since), by another onnxruntime (it was optimized for that one)
+    or its classes differ. A file onnxruntime cannot open warns and is passed over: torch runs
+    instead."""
+    import onnxruntime
+
     path = runtime_graph_path(checkpoint)
     if not path.is_file():
         return None
     try:
-        graph = OnnxDetector.load(path, threads=threads)
+        graph = OnnxDetector.load(path, threads=threads, optimized=True)
     except Exception as error:  # onnxruntime's own errors have no common base class
         warnings.warn(
             f"{path}: not a runtime graph onnxruntime can open ({error}); the network runs in torch", stacklevel=2
         )
         return None
-    if graph.checkpoint_sha256 != file_sha256(checkpoint) or graph.classes != list(classes) or graph.image_size:
+    meta = graph.session.get_modelmeta().custom_metadata_map
+    if (
+        graph.checkpoint_sha256 != (sha256 or file_sha256(checkpoint))
+        or meta.get("foldwise.onnxruntime") != onnxruntime.__version__
+        or graph.classes != list(classes)
+        or graph.image_size
+    ):
         return None
     return graph
 

@@ -217,7 +217,10 @@ def test_a_runtime_graph_beside_a_checkpoint_runs_its_views_with_the_same_detect
     assert result.exit_code == 0, result.output
     assert f"wrote {runtime_graph_path(checkpoint)}" in result.output and runtime_graph_path(checkpoint).is_file()
     detector = load_detector(checkpoint, device="cpu")
-    assert detector.runtime is not None
+    assert detector.runtime_loader is not None  # opened on first use, not before
+    detect_object(detector, images[:1], test_sizes=(64,), test_turns=())
+    assert detector.runtime_loader is not None  # views asked for ran in torch
+    assert detector.runtime is not None and detector.runtime_loader is None
     ran, detect = [], detector.runtime.detect
     detector.runtime.detect = lambda image: ran.append(image.shape) or detect(image)
 
@@ -235,12 +238,14 @@ def test_a_runtime_graph_beside_a_checkpoint_runs_its_views_with_the_same_detect
     assert_same_detections(at_one_size[0], detect_object(in_torch, images[:1], test_sizes=(64,), test_turns=())[0])
 
 
-def test_a_runtime_graph_of_a_changed_checkpoint_or_unreadable_is_not_used(exported, tmp_path):
-    """A graph is used only for the checkpoint it was written from (its SHA-256): rewritten
-    weights make it stale and torch runs. A graph onnxruntime cannot open warns, names the file,
-    and torch runs. Where no graph can stand for the detector, or --runtime meets --out, the
-    command says why."""
+def test_a_runtime_graph_of_a_changed_checkpoint_or_unreadable_is_not_used(exported, tmp_path, monkeypatch):
+    """A graph is used only for the checkpoint it was written from (its SHA-256) and by the
+    onnxruntime that optimized it: otherwise torch runs. A graph onnxruntime cannot open warns,
+    names the file, and torch runs. Where no graph can stand for the detector, or --runtime meets
+    --out, the command says why."""
     import shutil
+
+    import onnxruntime
 
     from workers.train.checkpoint import load_detector, save_checkpoint
     from workers.train.export import runtime_graph_path, write_runtime_graph
@@ -253,6 +258,12 @@ def test_a_runtime_graph_of_a_changed_checkpoint_or_unreadable_is_not_used(expor
     meta = {**detector.meta, "iterations": detector.meta.get("iterations", 0) + 1}  # other bytes, same network
     save_checkpoint(detector.model, meta, checkpoint)
     assert load_detector(checkpoint).runtime is None
+
+    write_runtime_graph(checkpoint)
+    with monkeypatch.context() as patch:  # optimized for one onnxruntime, opened by another
+        patch.setattr(onnxruntime, "__version__", "0.0.1")
+        assert load_detector(checkpoint).runtime is None
+    assert load_detector(checkpoint).runtime is not None
 
     runtime_graph_path(checkpoint).write_bytes(b"not an onnx file")
     with pytest.warns(UserWarning, match="model.pt.onnx: not a runtime graph onnxruntime can open"):
