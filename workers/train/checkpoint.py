@@ -135,7 +135,7 @@ class Detector:
     def runtime(self):
         """The network at its own views as an onnxruntime session (``OnnxDetector``), or None:
         ``detect_object`` runs those views through it instead of torch, the same detections in
-        half to a third of the time on 2 cores. Opened on first use (about a second, once), so
+        about half the time on 2 cores. Opened on first use (about a second, once), so
         a process whose images never need every view does not pay for it."""
         with self._runtime_lock:
             if self.runtime_loader is not None:

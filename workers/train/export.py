@@ -11,9 +11,10 @@ and the file's metadata (``metadata_props``) names the family, the classes (JSON
 input size (``image_height``/``image_width``: 0 when the graph takes any size).
 
 A checkpoint's **runtime graph** (``write_runtime_graph``) is that export kept beside the
-checkpoint (``<checkpoint>.onnx``, its SHA-256 in the metadata): ``load_detector`` opens it with
-onnxruntime (``load_runtime_graph``) and ``detect_object`` runs the network at its own views
-through it, the same detections as torch's to float rounding in a third of the time on 2 cores
+checkpoint (``<checkpoint>.onnx``, its SHA-256 in the metadata), optimized once as it is written:
+``load_detector`` finds it, the detector opens it with onnxruntime the first time its own views
+are needed (``load_runtime_graph``), and ``detect_object`` runs the network at those views
+through it, the same detections as torch's to float rounding in about half the time on 2 cores
 (bench/README.md, "The network on onnxruntime"). A graph whose checkpoint changed since is not
 used. ``foldwise run`` writes it for the model it hands over; ``foldwise export --runtime`` for
 any checkpoint; a calibration or lookalikes written into a checkpoint carry its graph along.
