@@ -63,14 +63,14 @@ class ExportError(ValueError):
 
 
 def export_onnx(
-    detector: Any, out: str | Path, image_size: tuple[int, int] | None = None, checkpoint_sha256: str | None = None
+    detector: Any, out: str | Path, image_size: tuple[int, int] | None = None, metadata: dict[str, str] | None = None
 ) -> Path:
     """Write ``detector`` (a :class:`workers.train.checkpoint.Detector`) to ``out`` as ONNX.
 
     ``image_size`` (height, width) is the size a fixed-size family (yolo) is exported at;
     default the detector's input size. Families that take any size ignore it.
-    ``checkpoint_sha256``: the digest of the checkpoint file the detector was read from,
-    recorded in the metadata (a runtime graph: ``write_runtime_graph``).
+    ``metadata``: more entries for the file's metadata (a runtime graph's checkpoint digest and
+    onnxruntime version: ``write_runtime_graph``).
     """
     import onnx
     import torch
@@ -133,6 +133,7 @@ def export_onnx(
         )
     graph = onnx.load(str(out))
     metadata = {
+        **(metadata or {}),
         "foldwise.family": family,
         "foldwise.backbone": str(detector.meta.get("backbone", "")),
         "foldwise.classes": json.dumps(list(detector.meta["classes"])),
@@ -141,8 +142,6 @@ def export_onnx(
     }
     if detector.meta.get("calibration"):  # the texture check runs outside the graph; its calibration travels with it
         metadata["foldwise.calibration"] = json.dumps(detector.meta["calibration"])
-    if checkpoint_sha256 is not None:
-        metadata["foldwise.checkpoint_sha256"] = checkpoint_sha256
     onnx.helper.set_model_props(graph, metadata)
     onnx.save(graph, str(out))
     return out
@@ -230,17 +229,12 @@ def write_runtime_graph(checkpoint: str | Path, detector: Any = None) -> Path:
         raise ExportError(
             f"the {family} detector has no runtime graph: only a graph that takes any image size can stand for it"
         )
-    import onnx
     import onnxruntime
 
     out = runtime_graph_path(checkpoint)
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.") as folder:
-        plain = export_onnx(detector, Path(folder) / "plain.onnx", checkpoint_sha256=file_sha256(checkpoint))
-        graph = onnx.load(str(plain))
-        props = {prop.key: prop.value for prop in graph.metadata_props}
-        props["foldwise.onnxruntime"] = onnxruntime.__version__
-        onnx.helper.set_model_props(graph, props)
-        onnx.save(graph, str(plain))
+        stamp = {"foldwise.checkpoint_sha256": file_sha256(checkpoint), "foldwise.onnxruntime": onnxruntime.__version__}
+        plain = export_onnx(detector, Path(folder) / "plain.onnx", metadata=stamp)
         # Optimized once here (constants folded, operators fused) and opened later without
         # optimizing again: 1 s to open instead of 6 s (bench/README.md, "The network on onnxruntime").
         options = onnxruntime.SessionOptions()
