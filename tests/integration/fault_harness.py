@@ -352,6 +352,11 @@ class Recovery:
     # Started before the fault and cut off by it: each may start once more.
     cut_off_thetas: frozenset[int] = frozenset()
     cut_off_models: frozenset[int] = frozenset()
+    # Sent but not yet claimed, outside the queue the fault emptied: a message on its way from the
+    # scheduler, or prefetched by a worker, may be lost with the broker or not, so each may be
+    # sent once or twice.
+    maybe_lost_thetas: frozenset[int] = frozenset()
+    maybe_lost_models: frozenset[int] = frozenset()
     notes: dict[str, Any] = field(default_factory=dict)
 
 
@@ -524,6 +529,7 @@ def restart_redis_empty(
     # Writes paused (the workers' pops and the scheduler's pushes wait), then what waits is read and lost.
     client.execute_command("CLIENT", "PAUSE", "10000", "WRITE")
     waiting = _queued(client, "render") + _queued(client, "train")
+    unclaimed_thetas, unclaimed_models = _sent_unclaimed(rows, experiment_id)
     client.close()
     killed_at = time.monotonic()
     own_redis.kill()
@@ -551,7 +557,28 @@ def restart_redis_empty(
         "a θ lost with the queue claimed again (or rendered) after Redis came back empty",
         lost_thetas=lost,
         lost_models=lost_models,
+        maybe_lost_thetas=unclaimed_thetas - lost,
+        maybe_lost_models=unclaimed_models - lost_models,
     )
+
+
+def _sent_unclaimed(rows: Rows, experiment_id: int) -> tuple[frozenset[int], frozenset[int]]:
+    """The θ and models sent and not yet claimed by a worker: waiting in the queue, on their way
+    to it, or prefetched by a worker."""
+    with rows() as session:
+        thetas = session.scalars(
+            select(ParameterSet.id).where(
+                ParameterSet.experiment_id == experiment_id,
+                ParameterSet.status == RenderStatus.queued,
+                ParameterSet.task_id.is_(None),
+            )
+        ).all()
+        models = session.scalars(
+            select(Model.id).where(
+                Model.experiment_id == experiment_id, Model.status == ModelStatus.queued, Model.task_id.is_(None)
+            )
+        ).all()
+    return frozenset(thetas), frozenset(models)
 
 
 def _second_increment_training(stack: Stack, rows: Rows, experiment_id: int) -> tuple[Model, Model]:
@@ -831,6 +858,12 @@ class Audit:
     models: list[Model]
 
 
+def _allowed_sends(item_id: int, lost: frozenset[int], maybe_lost: frozenset[int]) -> tuple[int, ...]:
+    if item_id in lost:
+        return (2,)
+    return (1, 2) if item_id in maybe_lost else (1,)
+
+
 def audit_done_once(stack: Stack, rows: Rows, recovery: Recovery) -> Audit:
     experiment_id = recovery.experiment_id
     with rows() as session:
@@ -873,10 +906,18 @@ def audit_done_once(stack: Stack, rows: Rows, recovery: Recovery) -> Audit:
         problems.append(f"images of no rendered θ: {sorted(on_disk - expected - discarded)}")
     problems += _checkpoint_problems(stack, experiment_id, models)
     theta_sends = {t.id: t.sends for t in thetas if t.status != RenderStatus.discarded}
-    wrong_theta_sends = {i: n for i, n in theta_sends.items() if n != (2 if i in recovery.lost_thetas else 1)}
+    wrong_theta_sends = {
+        i: n
+        for i, n in theta_sends.items()
+        if n not in _allowed_sends(i, recovery.lost_thetas, recovery.maybe_lost_thetas)
+    }
     if wrong_theta_sends:
         problems.append(f"θ sent other than once (twice if lost): {wrong_theta_sends}")
-    wrong_model_sends = {m.id: m.sends for m in models if m.sends != (2 if m.id in recovery.lost_models else 1)}
+    wrong_model_sends = {
+        m.id: m.sends
+        for m in models
+        if m.sends not in _allowed_sends(m.id, recovery.lost_models, recovery.maybe_lost_models)
+    }
     if wrong_model_sends:
         problems.append(f"models sent other than once (twice if lost): {wrong_model_sends}")
     excess = {("θ", t.id): t.attempts - (2 if t.id in recovery.cut_off_thetas else 1) for t in thetas} | {

@@ -133,7 +133,8 @@ def test_redis_restarted_empty_mid_run_loses_nothing(fault_stack, fault_api, row
     # No process died: nothing was cut off, so the audit allows no θ a second start.
     check_done_once(fault_stack, fault_api, rows, recovery)
     print(
-        f"\nRedis restarted empty: {len(recovery.lost_thetas)} lost θ rendering again {recovery.seconds:.1f} s after the kill"
+        f"\nRedis restarted empty: {len(recovery.lost_thetas)} lost θ rendering again {recovery.seconds:.1f} s after the"
+        f" kill ({len(recovery.maybe_lost_thetas)} more were on their way or prefetched)"
     )
 
 
