@@ -20,9 +20,6 @@ of the keypoint recipe's on the same images. Rows:
   every view (through the runtime graph) only for the images that leave a box unsure;
   ``second_pass`` is the share of images that went on;
 - ``cascade, torch``: the same with the views in torch (no runtime graph);
-- ``cascade, frames as they are``: the cascade with a frame larger than the network's largest
-  view resized by each view itself, bilinearly (``Detector.shrink_frames`` off), instead of shrunk
-  to that view by area averaging once;
 - ``cascade, every name drawn``: the cascade, with a sheet the texture did not confirm drawn under
   each class the network names it (``TextureCheck.every_name``) instead of once;
 - ``cascade, unmatched drawn``: the cascade, with a box whose many keypoints match nothing of its
@@ -60,7 +57,6 @@ ROWS = (
     "every view, onnxruntime",
     "cascade",
     "cascade, torch",
-    "cascade, frames as they are",
     "cascade, every name drawn",
     "cascade, unmatched drawn",
     "one view",
@@ -69,15 +65,14 @@ ROWS = (
 
 
 def views_alone(detector, images: list[np.ndarray]) -> list[dict[str, np.ndarray]]:
-    """The detector's views the plain way: every member, view and image (shrunk as
-    ``detect_object`` shrinks it) one eval forward of its own (torchvision's), boxes turned back,
-    each member's views merged, then the members, then the texture check: the detections
-    ``detect_object`` gives, at one forward per view."""
+    """The detector's views the plain way: every member, view and image one eval forward of its
+    own (torchvision's), boxes turned back, each member's views merged, then the members, then the
+    texture check: the detections ``detect_object`` gives, at one forward per view."""
     import torch
     from torchvision.models.detection.generalized_rcnn import GeneralizedRCNN
 
-    from workers.train.checkpoint import _found, network_side, torch_threads
-    from workers.train.detectors.views import grow_boxes, merge_detections, shrink_to_side, turn_image, unturn_boxes
+    from workers.train.checkpoint import _found, torch_threads
+    from workers.train.detectors.views import merge_detections, turn_image, unturn_boxes
 
     model = detector.model
     members = list(getattr(model, "members", [model]))
@@ -86,8 +81,7 @@ def views_alone(detector, images: list[np.ndarray]) -> list[dict[str, np.ndarray
     results = []
     with torch.no_grad(), torch_threads(threads):
         for array in images:
-            shrunk, x_factor, y_factor = shrink_to_side(array, network_side(detector))
-            image = torch.from_numpy(np.ascontiguousarray(shrunk)).permute(2, 0, 1).float().div_(255)
+            image = torch.from_numpy(array).permute(2, 0, 1).float().div_(255)
             runs = []
             for member in members:
                 saved = member.transform.min_size, member.transform.max_size
@@ -105,7 +99,6 @@ def views_alone(detector, images: list[np.ndarray]) -> list[dict[str, np.ndarray
                 runs.append(merge_detections(views, heads.nms_thresh, heads.detections_per_img, member.view_vote))
             merged = runs[0] if len(runs) == 1 else merge_detections(runs, model.iou, model.limit, model.vote)
             found = _found(merged)
-            found["boxes"] = grow_boxes(found["boxes"], x_factor, y_factor)
             results.append(checker.apply(array, found) if checker is not None else found)
     return results
 
@@ -215,9 +208,6 @@ def main(argv=None) -> dict:
         if "cascade" in rows:
             rows["cascade"]["second_pass"] = float(np.mean(went_on)) if went_on else 0.0
         row("cascade, torch", lambda: in_torch(cascaded))
-        detector.shrink_frames = False
-        row("cascade, frames as they are", cascaded)
-        detector.shrink_frames = True
         checker = detector.texture_check()
         for switch, name in (
             ("every_name", "cascade, every name drawn"),

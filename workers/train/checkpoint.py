@@ -124,10 +124,6 @@ class Detector:
     # Detection in two passes (``detect_object``): one view first, every view only where it leaves
     # the image unsure. None: every view on every image.
     cascade: Cascade | None = Cascade()
-    # Frames larger than the network's largest view are shrunk to it, by area averaging, before
-    # the network (``network_side``); False: each view resizes the whole frame bilinearly, as
-    # torchvision's transform does (bench/detect_speed.py compares the two).
-    shrink_frames: bool = True
     # Opens the checkpoint's runtime graph (``workers.train.export``), where it has one beside it:
     # ``runtime`` calls it on first use.
     runtime_loader: Callable[[], Any] | None = field(default=None, repr=False)
@@ -601,22 +597,6 @@ def member_families(detector: Detector) -> list[str]:
     return [meta["family"] for meta in detector.meta.get("members", [detector.meta])]
 
 
-def network_side(detector: Detector, test_sizes: Sequence[int] | None = None) -> int | None:
-    """The longer side no view of the network takes an image past, where every member is a
-    Faster R-CNN (its transform puts an image's longer side at the view's size): the largest of
-    ``test_sizes``, else of the model's own views, else its input size. None for the other
-    families (a fixed input, or proposals in the frame's own pixels)."""
-    if set(member_families(detector)) != {"faster_rcnn"}:
-        return None
-    model = detector.model
-    members = list(model.members) if isinstance(model, EnsembleModel) else [model]
-    sides = []
-    for member in members:
-        sizes = tuple(test_sizes) if test_sizes is not None else tuple(getattr(member, "test_sizes", ()))
-        sides.append(max(int(size) for size in sizes) if sizes else int(member.transform.max_size))
-    return max(sides)
-
-
 def _image_array(image: np.ndarray | str | Path, index: int) -> tuple[np.ndarray, Path | None]:
     from workers.train.data import as_rgb_uint8, read_image_rgb
 
@@ -690,20 +670,11 @@ def detect_object(
     # cascade's first view, run in torch.
     own_views = test_sizes is None and test_turns is None
 
-    from workers.train.detectors.views import grow_boxes, shrink_to_side
-
-    # The network sees no frame larger than its largest view: a larger one is shrunk to it first
-    # (averaged, as training's renders are) and the boxes grown back; the check reads the frame.
-    side = network_side(detector, test_sizes) if detector.shrink_frames else None
-
-    def at_own_views(indices: list[int]) -> list[dict[str, np.ndarray]]:
+    def at_own_views(arrays: list[np.ndarray], tensors: list[torch.Tensor]) -> list[dict[str, np.ndarray]]:
         runtime = detector.runtime if own_views else None
         if runtime is not None:
-            return [on_frame(runtime.detect(shrunk[index][0]), index) for index in indices]
-        return [on_frame(_found(output), index) for index, output in zip(indices, model([tensors[i] for i in indices]))]
-
-    def on_frame(found: dict[str, np.ndarray], index: int) -> dict[str, np.ndarray]:
-        return {**found, "boxes": grow_boxes(found["boxes"], *shrunk[index][1:])}
+            return [runtime.detect(array) for array in arrays]
+        return [_found(output) for output in model(tensors)]
 
     results: list[dict[str, np.ndarray]] = []
     threads = int(detector.meta.get("config", {}).get("num_threads", 0))
@@ -715,14 +686,11 @@ def detect_object(
                 # Fast R-CNN: fill the proposal cache from files beside the images when present.
                 for array, path in arrays:
                     cache.proposals(array, path)
-            shrunk = [shrink_to_side(array, side) for array, _ in arrays]
             tensors = [
-                torch.from_numpy(np.ascontiguousarray(image)).to(detector.device).permute(2, 0, 1).float().div_(255)
-                for image, _, _ in shrunk
+                torch.from_numpy(array).to(detector.device).permute(2, 0, 1).float().div_(255) for array, _ in arrays
             ]
-            every = list(range(len(arrays)))
             if cascade is None:
-                for (array, _), found in zip(arrays, at_own_views(every)):
+                for (array, _), found in zip(arrays, at_own_views([array for array, _ in arrays], tensors)):
                     results.append(
                         checker.apply(array, found, with_evidence=with_evidence) if checker is not None else found
                     )
@@ -736,12 +704,14 @@ def detect_object(
                         first = model(tensors)
                     matches = [found.result() for found in pending]
                 checked = [
-                    checker.apply(array, on_frame(_found(output), index), with_evidence=with_evidence, matches=found)
-                    for index, ((array, _), output, found) in enumerate(zip(arrays, first, matches))
+                    checker.apply(array, _found(output), with_evidence=with_evidence, matches=found)
+                    for (array, _), output, found in zip(arrays, first, matches)
                 ]
                 again = [index for index, found in enumerate(checked) if cascade.again(found)]
                 if again:
-                    found_again = at_own_views(again)
+                    found_again = at_own_views(
+                        [arrays[index][0] for index in again], [tensors[index] for index in again]
+                    )
                     for index, found in zip(again, found_again):
                         checked[index] = checker.apply(
                             arrays[index][0], found, with_evidence=with_evidence, matches=matches[index]

@@ -76,7 +76,7 @@ def export_onnx(
     import torch
     from torch import nn
 
-    from workers.train.checkpoint import member_families, network_side, torch_threads
+    from workers.train.checkpoint import member_families, torch_threads
 
     families = sorted(set(member_families(detector)))
     if len(families) > 1:
@@ -139,8 +139,6 @@ def export_onnx(
         "foldwise.classes": json.dumps(list(detector.meta["classes"])),
         "foldwise.image_height": "0" if any_size else str(height),
         "foldwise.image_width": "0" if any_size else str(width),
-        # Frames larger than the largest view are shrunk to it before the graph, as detect_object does.
-        "foldwise.longest_side": str(network_side(detector) or 0) if any_size else "0",
     }
     if detector.meta.get("calibration"):  # the texture check runs outside the graph; its calibration travels with it
         metadata["foldwise.calibration"] = json.dumps(detector.meta["calibration"])
@@ -158,8 +156,6 @@ class OnnxDetector:
     classes: list[str]
     image_size: tuple[int, int] | None  # (height, width) the graph needs; None: any
     checkpoint_sha256: str | None = None  # a runtime graph's checkpoint (``write_runtime_graph``)
-    # Frames whose longer side passes this are shrunk to it first (``shrink_to_side``); None: none are.
-    longest_side: int | None = None
 
     @classmethod
     def load(cls, path: str | Path, threads: int = 0, optimized: bool = False) -> OnnxDetector:
@@ -185,7 +181,6 @@ class OnnxDetector:
             classes=json.loads(meta["foldwise.classes"]),
             image_size=(height, width) if height and width else None,
             checkpoint_sha256=meta.get("foldwise.checkpoint_sha256"),
-            longest_side=int(meta.get("foldwise.longest_side", "0")) or None,
         )
 
     def detect(self, image: np.ndarray) -> dict[str, np.ndarray]:
@@ -197,13 +192,10 @@ class OnnxDetector:
                 f"this {self.family} export takes {self.image_size[0]}x{self.image_size[1]} images, "
                 f"got {image.shape[0]}x{image.shape[1]}: export again with --image-size"
             )
-        from workers.train.detectors.views import grow_boxes, shrink_to_side
-
-        image, x_factor, y_factor = shrink_to_side(image, self.longest_side)
         tensor = np.ascontiguousarray(image.transpose(2, 0, 1), dtype=np.float32) / 255.0
         boxes, scores, labels = self.session.run(None, {"image": tensor})
         return {
-            "boxes": grow_boxes(boxes.astype(np.float32).reshape(-1, 4), x_factor, y_factor),
+            "boxes": boxes.astype(np.float32).reshape(-1, 4),
             "scores": scores.astype(np.float32),
             "labels": labels.astype(np.int64) - 1,
         }

@@ -667,43 +667,6 @@ def test_an_ensembles_views_run_together_and_detect_as_each_view_alone(tmp_path,
     assert Cascade().first_size((64, 96)) == 96 and Cascade(size=64).first_size((64, 96)) == 64
 
 
-def test_a_frame_past_the_largest_view_is_averaged_down_to_it_and_its_boxes_grown_back(tmp_path):
-    """A Faster R-CNN's views resize bilinearly without antialiasing; a frame larger than the
-    largest view is first shrunk to it by area averaging. A frame four times an image's size,
-    each pixel a 4x4 block whose middle 2x2 is brighter and whose rim is darker by as much in sum,
-    averages back to the image exactly (bilinear sampling would read the brighter middles): the
-    network's detections on it are the image's, its boxes four times as large."""
-    from workers.train.checkpoint import network_side
-
-    paths, arrays = write_images(tmp_path / "images", n=2, size=(72, 96))
-    samples = [Sample(path, [[12, 10, 60, 50]], [index % 2]) for index, path in enumerate(paths)]
-    changes = {"family": "faster_rcnn", "test_sizes": [64, 96], "test_turns": [0, 1]}
-    path = tmp_path / "views.pt"
-    train_detector(samples, None, 2, config(**changes), CLASSES, path, seed=0)
-    detector = load_detector(path)
-    assert network_side(detector) == 96 and network_side(detector, (64,)) == 64
-    image = np.clip(arrays[0].astype(np.int16), 12, 243)
-    block = np.full((4, 4), -4, np.int16)
-    block[1:3, 1:3] = 12  # 4 x 12 = 12 x 4: the block's sum is unchanged
-    frame = (np.kron(image, np.ones((4, 4, 1), np.int16)) + np.tile(block[..., None], (72, 96, 1))).astype(np.uint8)
-    assert frame.shape == (288, 384, 3)
-    expected, found = detect_object(detector, [image.astype(np.uint8), frame], texture_check=False)
-    assert len(expected["scores"]) > 0
-    np.testing.assert_array_equal(found["labels"], expected["labels"])
-    np.testing.assert_allclose(found["scores"], expected["scores"], rtol=0, atol=1e-6)
-    np.testing.assert_allclose(found["boxes"], expected["boxes"] * 4, rtol=0, atol=1e-3)
-    # Switched off, every view resizes the frame itself and reads the brighter middles.
-    detector.shrink_frames = False
-    (as_they_are,) = detect_object(detector, [frame], texture_check=False)
-    assert not same_detections([as_they_are], [found])
-    detector.shrink_frames = True
-    # At views asked for, the largest of those.
-    at_64 = detect_object(detector, [image.astype(np.uint8), frame], texture_check=False, test_sizes=(64,))
-    np.testing.assert_allclose(at_64[1]["scores"], detect_object(
-        detector, [cv2.resize(frame, (64, 48), interpolation=cv2.INTER_AREA)], texture_check=False, test_sizes=(64,)
-    )[0]["scores"], rtol=0, atol=1e-6)  # fmt: skip
-
-
 def test_the_cascade_runs_every_view_only_where_one_view_leaves_the_image_unsure(tmp_path, monkeypatch):
     """detector.cascade: each image at one view (the largest size, upright) and the texture check
     first; an image the cascade's rule calls unsure then at every view, checked on the keypoints

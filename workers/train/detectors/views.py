@@ -233,33 +233,3 @@ def unturn_boxes(boxes, turn: int, height, width):
     if turn == 3:
         return torch.stack([y1, height - x2, y2, height - x1], -1)
     return boxes
-
-
-def shrink_to_side(image, side: int | None):
-    """(image, x factor, y factor): an (H, W, C) uint8 image whose longer side passes ``side``
-    shrunk to it by area averaging (``cv2.INTER_AREA``), and the factors that take the shrunk
-    image's boxes back to the image's own pixels; as it is, with factors 1, otherwise.
-
-    An R-CNN's transform resizes bilinearly without antialiasing: a frame several times its view
-    (a 640x480 frame at a 128-320 px view, a phone photograph at any) is sampled, not averaged,
-    and every view normalises the whole frame first. Shrunk once to the largest view, each view
-    sees averaged pixels, as training's renders at that size are, for a frame's worth of work.
-    """
-    import cv2
-
-    height, width = image.shape[:2]
-    if side is None or max(height, width) <= side:
-        return image, 1.0, 1.0
-    scale = side / max(height, width)
-    new_width, new_height = max(1, round(width * scale)), max(1, round(height * scale))
-    shrunk = cv2.resize(image, (new_width, new_height), interpolation=cv2.INTER_AREA)
-    return shrunk, width / new_width, height / new_height
-
-
-def grow_boxes(boxes, x_factor: float, y_factor: float):
-    """xyxy boxes (numpy) found on a shrunk image (``shrink_to_side``) in the image's own pixels."""
-    import numpy as np
-
-    if x_factor == 1.0 and y_factor == 1.0:
-        return boxes
-    return (boxes * np.array([x_factor, y_factor, x_factor, y_factor], dtype=boxes.dtype)).astype(boxes.dtype)
