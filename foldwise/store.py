@@ -6,14 +6,16 @@ of the row it belongs to, so a task delivered twice rewrites the same file.
 
 from __future__ import annotations
 
+import hashlib
 import os
 import tempfile
 from pathlib import Path
 
-from foldwise.settings import get_settings
-
 
 def data_dir() -> Path:
+    # Read here, not at import: a role that only digests or writes files needs no settings.
+    from foldwise.settings import get_settings
+
     return get_settings().data_dir
 
 
@@ -72,3 +74,9 @@ def unfinished_write_target(file_name: str) -> str | None:
     if len(parts) != 3 or not parts[0]:
         return None
     return parts[0]
+
+
+def file_sha256(path: str | Path) -> str:
+    """The SHA-256 of a file's bytes, hex (read in blocks, not whole)."""
+    with open(path, "rb") as handle:
+        return hashlib.file_digest(handle, "sha256").hexdigest()

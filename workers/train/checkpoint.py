@@ -473,7 +473,8 @@ def load_detector(path: str | Path, device: str | torch.device | None = None) ->
         detector = detectors[0] if payload["format"] == CHECKPOINT_FORMAT else combine_detectors(detectors)
     except ValueError as error:
         raise CheckpointError(f"ensemble {path}: {error}") from None
-    from workers.train.export import file_sha256, load_runtime_graph, runtime_graph_path
+    from foldwise.store import file_sha256
+    from workers.train.export import load_runtime_graph, runtime_graph_path
 
     if target.type == "cpu" and runtime_graph_path(path).is_file():
         threads = int(detector.meta.get("config", {}).get("num_threads", 0))

@@ -35,7 +35,6 @@ Which families export, and how:
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import tempfile
@@ -45,6 +44,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from foldwise.store import file_sha256
 
 FORMATS = ("onnx",)
 OPSET = 17
@@ -199,15 +200,6 @@ class OnnxDetector:
             "scores": scores.astype(np.float32),
             "labels": labels.astype(np.int64) - 1,
         }
-
-
-def file_sha256(path: str | Path) -> str:
-    """The SHA-256 of a file's bytes, hex."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def runtime_graph_path(checkpoint: str | Path) -> Path:

@@ -18,6 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
+from foldwise.store import file_sha256
+
 log = logging.getLogger(__name__)
 
 # Raised when what a cached check holds changes meaning (its key covers the settings above).
@@ -98,7 +100,7 @@ class CheckCache:
         import cv2
 
         try:
-            if not digest or _file_digest(self.index_path) != digest:
+            if not digest or file_sha256(self.index_path) != digest:
                 return None
             index = cv2.flann_Index()
             if not index.load(descriptors, str(self.index_path)):
@@ -118,7 +120,7 @@ class CheckCache:
                 temporary = self._temporary(".flann")
                 try:
                     index.save(str(temporary))
-                    digest = _file_digest(temporary)
+                    digest = file_sha256(temporary)
                     os.replace(temporary, self.index_path)
                 finally:
                     temporary.unlink(missing_ok=True)
@@ -167,11 +169,3 @@ class CheckCache:
         descriptor, name = tempfile.mkstemp(prefix=".", suffix=suffix, dir=self.directory)
         os.close(descriptor)
         return Path(name)
-
-
-def _file_digest(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()

@@ -287,9 +287,10 @@ def test_a_calibration_or_lookalikes_written_into_a_checkpoint_carry_its_runtime
 
     import onnx
 
+    from foldwise.store import file_sha256
     from workers.train.calibration import shipped_calibration
     from workers.train.checkpoint import load_detector, write_calibration, write_lookalikes
-    from workers.train.export import file_sha256, runtime_graph_path, write_runtime_graph
+    from workers.train.export import runtime_graph_path, write_runtime_graph
 
     source = tmp_path / "model.pt"
     shutil.copy(exported["faster_rcnn"][0], source)
