@@ -382,18 +382,17 @@ class TextureCheck:
         # image's keypoints are looked up in parts on several threads: on 2 cores 0.11 s -> 0.05 s
         # a 640x480 image, the same neighbours (bench/README.md, "The network on onnxruntime").
         parts = min(SEARCH_THREADS, max(len(descriptors) // MIN_SEARCH_PART, 1))
+
+        def search(chunk: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            return self._index.knnSearch(chunk, count, params=dict(checks=FLANN_CHECKS))
+
         if parts > 1:
-            chunks = np.array_split(descriptors, parts)
             with ThreadPoolExecutor(parts) as pool:
-                searched = list(
-                    pool.map(
-                        lambda chunk: self._index.knnSearch(chunk, count, params=dict(checks=FLANN_CHECKS)), chunks
-                    )
-                )
-            found = np.concatenate([part[0] for part in searched])
-            squared = np.concatenate([part[1] for part in searched])
+                searched = list(pool.map(search, np.array_split(descriptors, parts)))
         else:
-            found, squared = self._index.knnSearch(descriptors, count, params=dict(checks=FLANN_CHECKS))
+            searched = [search(descriptors)]
+        found = np.concatenate([part[0] for part in searched])
+        squared = np.concatenate([part[1] for part in searched])
         indices = found.astype(np.int64)
         distances = np.where(indices >= 0, np.sqrt(np.maximum(squared, 0)), np.inf).astype(
             np.float32
