@@ -21,8 +21,11 @@ from workers.train.texture_check import (
     SEARCH_MIN_INLIERS,
     SIFT_MAX_SIDE,
     TextureCheck,
+    confirmed_score,
     sift_scale,
 )
+
+COVERAGE = FEATURES.index("coverage")
 
 CLASSES = ["astronaut", "coffee"]
 
@@ -67,8 +70,9 @@ def detections(*rows):
 def test_a_confirmed_box_becomes_the_outline_raised_over_the_cut_in_its_order(checker, scene):
     image, box = scene
     slightly_off = box + np.array([6, -5, 4, 3], np.float32)  # agrees with the sheet, loosely
-    checked = checker.apply(image, detections((slightly_off, 0.5, 0)))
-    assert checked["scores"][0] == pytest.approx(CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * 0.5)
+    checked = checker.apply(image, detections((slightly_off, 0.5, 0)), with_evidence=True)
+    assert checked["evidence"][0, COVERAGE] > 0.5  # the whole sheet's keypoints agree
+    assert checked["scores"][0] == pytest.approx(confirmed_score(0.5, checked["evidence"][0, COVERAGE]))
     assert checked["confirmed"].tolist() == [True]
     assert checked["labels"][0] == 0
     assert _iou(checked["boxes"][0], box) > _iou(slightly_off, box)  # the texture's outline: closer to the sheet
@@ -80,13 +84,13 @@ def test_a_piece_of_the_sheet_becomes_the_outline_and_merges_with_the_whole(chec
     image, box = scene
     x0, y0, x1, y1 = box
     piece = [x0, y0, (x0 + x1) / 2, (y0 + y1) / 2]
-    alone = checker.apply(image, detections((piece, 0.9, 0)))
-    assert alone["scores"][0] == pytest.approx(CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * 0.9)
+    alone = checker.apply(image, detections((piece, 0.9, 0)), with_evidence=True)
+    assert alone["scores"][0] == pytest.approx(confirmed_score(0.9, alone["evidence"][0, COVERAGE]))
     assert _iou(alone["boxes"][0], box) > 0.8  # the whole sheet, not the piece
     found = detections((piece, 0.9, 0), (box, 0.6, 0))
-    merged = checker.apply(image, found)
+    merged = checker.apply(image, found, with_evidence=True)
     assert len(merged["scores"]) == 1 and merged["scores"][0] == pytest.approx(
-        CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * 0.9
+        confirmed_score(0.9, merged["evidence"][0, COVERAGE])
     )
     np.testing.assert_array_equal(found["boxes"][0], piece)  # the caller's arrays are left as they were
 
@@ -329,8 +333,10 @@ def test_a_mirrored_or_squashed_fit_is_no_evidence(checker, scene, monkeypatch, 
         assert bool(checker.apply(image, found)["scores"][0] > 0.8) == raised
 
 
-# A sheet the search found where the network had no box of its class as high as the check's floor.
-SEARCHED = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * MIN_SCORE
+def search_floor_scores(found: dict) -> np.ndarray:
+    """The scores of sheets the search found where the network had no box of their class as high
+    as the check's floor (``found`` checked with its evidence)."""
+    return confirmed_score(np.full(len(found["scores"]), MIN_SCORE), found["evidence"][:, COVERAGE])
 
 
 @pytest.fixture(scope="module")
@@ -353,9 +359,11 @@ def _paste(image: np.ndarray, texture: np.ndarray, width: float, angle: float, a
 def test_the_search_finds_a_sheet_the_network_gave_no_box_for(checker, searcher, scene):
     image, box = scene
     assert len(checker.apply(image, detections())["scores"]) == 0  # the check alone looks only at boxes
-    found = searcher.apply(image, detections(([250, 20, 300, 50], 0.2, 1)))  # a weak box elsewhere stays
+    found = searcher.apply(
+        image, detections(([250, 20, 300, 50], 0.2, 1)), with_evidence=True
+    )  # a weak box elsewhere stays
     assert found["labels"].tolist() == [0, 1] and found["confirmed"].tolist() == [True, False]
-    assert found["scores"][0] == pytest.approx(SEARCHED)  # confirmed, at the floor of what the check confirms
+    assert found["scores"][0] == pytest.approx(search_floor_scores(found)[0])  # confirmed, at the network's floor
     assert float(found["scores"][0]) >= CONFIRMED_FLOOR  # in float32 too
     assert _iou(found["boxes"][0], box) > 0.8
     assert found["scores"][1] == pytest.approx(0.2)
@@ -371,9 +379,9 @@ def test_the_search_adds_nothing_to_a_sheet_the_network_found(checker, searcher,
             np.testing.assert_allclose(searched[key], checked[key], atol=1e-5)
     weak = detections((box, 0.2, 0))
     assert checker.apply(image, weak)["scores"].tolist() == pytest.approx([0.2])
-    lent = searcher.apply(image, weak)
+    lent = searcher.apply(image, weak, with_evidence=True)
     assert lent["labels"].tolist() == [0]
-    assert lent["scores"][0] == pytest.approx(SEARCHED) and lent["confirmed"].tolist() == [True]
+    assert lent["scores"][0] == pytest.approx(search_floor_scores(lent)[0]) and lent["confirmed"].tolist() == [True]
     assert _iou(lent["boxes"][0], box) > 0.8
 
 
@@ -385,12 +393,12 @@ def test_the_search_finds_each_sheet_of_several_and_no_sheet_where_there_is_none
         (_paste(image, textures["astronaut"], 130, -15, (200, 120)), 0),
         (_paste(image, textures["coffee"], 170, 0, (370, 60)), 1),
     ]
-    found = searcher.apply(image, detections())
+    found = searcher.apply(image, detections(), with_evidence=True)
     assert sorted(found["labels"].tolist()) == [0, 0, 1]
     for box, label in truth:
         ious = [_iou(b, box) for b, lab in zip(found["boxes"], found["labels"]) if lab == label]
         assert max(ious) > 0.7
-    assert np.all(found["scores"] == pytest.approx(SEARCHED)) and found["confirmed"].all()
+    assert found["scores"] == pytest.approx(search_floor_scores(found)) and found["confirmed"].all()
     noise = cv2.GaussianBlur(np.random.default_rng(6).integers(0, 255, (300, 560, 3)).astype(np.uint8), (0, 0), 3)
     for empty in (noise, np.full((240, 320, 3), 90, np.uint8)):
         nothing = searcher.apply(empty, detections())
@@ -600,3 +608,19 @@ def test_the_cache_keeps_the_checks_used_last(tmp_path, monkeypatch):
     keep(cards[0])  # read back: now the newest
     third = keep(cards[2])
     assert stored() == ({first, third}, {first, third})
+
+
+def test_of_two_confirmed_sheets_scored_alike_the_one_whose_texture_shows_more_ranks_first(checker, textures):
+    """A sheet confirmed on part of its texture (as a lookalike of the same template is, on its
+    letterhead) ranks below a whole one the network scored the same: coverage orders them."""
+    rng = np.random.default_rng(7)
+    image = cv2.GaussianBlur(rng.integers(0, 255, (300, 560, 3)).astype(np.uint8), (0, 0), 3)
+    whole = _paste(image, textures["astronaut"], 200, 0, (20, 40))
+    part = _paste(image, textures["astronaut"], 200, 0, (320, 40))
+    image[40:260, 320 + 90 : 540] = 128  # all but the left part of the second sheet hidden
+    checked = checker.apply(image, detections((part, 0.5, 0), (whole, 0.5, 0)), with_evidence=True)
+    assert checked["confirmed"].all() and len(checked["scores"]) == 2
+    first, second = checked["boxes"]
+    assert _iou(first, whole) > 0.8 and _iou(second, part) > 0.5
+    assert checked["evidence"][0, COVERAGE] > checked["evidence"][1, COVERAGE]
+    assert checked["scores"][0] > checked["scores"][1] >= CONFIRMED_FLOOR
