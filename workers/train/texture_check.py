@@ -9,9 +9,12 @@ sheet lies: the texture's outline, mapped into the image and clipped to the fram
 
 - Such a map confirms the detection: the outline becomes its box (whether the network's box was
   the whole sheet, a piece of it or a box around more), and its score rises above every box
-  without such evidence (``0.9 + 0.1 * score``, so confirmed boxes keep their order). Boxes of one
-  class that now overlap (IoU ≥ ``NMS_IOU``: two boxes on one sheet, confirmed by one outline)
-  are merged to the best, as the detector's views are.
+  without such evidence (``0.9 + 0.1 * score`` while boxes merge). Boxes of one class that now
+  overlap (IoU ≥ ``NMS_IOU``: two boxes on one sheet, confirmed by one outline) are merged to
+  the best, as the detector's views are. The boxes kept then rank among the confirmed by their
+  evidence too (``confirmed_score``: the network's score and the share of the texture their
+  inliers cover), so a sheet of a target's template confirmed on its letterhead ranks below the
+  whole sheets.
 - A map that mirrors the texture is a false fit (a printed sheet shows its front), and so is one
   that squashes it flatter than ``MIN_AXIS_RATIO`` (a few clustered matches stretched into a
   strip across the frame): no evidence.
@@ -32,9 +35,9 @@ With ``search`` (``detector.texture_search``) the texture also finds sheets the 
 box for: over the whole image, each class's matches are fitted by RANSAC as above, one sheet
 after another (its inliers taken out), and a map that ``SEARCH_MIN_INLIERS`` matches agree on,
 not mirrored nor squashed flatter than ``MIN_AXIS_RATIO``, adds its outline as a
-confirmed detection (scored ``0.9 + 0.1 * s``, ``s`` the network's best score for a box of that
-class on it, ``MIN_SCORE`` where it had none as high: every confirmed box has been scored at
-least that by the network or the search) before the merge. A sheet the network found and the check
+confirmed detection before the merge, its network score the network's best for a box of that
+class on it, ``MIN_SCORE`` where it had none as high (every confirmed box has been scored at
+least that by the network or the search). A sheet the network found and the check
 confirmed merges with it; the search only adds what the network missed.
 
 The textures' keypoints come from each texture as it is and from 8 views of it tilted 45° and
