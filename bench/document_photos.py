@@ -34,7 +34,7 @@ image.
 from __future__ import annotations
 
 import argparse
-import copy
+import dataclasses
 import json
 import sys
 import time
@@ -59,10 +59,11 @@ MAX_NEAR = 0.45  # how much nearer the camera one edge of a sheet is, as a share
 MIN_VISIBLE_PX = 400  # a target showing fewer pixels than this is no target to find
 
 
-def _read(path: Path) -> np.ndarray:
-    import cv2
+def read_sheets(folder: Path) -> dict[str, np.ndarray]:
+    """Each PNG sheet in ``folder`` by its file's stem, RGB."""
+    from workers.train.data import read_image_rgb
 
-    return cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+    return {path.stem: read_image_rgb(path) for path in sorted(folder.glob("*.png"))}
 
 
 def curled(sheet: np.ndarray, bend: float) -> np.ndarray:
@@ -93,8 +94,8 @@ def make_photo_set(documents: Path, out: Path, n: int, seed: int, size: tuple[in
     import cv2
 
     rng = np.random.default_rng(seed)
-    targets = {path.stem: _read(path) for path in sorted((documents / "targets").glob("*.png"))}
-    lookalikes = [_read(path) for path in sorted((documents / "lookalikes").glob("*.png"))]
+    targets = read_sheets(documents / "targets")
+    lookalikes = list(read_sheets(documents / "lookalikes").values())
     if not targets or not lookalikes:
         raise SystemExit(f"{documents}: no targets/*.png or lookalikes/*.png (bench/printed_documents.py writes them)")
     classes = sorted(targets)
@@ -173,19 +174,15 @@ def score_rows(model: Path, documents: Path, data: Path, given: tuple[str, ...] 
 
     samples, classes = load_coco_dataset(data)
     detector = load_detector(model, device="cpu")
-    with_lookalikes = copy.copy(detector)
-    with_lookalikes.lookalikes = {
-        **(detector.lookalikes or {}),
-        **{name: grayscale(_read(documents / "lookalikes" / f"{name}.png")) for name in given},
-    }
-    with_lookalikes._texture_check = None  # built anew with them
+    sheets = read_sheets(documents / "lookalikes")
+    given_sheets = {name: grayscale(sheets[name]) for name in given}
+    with_lookalikes = dataclasses.replace(detector, lookalikes={**(detector.lookalikes or {}), **given_sheets})
     rows = {}
     for name, which in (("as built", detector), (f"given {len(given)} lookalikes", with_lookalikes)):
         started = time.perf_counter()
         predictions, truth, groups, model_classes = detector_predictions(which, samples, classes)
         rows[name] = _scores(predictions, truth, model_classes, groups, 0.8, 0.5, time.perf_counter() - started)
-    textures = {path.stem: _read(path) for path in sorted((documents / "targets").glob("*.png"))}
-    rows["keypoint recipe"] = score_keypoint_baseline(textures, data, 0.8, 0.5)
+    rows["keypoint recipe"] = score_keypoint_baseline(read_sheets(documents / "targets"), data, 0.8, 0.5)
     return rows
 
 

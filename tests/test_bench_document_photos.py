@@ -61,7 +61,7 @@ def test_the_lookalike_row_gives_the_check_the_named_lookalikes_and_the_built_ro
 
     data = document_photos.make_photo_set(documents, tmp_path / "set", 4, seed=5, size=(256, 192))
     samples, classes = load_coco_dataset(data)
-    textures = {path.stem: document_photos._read(path) for path in sorted((documents / "targets").glob("*.png"))}
+    textures = document_photos.read_sheets(documents / "targets")
     model = tmp_path / "model.pt"
     train_detector(samples, None, 2, config(texture_check=True, texture_search=True), classes, model, textures=textures)
     seen = []

@@ -421,6 +421,8 @@ class TextureCheck:
         :meth:`matches` of this image, where already found."""
         from workers.train.calibration import FEATURES, network_logit
 
+        coverage_column = FEATURES.index("coverage")
+
         boxes = np.array(detections["boxes"], dtype=np.float32, copy=True).reshape(-1, 4)
         scores = np.array(detections["scores"], dtype=np.float32, copy=True)
         labels = np.array(detections["labels"], dtype=np.int64, copy=True)
@@ -429,6 +431,7 @@ class TextureCheck:
         unmatched = np.zeros(len(scores), dtype=bool)  # evidence against: see UNMATCHED_KEYPOINTS
         evidence = np.zeros((len(scores), len(FEATURES)), np.float32)
         evidence[:, 0] = network_logit(scores)
+        network = scores.copy()  # each box's own score, which its confirmed score reads
         if len(checked) or self.search:
             if matches is None:
                 matches = self.matches(image)
@@ -486,8 +489,8 @@ class TextureCheck:
             if self.search and len(found):
                 # Scored as a box the check confirmed, at the network's score for it, or at the
                 # check's floor where the network had none as high (so >= 0.93 in float32 too).
-                network = np.maximum(found_network, MIN_SCORE)
-                found_evidence[:, 0] = network_logit(network)
+                found_network = np.maximum(found_network, MIN_SCORE)
+                found_evidence[:, 0] = network_logit(found_network)
                 for row, outline in enumerate(found):
                     keypoints = int(_inside(every, outline).sum())
                     found_evidence[row, 4] = np.log1p(keypoints)
@@ -497,22 +500,24 @@ class TextureCheck:
                 if self.calibration is not None:
                     found_scores = self.calibration.probability(found_evidence)
                 else:
-                    found_scores = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * network
+                    found_scores = CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * found_network
                 boxes = np.concatenate([boxes, found])
                 scores = np.concatenate([scores, found_scores.astype(np.float32)])
                 labels = np.concatenate([labels, found_labels])
                 confirmed = np.concatenate([confirmed, np.ones(len(found), dtype=bool)])
                 unmatched = np.concatenate([unmatched, np.zeros(len(found), dtype=bool)])
                 evidence = np.concatenate([evidence, found_evidence])
+                network = np.concatenate([network, found_network.astype(np.float32)])
             keep = _merge(boxes, scores, labels)
             keep = keep[_one_per_sheet(boxes[keep], scores[keep], confirmed[keep])]
-            boxes, scores, labels, confirmed, unmatched, evidence = (
+            boxes, scores, labels, confirmed, unmatched, evidence, network = (
                 boxes[keep],
                 scores[keep],
                 labels[keep],
                 confirmed[keep],
                 unmatched[keep],
                 evidence[keep],
+                network[keep],
             )
             if self.calibration is None:  # a calibrated score says what such a box is worth
                 below = unmatched.copy() if not self.unmatched_drawn else np.zeros(len(scores), dtype=bool)
@@ -523,8 +528,7 @@ class TextureCheck:
                 ).astype(np.float32)
                 # The merges above kept the boxes the network's scores ordered; among themselves the
                 # confirmed now rank by their evidence as well (``confirmed_score``).
-                network = 1 / (1 + np.exp(-evidence[confirmed, 0].astype(np.float64)))
-                scores[confirmed] = confirmed_score(network, evidence[confirmed, 3])
+                scores[confirmed] = confirmed_score(network[confirmed], evidence[confirmed, coverage_column])
         order = np.argsort(-scores, kind="stable")
         checked_detections = {
             "boxes": boxes[order],
