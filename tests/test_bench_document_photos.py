@@ -77,3 +77,10 @@ def test_the_lookalike_row_gives_the_check_the_named_lookalikes_and_the_built_ro
     assert seen == [[], ["same1-1", "text1"]]
     for row in rows.values():
         assert row["images"] == 4 and 0 <= row["map"] <= 1 and "precision" in row["at_threshold"]
+
+
+def test_a_folder_without_the_documents_is_refused_by_name(tmp_path):
+    (tmp_path / "targets").mkdir()
+    with pytest.raises(SystemExit, match="no targets"):
+        document_photos.make_photo_set(tmp_path, tmp_path / "set", 2, seed=0)
+    assert not (tmp_path / "set" / "annotations.json").exists()
