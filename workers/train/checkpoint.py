@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import errno
 import functools
+import hashlib
 import io
 import os
 import tempfile
@@ -279,11 +280,24 @@ def _write_atomically(payload: dict[str, Any], path: Path) -> Path:
 
 def _load_payload(path: str | Path) -> dict[str, Any]:
     """A checkpoint or ensemble file's payload, checked for format and version."""
+    return _read_payload(path, digest=False)[0]
+
+
+def _read_payload(path: str | Path, digest: bool) -> tuple[dict[str, Any], str | None]:
+    """``_load_payload``'s payload and, with ``digest``, the SHA-256 of the very bytes it was read
+    from (the file is read once: a runtime graph is matched against the model in memory, not
+    against whatever the file holds a moment later)."""
     path = Path(path)
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        if digest:
+            data = path.read_bytes()
+            sha256 = hashlib.sha256(data).hexdigest()
+            payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+        else:
+            sha256 = None
+            payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # noqa: BLE001 (torch raises many types for a corrupt or foreign file)
         raise CheckpointError(f"checkpoint {path} cannot be read: {type(error).__name__}: {error}") from None
     kind = payload.get("format") if isinstance(payload, dict) else None
@@ -300,7 +314,7 @@ def _load_payload(path: str | Path) -> dict[str, Any]:
             _check_detector_payload(member, f"{path} (member {index})")
     else:
         _check_detector_payload(payload, str(path))
-    return payload
+    return payload, sha256
 
 
 def _check_detector_payload(payload: Any, where: str) -> None:
@@ -452,8 +466,11 @@ def load_state(model: nn.Module, state_dict: dict[str, torch.Tensor], path: str 
 def load_detector(path: str | Path, device: str | torch.device | None = None) -> Detector:
     """Rebuild the detector stored at ``path`` from its metadata alone, in eval mode; an
     ensemble file gives its members as one detector (:func:`combine_detectors`)."""
-    payload = _load_payload(path)
+    from workers.train.export import load_runtime_graph, runtime_graph_path
+
     target = resolve_device(device)
+    with_graph = target.type == "cpu" and runtime_graph_path(path).is_file()
+    payload, sha256 = _read_payload(path, digest=with_graph)
     members = payload["members"] if payload["format"] == ENSEMBLE_FORMAT else [payload]
     detectors = []
     for member in members:
@@ -473,14 +490,11 @@ def load_detector(path: str | Path, device: str | torch.device | None = None) ->
         detector = detectors[0] if payload["format"] == CHECKPOINT_FORMAT else combine_detectors(detectors)
     except ValueError as error:
         raise CheckpointError(f"ensemble {path}: {error}") from None
-    from foldwise.store import file_sha256
-    from workers.train.export import load_runtime_graph, runtime_graph_path
-
-    if target.type == "cpu" and runtime_graph_path(path).is_file():
+    if with_graph:
         threads = int(detector.meta.get("config", {}).get("num_threads", 0))
         # The digest of the bytes the model was read from: a graph of a later rewrite is no graph of it.
         detector.runtime_loader = functools.partial(
-            load_runtime_graph, path, detector.classes, threads=threads, sha256=file_sha256(path)
+            load_runtime_graph, path, detector.classes, threads=threads, sha256=sha256
         )
     return detector
 

@@ -278,6 +278,33 @@ def test_a_runtime_graph_of_a_changed_checkpoint_or_unreadable_is_not_used(expor
     assert not runtime_graph_path(exported["yolo"][0]).exists()
 
 
+def test_a_runtime_graph_is_matched_against_the_bytes_the_model_was_read_from(exported, tmp_path, monkeypatch):
+    """The checkpoint is read once: its graph is matched against the model in memory, even where
+    the file is rewritten (other bytes) between reading the model and matching the graph."""
+    import shutil
+
+    from workers.train import checkpoint as checkpoints
+    from workers.train.checkpoint import load_detector, save_checkpoint
+    from workers.train.export import write_runtime_graph
+
+    path = tmp_path / "model.pt"
+    shutil.copy(exported["faster_rcnn"][0], path)
+    write_runtime_graph(path)
+    first = load_detector(path)
+    real_load = checkpoints.torch.load
+
+    def load_then_rewrite(*args, **kwargs):
+        payload = real_load(*args, **kwargs)
+        meta = {**first.meta, "iterations": first.meta.get("iterations", 0) + 1}  # other bytes
+        save_checkpoint(first.model, meta, path)
+        return payload
+
+    monkeypatch.setattr(checkpoints.torch, "load", load_then_rewrite)
+    assert load_detector(path).runtime is not None  # the bytes read are the graph's
+    monkeypatch.setattr(checkpoints.torch, "load", real_load)
+    assert load_detector(path).runtime is None  # the file as rewritten is not
+
+
 def test_a_calibration_or_lookalikes_written_into_a_checkpoint_carry_its_runtime_graph(exported, tmp_path):
     """Neither changes the network: the checkpoint written with them has the source's runtime
     graph beside it, its own digest (and calibration) recorded, and the source keeps its own.
