@@ -10,7 +10,6 @@ from __future__ import annotations
 import logging
 import os
 import sys
-import time
 from datetime import UTC
 from pathlib import Path
 
@@ -109,19 +108,9 @@ def run(
 def _write_runtime_graph(checkpoint: Path) -> None:
     """The handed-over model's runtime graph beside it, so that detection runs its network through
     onnxruntime (workers/train/export.py); a family that cannot export says so and runs in torch."""
-    from workers.train.export import ExportError, write_runtime_graph
+    from workers.train.export import write_runtime_graph_told
 
-    started = time.perf_counter()
-    try:
-        written = write_runtime_graph(checkpoint)
-    except ExportError as error:
-        console.print(f"no runtime graph: {escape(str(error))}; detection runs the network in torch", highlight=False)
-        return
-    console.print(
-        f"runtime graph: {escape(str(written))} ({time.perf_counter() - started:.0f} s): detection runs the "
-        "network at its views through onnxruntime",
-        highlight=False,
-    )
+    console.print(escape(write_runtime_graph_told(checkpoint)), highlight=False)
 
 
 def _print_final_model(config, model_id: int) -> None:

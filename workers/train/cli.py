@@ -825,6 +825,14 @@ def finetune(
         float, typer.Option("--test-fraction", min=0.05, max=0.95, help="Share held out for testing.")
     ] = 0.5,
     seed: Annotated[int, typer.Option("--seed", help="Seed of the split, weights and batch order.")] = 0,
+    runtime_graph: Annotated[
+        bool,
+        typer.Option(
+            "--runtime-graph/--no-runtime-graph",
+            help="Write the runtime graph of the model fine-tuned on the most images beside it, as `foldwise run` "
+            "does for the model it hands over: detection then runs its views through onnxruntime.",
+        ),
+    ] = True,
 ) -> None:
     """Fine-tune a foldwise model on real photographs: a sweep over the number of real training
     images, a fresh-initialisation baseline beside it, both scored on a held-out real split (Fig. 11)."""
@@ -875,6 +883,10 @@ def finetune(
     if largest > 0:
         kind = f"an ensemble of {members}" if members > 1 else "one detector"
         typer.echo(f"fine-tuned on {largest} images ({kind}): {out / f'finetuned-{largest}.pt'}")
+        if runtime_graph:
+            from workers.train.export import write_runtime_graph_told
+
+            typer.echo(write_runtime_graph_told(out / f"finetuned-{largest}.pt"))
     typer.echo("Fig. 11: " + "  ".join(str(path) for path in paths))
 
 

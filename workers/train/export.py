@@ -38,6 +38,7 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+import time
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
@@ -236,6 +237,21 @@ def write_runtime_graph(checkpoint: str | Path, detector: Any = None) -> Path:
         onnxruntime.InferenceSession(str(plain), options, providers=["CPUExecutionProvider"])
         os.replace(Path(folder) / "optimized.onnx", out)
     return out
+
+
+def write_runtime_graph_told(checkpoint: str | Path) -> str:
+    """Write the runtime graph of the model a command hands over (``write_runtime_graph``) and
+    return the line that tells its user what happened: where it lies and how long it took, or,
+    for a family that cannot export, that detection runs the network in torch."""
+    started = time.perf_counter()
+    try:
+        written = write_runtime_graph(checkpoint)
+    except ExportError as error:
+        return f"no runtime graph: {error}; detection runs the network in torch"
+    return (
+        f"runtime graph: {written} ({time.perf_counter() - started:.0f} s): detection runs the network at its "
+        "views through onnxruntime"
+    )
 
 
 def load_runtime_graph(

@@ -84,6 +84,31 @@ def test_finetune_sweeps_beside_a_fresh_baseline_and_draws_fig11(standin, tiny_m
     assert all(0.0 <= float(row["finetuned_map"]) <= 1.0 for row in rows)
     assert (out / "fig11.png").stat().st_size > 0 and "real training images" in (out / "fig11.svg").read_text()
     assert (out / "finetuned-3.pt").is_file() and (out / "fresh-3.pt").is_file()
+    # A yolo detector takes no runtime graph: the command says so, and its detection runs in torch.
+    assert "no runtime graph: the yolo detector has no runtime graph" in result.output
+    assert not list(out.glob("*.onnx"))
+
+
+def test_finetune_writes_the_runtime_graph_of_the_model_it_hands_over(standin, tmp_path):
+    """As `foldwise run` does for its model, the model fine-tuned on the most images gets its
+    runtime graph beside it, which detection then uses; --no-runtime-graph writes none."""
+    from workers.train.checkpoint import load_detector
+
+    samples, classes = load_dataset(standin / "voc")
+    samples = match_classes(samples, classes, MODEL_CLASSES)
+    model = tmp_path / "faster.pt"
+    config = DetectorConfig(family="faster_rcnn", input_size=64, batch_size=2, num_threads=1)
+    train_detector(samples[:2], init=None, iterations=1, config=config, classes=MODEL_CLASSES, out=model)
+    for flag, written in (("--runtime-graph", True), ("--no-runtime-graph", False)):
+        out = tmp_path / flag
+        result = CliRunner().invoke(app, [
+            "finetune", "--model", str(model), "--data", str(standin / "coco.json"), "--sweep", "2",
+            "--iterations", "1", "--out", str(out), flag,
+        ])  # fmt: skip
+        assert result.exit_code == 0, result.output
+        assert sorted(path.name for path in out.glob("*.onnx")) == (["finetuned-2.pt.onnx"] if written else [])
+        assert (load_detector(out / "finetuned-2.pt").runtime is not None) is written
+        assert ("runtime graph: " in result.output) is written
 
 
 def test_finetune_refuses_an_unknown_class_and_a_folder_that_is_no_set_in_one_line(standin, tmp_path):
