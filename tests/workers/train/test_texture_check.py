@@ -624,3 +624,19 @@ def test_of_two_confirmed_sheets_scored_alike_the_one_whose_texture_shows_more_r
     assert _iou(first, whole) > 0.8 and _iou(second, part) > 0.5
     assert checked["evidence"][0, COVERAGE] > checked["evidence"][1, COVERAGE]
     assert checked["scores"][0] > checked["scores"][1] >= CONFIRMED_FLOOR
+
+
+def test_of_confirmed_boxes_scored_alike_the_one_covering_more_of_its_texture_keeps_its_sheet():
+    """Sheets the search found where the network had no box all score the search's floor. A loose
+    fit spread over the whole frame (little of its texture covered) must not swallow the sheets
+    inside it as its pieces; a piece covering less than its sheet is still dropped for it."""
+    from workers.train.texture_check import _one_per_sheet
+
+    frame = [0, 0, 1024, 768]
+    sheets = [[350, 200, 670, 600], [680, 200, 980, 570]]
+    boxes = np.array([frame, *sheets], np.float32)
+    scores = np.full(3, CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * MIN_SCORE, np.float32)
+    confirmed = np.ones(3, bool)
+    assert _one_per_sheet(boxes, scores, confirmed, np.array([0.09, 0.55, 0.5])).tolist() == [0, 1, 2]
+    piece = np.array([sheets[0], [360, 210, 600, 400]], np.float32)
+    assert _one_per_sheet(piece, scores[:2], confirmed[:2], np.array([0.5, 0.2])).tolist() == [0]
