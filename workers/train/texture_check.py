@@ -152,7 +152,8 @@ RANSAC_FRACTION = 0.05
 # template matches its letterhead and footer; the sheet itself, all over.
 COVER_GRID = 8
 # A box at least this much inside a better-scored box the texture confirmed is a piece of that
-# sheet: one box per sheet is drawn.
+# sheet: one box per sheet is drawn. Of boxes scored alike, the one covering more of its texture
+# counts as the better (bench/README.md, "Documents as a phone photographs them").
 PIECE_INSIDE = 0.8
 # Without evidence, boxes of any class overlapping a better-scored box at this IoU (or either
 # PIECE_INSIDE of the other) are that sheet named again: they drop under the cut, in their order
