@@ -20,7 +20,7 @@ anything foldwise trains on:
 
 Scored on one set (``--seed``, ``--n``) as a user would see it: ``--model`` (a detector trained
 on the targets, e.g. ``foldwise run`` with ``assets.objects`` set to ``DOCS/targets``) as
-built; the same detector given some of the lookalikes (``--given``, as ``foldwise lookalikes``
+built; the same detector given 7 of the lookalikes (``GIVEN``, as ``foldwise lookalikes``
 gives a user's other forms); and the keypoint recipe (``bench/keypoint_baseline.py``). Each row
 reports the paper's mAP, precision and recall at the 0.8 cut, the boxes drawn and seconds per
 image.

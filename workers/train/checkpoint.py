@@ -291,13 +291,8 @@ def _read_payload(path: str | Path, digest: bool) -> tuple[dict[str, Any], str |
     if not path.is_file():
         raise CheckpointError(f"checkpoint {path} does not exist")
     try:
-        if digest:
-            data = path.read_bytes()
-            sha256 = hashlib.sha256(data).hexdigest()
-            payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
-        else:
-            sha256 = None
-            payload = torch.load(path, map_location="cpu", weights_only=True)
+        data = path.read_bytes()
+        payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as error:  # noqa: BLE001 (torch raises many types for a corrupt or foreign file)
         raise CheckpointError(f"checkpoint {path} cannot be read: {type(error).__name__}: {error}") from None
     kind = payload.get("format") if isinstance(payload, dict) else None
@@ -314,7 +309,7 @@ def _read_payload(path: str | Path, digest: bool) -> tuple[dict[str, Any], str |
             _check_detector_payload(member, f"{path} (member {index})")
     else:
         _check_detector_payload(payload, str(path))
-    return payload, sha256
+    return payload, hashlib.sha256(data).hexdigest() if digest else None
 
 
 def _check_detector_payload(payload: Any, where: str) -> None:

@@ -882,11 +882,12 @@ def finetune(
     largest = max(sizes)
     if largest > 0:
         kind = f"an ensemble of {members}" if members > 1 else "one detector"
-        typer.echo(f"fine-tuned on {largest} images ({kind}): {out / f'finetuned-{largest}.pt'}")
+        handed_over = out / f"finetuned-{largest}.pt"
+        typer.echo(f"fine-tuned on {largest} images ({kind}): {handed_over}")
         if runtime_graph:
             from workers.train.export import write_runtime_graph_told
 
-            typer.echo(write_runtime_graph_told(out / f"finetuned-{largest}.pt"))
+            typer.echo(write_runtime_graph_told(handed_over))
     typer.echo("Fig. 11: " + "  ".join(str(path) for path in paths))
 
 

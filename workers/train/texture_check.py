@@ -722,16 +722,14 @@ def _merge(boxes: np.ndarray, scores: np.ndarray, labels: np.ndarray) -> np.ndar
     return keep
 
 
-def _one_per_sheet(
-    boxes: np.ndarray, scores: np.ndarray, confirmed: np.ndarray, coverage: np.ndarray | None = None
-) -> np.ndarray:
+def _one_per_sheet(boxes: np.ndarray, scores: np.ndarray, confirmed: np.ndarray, coverage: np.ndarray) -> np.ndarray:
     """The indices to keep so that each sheet is drawn once: a box is dropped where a better
     scored box the texture confirmed covers ``PIECE_INSIDE`` of it (a piece of that sheet, or the
     sheet named twice), whatever their classes. Of boxes scored alike (sheets the search found
     where the network had no box all score its floor), the one whose inliers cover more of its
     texture counts as the better: a loose fit spread over the frame does not swallow the
     sheets inside it."""
-    order = np.lexsort((-coverage, -scores)) if coverage is not None else np.argsort(-scores, kind="stable")
+    order = np.lexsort((-coverage, -scores))
     areas = np.maximum(boxes[:, 2] - boxes[:, 0], 0) * np.maximum(boxes[:, 3] - boxes[:, 1], 0)
     kept: list[int] = []
     for index in order:
