@@ -27,7 +27,7 @@ of the keypoint recipe's on the same images. Rows:
 - ``one view``: the cascade's first pass alone (the largest size, upright, both members);
 - ``keypoints``: bench/keypoint_baseline.py.
 
-``--rows`` names the rows to run (default: all).
+``--rows`` names the rows to run, separated by ``;`` (default: all).
 
 Beside the rows, each set's ``check_keypoints_seconds_per_image``: the texture check's keypoints
 and matches alone (every row but the recipe's finds them once an image).
@@ -113,14 +113,14 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", type=Path)
     parser.add_argument(
         "--rows",
-        type=lambda text: [name.strip() for name in text.split(",")],
+        type=lambda text: [name.strip() for name in text.split(";")],
         default=list(ROWS),
-        help=f"comma list of rows to run (default: all of {', '.join(ROWS)})",
+        help=f"rows to run, separated by ';' (their names hold commas; default: all of {'; '.join(ROWS)})",
     )
     args = parser.parse_args(argv)
     unknown = [name for name in args.rows if name not in ROWS]
     if unknown:
-        parser.error(f"--rows: no row {unknown}; the rows are {', '.join(ROWS)}")
+        parser.error(f"--rows: no row {unknown}; the rows are {'; '.join(ROWS)}")
 
     from dataclasses import asdict
 
