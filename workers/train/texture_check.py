@@ -161,13 +161,6 @@ PIECE_INSIDE = 0.8
 # ([0.8, 0.9) to [0.7, 0.8)), so one box per sheet is drawn (bench/README.md, "One box per sheet").
 SHEET_IOU = 0.3
 SECOND_NAME_FLOOR = PAPER_CUT - (CONFIRMED_FLOOR - PAPER_CUT)
-# A box the texture did not confirm, not one of whose keypoints matches its class's texture,
-# drops under the cut as a second name does: holding many, it shows something printed that is
-# not its sheet (its own sheet, sharp enough for them, would match somewhere); holding next to
-# none, a blank surface (a wall, a table, the sky), as the sheet's print enlarged twice shows
-# keypoints. Of the boxes drawn at 0.8 on the network's word alone on foldwise's out-of-domain
-# sets, those with fewer than 10 keypoints and no match were all false (bench/README.md,
-# "Evidence against a box").
 
 
 def grayscale(image: np.ndarray) -> np.ndarray:
@@ -475,6 +468,10 @@ class TextureCheck:
                 share = counts[candidate] / max(keypoints, 1)
                 evidence[index, 2:] = (np.log1p(inliers), coverage, np.log1p(keypoints), share)
                 if outline is None:
+                    # Not one keypoint matching its class: many show something printed that is not
+                    # its sheet (which, that sharp, would match somewhere); next to none, a blank
+                    # surface, as the sheet's print enlarged shows keypoints (bench/README.md,
+                    # "Evidence against a box"). It drops under the cut as a second name does.
                     unmatched[index] = counts[label] == 0
                     continue
                 labels[index] = candidate
