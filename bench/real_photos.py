@@ -1,0 +1,62 @@
+"""Real photographs of bent printed invoices: foldwise beside the keypoint recipe (JSON out).
+
+The set is ``bench/data/inv3d_real`` (its README says where the photographs come from, their
+licence and how the boxes were drawn): 150 phone photographs of printed invoices, curled, folded
+once or many times, crumpled lightly and hard, or lying flat at an angle, each under bright,
+coloured and shadowed light. 90 show one of five target invoices; 60 show one of ten others of
+the same kind (six of them printed from a target's own template), which must draw no box.
+``lookalikes/`` holds the flat originals of five of those ten, as a user would give their other
+forms (``foldwise lookalikes``); the other five are photographed only.
+
+No setting of foldwise was chosen on these photographs. Rows, as ``bench/document_photos.py``
+scores its drawn pictures: the detector as built, the same detector given the five lookalikes,
+and the keypoint recipe; each with the paper's mAP, precision and recall at the 0.8 cut, the
+boxes drawn and seconds per image, also by light (``by_kind``).
+
+    foldwise run CONFIG --members 2   # quick.yaml with assets.objects: bench/data/inv3d_real/targets
+    python bench/real_photos.py --model var/studies/S/ensemble.pt --out bench/results/real_photos.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from bench.document_photos import read_sheets, score_rows  # noqa: E402
+from bench.report import machine, write_report  # noqa: E402
+
+DATA = ROOT / "bench/data/inv3d_real"
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--model", type=Path, required=True, help="a detector trained on DATA/targets")
+    parser.add_argument("--data", type=Path, default=DATA, help="targets/, lookalikes/ and a COCO annotations.json")
+    parser.add_argument("--out", type=Path)
+    args = parser.parse_args(argv)
+    for part in ("targets", "lookalikes", "annotations.json"):
+        if not (args.data / part).exists():
+            raise SystemExit(f"{args.data}: no {part} (a folder laid out as bench/data/inv3d_real)")
+    given = tuple(sorted(read_sheets(args.data / "lookalikes")))
+    rows = score_rows(args.model, args.data, args.data, given=given)
+    headline = "; ".join(
+        f"{name} {row['map']:.3f} (P {row['at_threshold']['precision'] or 0:.2f}, R {row['at_threshold']['recall']:.2f}, "
+        f"{row['seconds_per_image']:.2f} s/image)"
+        for name, row in rows.items()
+    )
+    report = {
+        "model": str(args.model),
+        "set": {"dir": str(args.data), "given": list(given)},
+        "rows": rows,
+        "headline": f"{rows['as built']['images']} real photographs: {headline}",
+        "machine": machine(),
+    }
+    return write_report(report, args.out)
+
+
+if __name__ == "__main__":
+    main()
