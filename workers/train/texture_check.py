@@ -325,11 +325,14 @@ class TextureCheck:
 
     def _matches(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(image points, class of the texture match, texture points) of the image's keypoints
-        that pass the ratio test."""
-        return self._keypoints_and_matches(gray)[1:]
+        that pass the ratio test against a class's texture (not a lookalike's)."""
+        _, points, labels, texture_points = self._keypoints_and_matches(gray)
+        own = labels < len(self.classes)
+        return points[own], labels[own], texture_points[own]
 
     def _keypoints_and_matches(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(every keypoint's position in the image, then ``_matches``'s three arrays)."""
+        """(every keypoint's position in the image, then ``_matches``'s three arrays with the
+        matches to the lookalikes as well: label ``len(classes) + i`` is ``lookalikes[i]``)."""
         import cv2
 
         gray = sharpen(gray, self.sharpen)
@@ -355,9 +358,6 @@ class TextureCheck:
         rivals[:, 0] = False
         rival_distance = distances[np.arange(len(indices)), rivals.argmax(axis=1)]
         good = found[:, 0] & (~rivals.any(axis=1) | (distances[:, 0] < RATIO * rival_distance))
-        if not good.any():
-            return empty
-        good &= features.labels[nearest[:, 0]] < len(self.classes)  # a lookalike's keypoint is no class's
         if not good.any():
             return empty
         image_index, texture_index = np.flatnonzero(good), indices[good, 0]
@@ -441,7 +441,7 @@ class TextureCheck:
             for index in checked:
                 inside = _inside(image_points, boxes[index])
                 keypoints = int(_inside(every, boxes[index]).sum())
-                counts = np.bincount(match_labels[inside], minlength=len(self.classes))
+                counts = np.bincount(match_labels[inside], minlength=len(self.classes))[: len(self.classes)]
                 label = int(labels[index])
                 best = int(np.argmax(counts))
                 # Another class's texture matched far more often is tried first, and renames the box
@@ -519,10 +519,23 @@ class TextureCheck:
                 evidence[keep],
                 network[keep],
             )
+            # A box in which a lookalike's texture fits a map on more matches than its own class's
+            # shows that lookalike (one of the user's other sheets): whatever the network or a
+            # template the two share said, it drops under the cut, its confirmation withdrawn.
+            shows_lookalike = self._shows_lookalike(
+                boxes, np.expm1(evidence[:, FEATURES.index("inliers")]), image_points, match_labels, texture_points
+            )
+            if shows_lookalike.any():
+                confirmed[shows_lookalike] = False
+                scores[shows_lookalike] = np.minimum(
+                    scores[shows_lookalike],
+                    SECOND_NAME_FLOOR + (PAPER_CUT - SECOND_NAME_FLOOR) * network[shows_lookalike],
+                ).astype(np.float32)
             if self.calibration is None:  # a calibrated score says what such a box is worth
                 below = unmatched.copy() if not self.unmatched_drawn else np.zeros(len(scores), dtype=bool)
+                below &= ~shows_lookalike  # already under the cut
                 if not self.every_name:  # a box dropped for its keypoints stands for no sheet
-                    below[_named_again(boxes, scores, confirmed, standing=~below)] = True
+                    below[_named_again(boxes, scores, confirmed, standing=~(below | shows_lookalike))] = True
                 scores[below] = np.where(
                     scores[below] >= PAPER_CUT, SECOND_NAME_FLOOR + (scores[below] - PAPER_CUT), scores[below]
                 ).astype(np.float32)
@@ -539,6 +552,34 @@ class TextureCheck:
         if with_evidence:
             checked_detections["evidence"] = evidence[order]
         return checked_detections
+
+    def _shows_lookalike(self, boxes, own_inliers, image_points, match_labels, texture_points) -> np.ndarray:
+        """(n,) bool: the boxes in which one lookalike's matches agree on an affine map (RANSAC, as
+        ``_fit``'s first map, neither mirrored nor squashed) on at least ``MIN_INLIERS`` and on
+        more than the box's own class's maps did (``own_inliers``, (n,))."""
+        import cv2
+
+        shown = np.zeros(len(boxes), dtype=bool)
+        if not self.lookalikes:
+            return shown
+        for index, box in enumerate(boxes):
+            inside = _inside(image_points, box) & (match_labels >= len(self.classes))
+            counts = np.bincount(match_labels[inside] - len(self.classes), minlength=len(self.lookalikes))
+            x0, y0, x1, y1 = box
+            threshold = max(3.0, RANSAC_FRACTION * float(np.hypot(x1 - x0, y1 - y0)))
+            for lookalike in np.argsort(-counts):
+                if counts[lookalike] < max(MIN_INLIERS, own_inliers[index] + 1):
+                    break  # fewer matches than the box's own inliers: no map of it can have more
+                which = inside & (match_labels == len(self.classes) + lookalike)
+                affine, mask = cv2.estimateAffine2D(
+                    texture_points[which], image_points[which], method=cv2.RANSAC, ransacReprojThreshold=threshold
+                )
+                if affine is None or mask is None or _false_fit(affine):
+                    continue
+                if int(mask.sum()) >= MIN_INLIERS and int(mask.sum()) > own_inliers[index]:
+                    shown[index] = True
+                    break
+        return shown
 
     def _fit(
         self, image_points, match_labels, texture_points, label: int, box, width: int, height: int

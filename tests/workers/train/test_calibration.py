@@ -174,6 +174,38 @@ def test_lookalikes_given_to_the_check_stop_a_shared_template_from_confirming():
     assert results["sheet"][1]["confirmed"].tolist() == [True]
 
 
+def test_a_box_showing_a_given_lookalike_drops_under_the_cut_however_sure_the_network(monkeypatch):
+    """The network boxes a lookalike at 0.95, and a few keypoints in it match the sheet's texture
+    (too few for a map: no evidence either way). Known to the check, the lookalike's own texture
+    fits a map there, so the box is that lookalike and drops under the cut; the sheet itself is
+    still confirmed."""
+    from tests.workers.train.test_texture_check import _with_a_few_matches
+
+    sheet, lookalike = _page(seed=1), _page(seed=2)
+    knowing = TextureCheck({"sheet": sheet}, ["sheet"], lookalikes={"other form": lookalike})
+    sure = np.array([0.95], np.float32)
+    image, box = _placed(lookalike)
+    _with_a_few_matches(monkeypatch, knowing, (box, 0))
+    checked = knowing.apply(image, {"boxes": box[None], "scores": sure, "labels": np.array([0])})
+    assert checked["confirmed"].tolist() == [False]
+    assert checked["scores"][0] < texture_check.PAPER_CUT
+    image, box = _placed(sheet)
+    checked = knowing.apply(image, {"boxes": box[None], "scores": sure, "labels": np.array([0])})
+    assert checked["confirmed"].tolist() == [True] and checked["scores"][0] >= texture_check.CONFIRMED_FLOOR
+
+
+def test_matches_to_a_lookalike_are_no_class_s_matches():
+    """The lookalike's keypoints are found (they decide the rule above) but never counted as the
+    class's: the class's matches on a picture of the lookalike are those of the sheet alone."""
+    sheet, lookalike = _page(seed=1), _page(seed=2)
+    knowing = TextureCheck({"sheet": sheet}, ["sheet"], lookalikes={"other form": lookalike})
+    image, _ = _placed(lookalike)
+    gray = texture_check.grayscale(image)
+    _, _, labels, _ = knowing._keypoints_and_matches(gray)
+    assert (labels == 1).sum() >= 20  # the lookalike's own matches
+    assert set(knowing._matches(gray)[1].tolist()) <= {0}
+
+
 def test_a_checkpoint_carries_the_lookalikes_for_its_texture_check(tmp_path):
     """What training saves with ``assets.lookalikes`` (save_checkpoint's ``lookalikes``) is what
     the loaded detector's texture check knows as no class."""
