@@ -32,6 +32,13 @@ sheet lies: the texture's outline, mapped into the image and clipped to the fram
   (``unmatched``): one holding many shows something printed that is not its sheet, one holding
   next to none a blank surface, where the sheet's print, enlarged, would show keypoints.
 
+Lookalikes (``lookalikes``: the user's other sheets of the objects' kind) join the textures'
+index as no class's: a keypoint one shares with an object fails the ratio test, and a box in which
+a lookalike's own texture fits a map on more matches than the box's class did shows that
+lookalike. It drops under the cut, confirmed or not (``_shows_lookalike``): on real photographs of
+invoices the network scored such sheets 0.9 and more (bench/README.md, "Real photographs of bent
+invoices").
+
 With ``search`` (``detector.texture_search``) the texture also finds sheets the network gave no
 box for: over the whole image, each class's matches are fitted by RANSAC as above, one sheet
 after another (its inliers taken out), and a map that ``SEARCH_MIN_INLIERS`` matches agree on,
