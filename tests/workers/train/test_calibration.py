@@ -179,13 +179,13 @@ def test_a_box_showing_a_given_lookalike_drops_under_the_cut_however_sure_the_ne
     (too few for a map: no evidence either way). Known to the check, the lookalike's own texture
     fits a map there, so the box is that lookalike and drops under the cut; the sheet itself is
     still confirmed."""
-    from tests.workers.train.test_texture_check import _with_a_few_matches
+    from tests.workers.train.training_helpers import with_a_few_matches
 
     sheet, lookalike = _page(seed=1), _page(seed=2)
     knowing = TextureCheck({"sheet": sheet}, ["sheet"], lookalikes={"other form": lookalike})
     sure = np.array([0.95], np.float32)
     image, box = _placed(lookalike)
-    _with_a_few_matches(monkeypatch, knowing, (box, 0))
+    with_a_few_matches(monkeypatch, knowing, (box, 0))
     checked = knowing.apply(image, {"boxes": box[None], "scores": sure, "labels": np.array([0])})
     assert checked["confirmed"].tolist() == [False]
     assert checked["scores"][0] < texture_check.PAPER_CUT

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import skimage.data
 
+from tests.workers.train.training_helpers import with_a_few_matches
 from workers.train import texture_cache, texture_check
 from workers.train.calibration import FEATURES, Calibration
 from workers.train.texture_check import (
@@ -232,35 +233,12 @@ def test_a_box_is_renamed_only_where_the_other_textures_matches_agree_on_a_map(c
         assert (checked["scores"][0] >= CONFIRMED_FLOOR) == renamed
 
 
-def _with_a_few_matches(monkeypatch, checker, *rows) -> None:
-    """The checker finds the image's own keypoints and matches, and for each (box, class) row three
-    more of that class inside the box, each matched to a random point of its texture: some
-    evidence of the class, too little for a map (a blurred or steeply tilted sheet)."""
-    own = type(checker)._keypoints_and_matches
-    places = np.array([[0.3, 0.3], [0.5, 0.6], [0.7, 0.4]], np.float32)
-
-    def found(gray):
-        every, points, labels, texture_points = own(checker, gray)
-        added = [np.asarray(box[:2], np.float32) + places * (np.asarray(box[2:]) - box[:2]) for box, _ in rows]
-        added = np.concatenate(added).astype(np.float32)
-        classes = np.repeat([label for _, label in rows], len(places)).astype(np.int64)
-        random_points = np.random.default_rng(0).uniform(0, 200, (len(added), 2)).astype(np.float32)
-        return (
-            np.concatenate([every, added]),
-            np.concatenate([points, added]),
-            np.concatenate([labels, classes]),
-            np.concatenate([texture_points, random_points]),
-        )
-
-    monkeypatch.setattr(checker, "_keypoints_and_matches", found)
-
-
 def test_without_evidence_boxes_stay_on_their_side_of_the_cut_below_the_confirmed(checker, scene, monkeypatch):
     """Boxes holding a few matches of their class and no map keep their side of the cut, below
     any box the texture confirmed."""
     image, box = scene
     card, noise = [250, 20, 300, 50], [232, 62, 308, 198]
-    _with_a_few_matches(monkeypatch, checker, (card, 0), (noise, 1))
+    with_a_few_matches(monkeypatch, checker, (card, 0), (noise, 1))
     found = detections((card, 0.95, 0), (noise, 0.9, 1), (box, 0.2, 1))
     checked = checker.apply(image, found)  # a flat card, blurred noise, and a box under the floor
     for key in ("boxes", "labels"):
@@ -296,7 +274,7 @@ def test_a_sheet_named_again_without_evidence_drops_under_the_cut_in_its_order(c
         ([200, 100, 300, 200], 0.95, 1),  # another sheet
         ([10, 10, 160, 150], 0.9, 1),  # a box around the first
     )
-    _with_a_few_matches(monkeypatch, checker, *zip(found["boxes"], found["labels"]))
+    with_a_few_matches(monkeypatch, checker, *zip(found["boxes"], found["labels"]))
     checked = checker.apply(blank, found)
     assert not checked["confirmed"].any()
     drawn = checked["scores"] >= PAPER_CUT
@@ -305,7 +283,7 @@ def test_a_sheet_named_again_without_evidence_drops_under_the_cut_in_its_order(c
     np.testing.assert_array_equal(checked["boxes"][~drawn], found["boxes"][[1, 2, 4]])
     assert np.all(again >= PAPER_CUT - (CONFIRMED_FLOOR - PAPER_CUT)) and np.all(np.diff(again) < 0)
     every_name = TextureCheck(textures, CLASSES, every_name=True)
-    _with_a_few_matches(monkeypatch, every_name, *zip(found["boxes"], found["labels"]))
+    with_a_few_matches(monkeypatch, every_name, *zip(found["boxes"], found["labels"]))
     assert (every_name.apply(blank, found)["scores"] >= PAPER_CUT).all()  # every name over the cut
     even = Calibration(weights=(0.0,) * len(FEATURES), bias=0.0)  # every box: a chance of one half
     calibrated = TextureCheck(textures, CLASSES, calibration=even)

@@ -48,3 +48,26 @@ def synthetic_samples(folder, n=6, size=64, seed=0, empty=False) -> list[Sample]
         cv2.imwrite(str(path), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
         samples.append(Sample(path, boxes, labels, condition="fb", difficulty="easy"))
     return samples
+
+
+def with_a_few_matches(monkeypatch, checker, *rows) -> None:
+    """The checker finds the image's own keypoints and matches, and for each (box, class) row three
+    more of that class inside the box, each matched to a random point of its texture: some
+    evidence of the class, too little for a map (a blurred or steeply tilted sheet)."""
+    own = type(checker)._keypoints_and_matches
+    places = np.array([[0.3, 0.3], [0.5, 0.6], [0.7, 0.4]], np.float32)
+
+    def found(gray):
+        every, points, labels, texture_points = own(checker, gray)
+        added = [np.asarray(box[:2], np.float32) + places * (np.asarray(box[2:]) - box[:2]) for box, _ in rows]
+        added = np.concatenate(added).astype(np.float32)
+        classes = np.repeat([label for _, label in rows], len(places)).astype(np.int64)
+        random_points = np.random.default_rng(0).uniform(0, 200, (len(added), 2)).astype(np.float32)
+        return (
+            np.concatenate([every, added]),
+            np.concatenate([points, added]),
+            np.concatenate([labels, classes]),
+            np.concatenate([texture_points, random_points]),
+        )
+
+    monkeypatch.setattr(checker, "_keypoints_and_matches", found)
