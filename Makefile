@@ -16,6 +16,9 @@ TEST_WORKERS ?= 2
 
 .PHONY: install run test test-integration lint bench constraints clean
 
+# Packages go in without their bytecode (--no-compile): Python compiles what it imports on first
+# use, and the several thousand files of torch's CUDA build a test run never imports cost the
+# install tens of seconds otherwise.
 # Installing ends by compiling the render pipeline's numba kernels, as the Docker image does at
 # build time: otherwise each of make run's curricula compiles them on its first images, about a
 # minute of CPU, inside the run's time.
@@ -23,7 +26,7 @@ $(STAMP): pyproject.toml constraints.txt
 	@$(PYTHON) -c 'import sys; sys.exit(0 if sys.version_info[:2] == (3, 11) else "foldwise needs Python 3.11 (bpy 5.0.1 requires it)")'
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[dev]'
+	$(BIN)/python -m pip install --quiet --no-compile -c constraints.txt -e '.[dev]'
 	$(BIN)/python -c 'from workers.render.pipeline import compile_kernels; compile_kernels()'
 	touch $(STAMP)
 
