@@ -203,18 +203,25 @@ def main(argv=None) -> dict:
     if not (data / "annotations.json").is_file():
         make_photo_set(args.documents, data, args.n, args.seed, (width, height))
     rows = score_rows(args.model, args.documents, data)
+    described = {"dir": str(data), "n": args.n, "seed": args.seed, "size": [width, height], "given": list(GIVEN)}
+    return write_rows(args.model, described, rows, f"{args.n} pictures at {width}x{height}", args.out)
+
+
+def write_rows(model: Path, described: dict, rows: dict, what: str, out: Path | None) -> dict:
+    """The JSON report of ``score_rows``'s rows on a set (``described``), its headline opening with ``what``."""
     headline = "; ".join(
-        f"{name} {row['map']:.3f} (P {row['at_threshold']['precision'] or 0:.2f}, R {row['at_threshold']['recall']:.2f})"
+        f"{name} {row['map']:.3f} (P {row['at_threshold']['precision'] or 0:.2f}, R {row['at_threshold']['recall']:.2f}, "
+        f"{row['seconds_per_image']:.2f} s/image)"
         for name, row in rows.items()
     )
     report = {
-        "model": str(args.model),
-        "set": {"dir": str(data), "n": args.n, "seed": args.seed, "size": [width, height], "given": list(GIVEN)},
+        "model": str(model),
+        "set": described,
         "rows": rows,
-        "headline": f"{args.n} pictures at {width}x{height}: {headline}",
+        "headline": f"{what}: {headline}",
         "machine": machine(),
     }
-    return write_report(report, args.out)
+    return write_report(report, out)
 
 
 if __name__ == "__main__":

@@ -26,8 +26,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from bench.document_photos import read_sheets, score_rows  # noqa: E402
-from bench.report import machine, write_report  # noqa: E402
+from bench.document_photos import read_sheets, score_rows, write_rows  # noqa: E402
 
 DATA = ROOT / "bench/data/inv3d_real"
 
@@ -43,19 +42,8 @@ def main(argv=None) -> dict:
             raise SystemExit(f"{args.data}: no {part} (a folder laid out as bench/data/inv3d_real)")
     given = tuple(sorted(read_sheets(args.data / "lookalikes")))
     rows = score_rows(args.model, args.data, args.data, given=given)
-    headline = "; ".join(
-        f"{name} {row['map']:.3f} (P {row['at_threshold']['precision'] or 0:.2f}, R {row['at_threshold']['recall']:.2f}, "
-        f"{row['seconds_per_image']:.2f} s/image)"
-        for name, row in rows.items()
-    )
-    report = {
-        "model": str(args.model),
-        "set": {"dir": str(args.data), "given": list(given)},
-        "rows": rows,
-        "headline": f"{rows['as built']['images']} real photographs: {headline}",
-        "machine": machine(),
-    }
-    return write_report(report, args.out)
+    described = {"dir": str(args.data), "given": list(given)}
+    return write_rows(args.model, described, rows, f"{rows['as built']['images']} real photographs", args.out)
 
 
 if __name__ == "__main__":

@@ -56,3 +56,22 @@ def test_a_folder_without_its_parts_is_refused_by_name(tmp_path, missing):
     target.rmdir() if target.is_dir() else target.unlink()
     with pytest.raises(SystemExit, match=f"no {missing}"):
         real_photos.main(["--model", str(tmp_path / "model.pt"), "--data", str(tmp_path)])
+
+
+def test_the_report_scores_the_set_with_every_lookalike_given_and_writes_its_rows(tmp_path, monkeypatch, capsys):
+    asked = {}
+    row = {"images": 150, "map": 0.5, "at_threshold": {"precision": 0.25, "recall": 1.0}, "seconds_per_image": 2.0}
+
+    def scored(model, documents, data, given):
+        asked.update(model=model, documents=documents, data=data, given=given)
+        return {"as built": row, "keypoint recipe": row}
+
+    monkeypatch.setattr(real_photos, "score_rows", scored)
+    out = tmp_path / "real.json"
+    report = real_photos.main(["--model", "m.pt", "--out", str(out)])
+    capsys.readouterr()
+    lookalikes = tuple(sorted(path.stem for path in (DATA / "lookalikes").glob("*.png")))
+    assert asked == {"model": Path("m.pt"), "documents": DATA, "data": DATA, "given": lookalikes}
+    assert json.loads(out.read_text())["rows"] == report["rows"] == {"as built": row, "keypoint recipe": row}
+    assert report["headline"].startswith("150 real photographs: as built 0.500 (P 0.25, R 1.00, 2.00 s/image)")
+    assert report["set"]["given"] == list(lookalikes) and report["machine"]["cores"]
