@@ -169,31 +169,6 @@ def pytest_xdist_make_scheduler(config, log):
     return ModuleScheduling(config, log)
 
 
-# The units that took longest on 2 cores (each 50-160 s of a suite of about 1,000 CPU seconds),
-# slowest first. They are sent to the workers before every other unit, so that none of them starts
-# last and keeps one worker busy while the other has finished (longest processing time first).
-SLOWEST_UNITS = (
-    "tests/integration",
-    "tests/workers/train/test_export.py",
-    "tests/test_bench_wild.py",
-    "tests/test_compose.py",
-    "tests/services/test_run_smoke.py",
-    "tests/services/api/test_bad_input.py",
-    "tests/workers/train/test_texture_check.py",
-    "tests/workers/train/test_finetune.py",
-    "tests/workers/train/test_calibration.py",
-    "tests/test_bench_document_photos.py",
-    "tests/test_bench_detect_speed.py",
-    "tests/workers/train/test_checkpoint.py",
-)
-
-
-def pytest_collection_modifyitems(config, items):
-    """The slowest units first (``SLOWEST_UNITS``), every unit's tests in their own order."""
-    rank = {unit: place for place, unit in enumerate(SLOWEST_UNITS)}
-    items.sort(key=lambda item: rank.get(xdist_unit(item.nodeid), len(rank)))
-
-
 def xdist_unit(nodeid: str) -> str:
     """The unit of tests one xdist worker runs together: the test's module, or tests/integration."""
     module = nodeid.split("::", 1)[0]

@@ -29,24 +29,3 @@ def test_integration_tests_are_one_unit_and_every_other_module_its_own(pytestcon
     assert (
         unit("tests/test_integration_notes.py::test_a") == "tests/test_integration_notes.py"
     )  # only the folder is one unit
-
-
-def test_the_slowest_units_are_sent_first_and_each_unit_keeps_its_order(pytestconfig):
-    conftest = _root_conftest(pytestconfig)
-
-    class Item:
-        def __init__(self, nodeid):
-            self.nodeid = nodeid
-
-    names = [
-        "tests/db/test_session.py::test_a",
-        "tests/integration/test_faults.py::test_b",
-        "tests/db/test_session.py::test_b",
-        "tests/workers/train/test_export.py::test_c",
-        "tests/workers/train/test_export.py::test_d",
-        "tests/integration/test_distributed.py::test_e",
-    ]
-    items = [Item(name) for name in names]
-    conftest.pytest_collection_modifyitems(pytestconfig, items)
-    assert [item.nodeid for item in items] == [names[1], names[5], names[3], names[4], names[0], names[2]]
-    assert all((Path(__file__).parent.parent / unit).exists() for unit in conftest.SLOWEST_UNITS)
