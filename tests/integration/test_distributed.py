@@ -20,6 +20,7 @@ from sqlalchemy.orm import Session, sessionmaker
 
 from db.models import Evaluation, Model, ParameterSet, RenderStatus, Split, Stage, StageStatus
 from foldwise import store
+from services.api.routes.detect import REPLY_TIMEOUT_S
 from tests.integration.fault_harness import TERMINAL, summary, wait_until_finished
 from workers.app import RENDER_TASK, TRAIN_TASK
 
@@ -111,7 +112,11 @@ def test_experiment_posted_to_the_api_runs_through_the_workers(stack, api, recor
         ).first()
     image = (stack.data_dir / test_image).read_bytes()
     headers = {**stack.auth_headers, "Content-Type": "image/png"}
-    found = api.post(f"/models/{final}/detect?threshold=0", content=image, headers=headers)
+    # The client waits as long as the route waits for a detect worker (a worker's first image loads
+    # the model and its texture check, slower where the suite loads both cores beside it).
+    found = api.post(
+        f"/models/{final}/detect?threshold=0", content=image, headers=headers, timeout=REPLY_TIMEOUT_S + 10
+    )
     assert found.status_code == 200, found.text
     assert (
         found.json()["image"] == {"width": 64, "height": 64}
