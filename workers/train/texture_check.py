@@ -36,8 +36,8 @@ Lookalikes (``lookalikes``: the user's other sheets of the objects' kind) join t
 index as no class's: a keypoint one shares with an object fails the ratio test, and a box in which
 a lookalike's own texture fits a map on more matches than the box's class did shows that
 lookalike. It drops under the cut, confirmed or not (``_shows_lookalike``): on real photographs of
-invoices the network scored such sheets 0.9 and more (bench/README.md, "Real photographs of bent
-invoices").
+invoices the network scored such sheets 0.84 to 0.998, and a few keypoints that passed the ratio
+test still confirmed others (bench/README.md, "Real photographs of bent invoices").
 
 With ``search`` (``detector.texture_search``) the texture also finds sheets the network gave no
 box for: over the whole image, each class's matches are fitted by RANSAC as above, one sheet
