@@ -36,8 +36,8 @@ Lookalikes (``lookalikes``: the user's other sheets of the objects' kind) join t
 index as no class's: a keypoint one shares with an object fails the ratio test, and a box in which
 a lookalike's own texture fits a map on more matches than the box's class did shows that
 lookalike. It drops under the cut, confirmed or not (``_shows_lookalike``): on real photographs of
-invoices the network scored such sheets 0.84 to 0.998, and a few keypoints that passed the ratio
-test still confirmed others (bench/README.md, "Real photographs of bent invoices").
+invoices the network scored such sheets high, and keypoints that passed the ratio test still
+confirmed some (bench/README.md, "Real photographs of bent invoices").
 
 With ``search`` (``detector.texture_search``) the texture also finds sheets the network gave no
 box for: over the whole image, each class's matches are fitted by RANSAC as above, one sheet
@@ -564,26 +564,18 @@ class TextureCheck:
         """(n,) bool: the boxes in which one lookalike's matches agree on an affine map (RANSAC, as
         ``_fit``'s first map, neither mirrored nor squashed) on at least ``MIN_INLIERS`` and on
         more than the box's own class's maps did (``own_inliers``, (n,))."""
-        import cv2
-
         shown = np.zeros(len(boxes), dtype=bool)
         if not self.lookalikes:
             return shown
         for index, box in enumerate(boxes):
             inside = _inside(image_points, box) & (match_labels >= len(self.classes))
             counts = np.bincount(match_labels[inside] - len(self.classes), minlength=len(self.lookalikes))
-            x0, y0, x1, y1 = box
-            threshold = max(3.0, RANSAC_FRACTION * float(np.hypot(x1 - x0, y1 - y0)))
+            needed = max(MIN_INLIERS, int(round(float(own_inliers[index]))) + 1)  # more than its own
             for lookalike in np.argsort(-counts):
-                if counts[lookalike] < max(MIN_INLIERS, own_inliers[index] + 1):
+                if counts[lookalike] < needed:
                     break  # fewer matches than the box's own inliers: no map of it can have more
                 which = inside & (match_labels == len(self.classes) + lookalike)
-                affine, mask = cv2.estimateAffine2D(
-                    texture_points[which], image_points[which], method=cv2.RANSAC, ransacReprojThreshold=threshold
-                )
-                if affine is None or mask is None or _false_fit(affine):
-                    continue
-                if int(mask.sum()) >= MIN_INLIERS and int(mask.sum()) > own_inliers[index]:
+                if _affine_map(texture_points[which], image_points[which], box, needed) is not None:
                     shown[index] = True
                     break
         return shown
@@ -600,27 +592,21 @@ class TextureCheck:
         lie, clipped to the frame: a flat sheet's is its map's image of the whole texture, a
         creased or rolled one's follows its pieces. None where no first map is found.
         ``inliers`` and ``coverage`` measure the maps' evidence (0 where there is none)."""
-        import cv2
 
         own = np.flatnonzero(match_labels == label)
         if len(own) < MIN_INLIERS:
             return None, 0, 0.0
         sources, targets = texture_points[own], image_points[own]
-        x0, y0, x1, y1 = box
-        threshold = max(3.0, RANSAC_FRACTION * float(np.hypot(x1 - x0, y1 - y0)))
         remaining = np.ones(len(own), bool)
         pieces: list[tuple[np.ndarray, np.ndarray]] = []  # (affine, its inliers' texture points)
         for piece in range(LOCAL_MAPS):
             candidates = np.flatnonzero(remaining)
             needed = MIN_INLIERS if piece == 0 else LOCAL_MIN_INLIERS
-            if len(candidates) < needed:
+            fitted = _affine_map(sources[candidates], targets[candidates], box, needed)
+            if fitted is None:
                 break
-            affine, mask = cv2.estimateAffine2D(
-                sources[candidates], targets[candidates], method=cv2.RANSAC, ransacReprojThreshold=threshold
-            )
-            if affine is None or mask is None or int(mask.sum()) < needed or _false_fit(affine):
-                break
-            inliers = candidates[mask.ravel().astype(bool)]
+            affine, agreeing = fitted
+            inliers = candidates[agreeing]
             pieces.append((affine, sources[inliers]))
             remaining[inliers] = False
         if not pieces:
@@ -733,6 +719,22 @@ def confirmed_score(network: np.ndarray, coverage: np.ndarray) -> np.ndarray:
     photographs them")."""
     mean = (np.asarray(network, np.float64) + np.clip(np.asarray(coverage, np.float64), 0.0, 1.0)) / 2
     return (CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * mean).astype(np.float32)
+
+
+def _affine_map(sources: np.ndarray, targets: np.ndarray, box, needed: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """(affine, inlier mask) of one map from texture points to image points inside ``box``, by
+    RANSAC at ``RANSAC_FRACTION`` of the box's diagonal; None where fewer than ``needed`` agree or
+    the map is a false fit (``_false_fit``)."""
+    import cv2
+
+    if len(sources) < needed:
+        return None
+    x0, y0, x1, y1 = box
+    threshold = max(3.0, RANSAC_FRACTION * float(np.hypot(x1 - x0, y1 - y0)))
+    affine, mask = cv2.estimateAffine2D(sources, targets, method=cv2.RANSAC, ransacReprojThreshold=threshold)
+    if affine is None or mask is None or int(mask.sum()) < needed or _false_fit(affine):
+        return None
+    return affine, mask.ravel().astype(bool)
 
 
 def _false_fit(affine: np.ndarray) -> bool:
