@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import shutil
 import sqlite3
+import sys
 import tempfile
 from contextlib import contextmanager
 
@@ -19,12 +20,34 @@ def pytest_configure(config):
     folder = tempfile.mkdtemp(prefix="foldwise-test-cache-")
     config._foldwise_cache_dir = folder
     os.environ["FOLDWISE_CACHE_DIR"] = folder
+    _keep_bytecode(config)
+
+
+def _keep_bytecode(config):
+    """Where PYTHONDONTWRITEBYTECODE forbids writing bytecode beside the sources, the suite's
+    processes (xdist's workers and the hundred-odd Python processes the tests start, all of which
+    inherit this environment) write and share it under pytest's cache folder instead. Without it
+    every process compiles the source of all it imports again: torch, torchvision and the rest,
+    about 5 s of CPU a process. The packages are installed without their bytecode (Makefile)."""
+    if not sys.dont_write_bytecode:
+        return  # written already: beside the sources, or where PYTHONPYCACHEPREFIX says
+    cache = getattr(config, "cache", None)
+    if sys.pycache_prefix is not None:
+        prefix = sys.pycache_prefix
+    elif cache is not None:
+        prefix = str(cache.mkdir("bytecode"))  # kept for the next run, as pytest keeps its cache
+    else:  # -p no:cacheprovider: a folder of this run
+        prefix = config._foldwise_bytecode_dir = tempfile.mkdtemp(prefix="foldwise-test-bytecode-")
+    os.environ.pop("PYTHONDONTWRITEBYTECODE", None)
+    os.environ["PYTHONPYCACHEPREFIX"] = prefix
+    sys.dont_write_bytecode = False
+    sys.pycache_prefix = prefix
 
 
 def pytest_unconfigure(config):
-    folder = getattr(config, "_foldwise_cache_dir", None)
-    if folder:
-        shutil.rmtree(folder, ignore_errors=True)
+    for folder in (getattr(config, "_foldwise_cache_dir", None), getattr(config, "_foldwise_bytecode_dir", None)):
+        if folder:
+            shutil.rmtree(folder, ignore_errors=True)
 
 
 @event.listens_for(Engine, "connect")
