@@ -88,12 +88,19 @@ def test_a_fully_visible_target_is_boxed_at_its_projected_outline():
 
 
 def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
+    import yaml
+
+    # smoke.yaml at one difficulty: each curriculum trains one stage; the in-domain set renders
+    # its one (condition, difficulty) pair twice.
+    config = yaml.safe_load((ROOT / "configs" / "smoke.yaml").read_text())
+    config["curriculum"]["difficulties"] = ["easy"]
+    (tmp_path / "smoke-easy.yaml").write_text(yaml.safe_dump(config))
     out = tmp_path / "wild.json"
     command = [
         sys.executable,
         str(ROOT / "bench" / "wild.py"),
         "--config",
-        str(ROOT / "configs" / "smoke.yaml"),
+        str(tmp_path / "smoke-easy.yaml"),
         "--n-ood",
         "4",
         "--ood-size",
@@ -101,7 +108,7 @@ def test_the_benchmark_trains_scores_every_set_and_reports_the_ratios(tmp_path):
         "--ood-samples",
         "1",
         "--n-in-domain",
-        "1",
+        "2",
         "--ood-dir",
         str(tmp_path / "ood"),
         "--in-domain-dir",
