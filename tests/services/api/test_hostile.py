@@ -455,6 +455,8 @@ def test_a_detect_without_a_reachable_broker_is_503(app, monkeypatch):
     )
     distributed.conf.broker_connection_timeout = 0.2
     distributed.conf.task_publish_retry = False
+    # Nor does the result backend (the same Redis) try again: by default it does 20 times, a second apart.
+    distributed.conf.result_backend_transport_options = {"retry_policy": {"max_retries": 0}}
     monkeypatch.setattr(workers.app, "app", distributed)
     response = asyncio.run(_post_image(create_app(), "/studies/s/detect", png_claiming(64, 64)))
     assert response.status_code == 503 and "broker is unreachable" in response.json()["detail"], response.text
