@@ -24,7 +24,7 @@ def test_both_matchers_check_the_same_detections_and_the_report_compares_them(tm
     from workers.train.training import train_detector
 
     textures = class_textures()
-    samples = sheet_set(tmp_path / "sheets", 4, textures)
+    samples = sheet_set(tmp_path / "sheets", 2, textures)  # one sheet of each class
     model = tmp_path / "checked.pt"
     searching = config(family="faster_rcnn", texture_check=True, texture_search=True)
     train_detector(samples, None, 1, searching, CLASSES, model, seed=0, textures=textures)
@@ -45,13 +45,13 @@ def test_both_matchers_check_the_same_detections_and_the_report_compares_them(tm
     )
     assert json.loads(out.read_text()) == json.loads(json.dumps(report, default=float))
     result = report["sets"]["sheets"]
-    assert result["images"] == 4
+    assert result["images"] == 2
     brute_force, flann = result["brute_force"], result["flann"]
     assert report["sharpen_built"] == texture_check.SHARPEN_AMOUNT
     for matcher in (brute_force, flann, result["flann_sharpen_1"], result["flann_sharpen_2"]):
         assert matcher["seconds_per_image"] > 0 and matcher["build_seconds"] > 0
         # Every sheet is plain to see: the search finds each, whatever the barely trained network says.
-        assert matcher["confirmed"] >= 4 and matcher["map"] == pytest.approx(1.0)
+        assert matcher["confirmed"] >= 2 and matcher["map"] == pytest.approx(1.0)
     assert result["speedup"] == pytest.approx(brute_force["seconds_per_image"] / flann["seconds_per_image"])
     assert 0.0 <= result["images_same"] <= 1.0
 
