@@ -159,6 +159,15 @@ RANSAC_FRACTION = 0.05
 # the cells holding texture keypoints that hold one of its inliers. A lookalike sheet of the same
 # template matches its letterhead and footer; the sheet itself, all over.
 COVER_GRID = 8
+# A confirmed sheet whose maps' inliers lie in less than MIN_SHOWN of the coverage cells the image
+# shows in detail (SHOWN_KEYPOINTS of its keypoints, taken back into the texture by the maps, in
+# the cell) is another sheet sharing part of its print, a form of its template: its confirmation
+# is withdrawn and it drops under the cut (``_shown_share``). Chosen on one half of the real
+# photographs of invoices and measured on the other half (bench/README.md, "What the maps
+# explain"): with fewer keypoints to a cell, blur, grain and ground around small rendered sheets
+# count as print their maps leave unexplained.
+SHOWN_KEYPOINTS = 20
+MIN_SHOWN = 0.55
 # A box at least this much inside a better-scored box the texture confirmed is a piece of that
 # sheet: one box per sheet is drawn. Of boxes scored alike, the one covering more of its texture
 # counts as the better (bench/README.md, "Documents as a phone photographs them").
@@ -432,6 +441,9 @@ class TextureCheck:
         checked = np.flatnonzero(scores >= MIN_SCORE)
         confirmed = np.zeros(len(scores), dtype=bool)
         unmatched = np.zeros(len(scores), dtype=bool)  # no keypoint matching its class: evidence against
+        shown = np.ones(
+            len(scores), np.float32
+        )  # of what the image shows of a confirmed sheet, the share its maps explain
         evidence = np.zeros((len(scores), len(FEATURES)), np.float32)
         evidence[:, 0] = network_logit(scores)
         network = scores.copy()  # each box's own score, which its confirmed score reads
@@ -441,8 +453,8 @@ class TextureCheck:
             every, image_points, match_labels, texture_points = matches
             height, width = image.shape[:2]
             if self.search:  # scored by the network's boxes as they came, before the check below moves them
-                found, found_labels, found_evidence = self._search(
-                    image_points, match_labels, texture_points, width, height
+                found, found_labels, found_evidence, found_shown = self._search(
+                    image_points, match_labels, texture_points, width, height, every
                 )
                 found_network = _network_score(found, found_labels, boxes, scores, labels)
             for index in checked:
@@ -460,7 +472,7 @@ class TextureCheck:
                     and counts[best] >= RENAME_FACTOR * max(counts[label], 1)
                 )
                 for candidate in [best, label] if other else [label]:
-                    outline, inliers, coverage = self._fit(
+                    outline, inliers, coverage, explained = self._fit(
                         image_points[inside],
                         match_labels[inside],
                         texture_points[inside],
@@ -468,6 +480,7 @@ class TextureCheck:
                         boxes[index],
                         width,
                         height,
+                        every,
                     )
                     if outline is not None:
                         break
@@ -484,6 +497,7 @@ class TextureCheck:
                 labels[index] = candidate
                 boxes[index] = outline
                 confirmed[index] = True
+                shown[index] = explained
                 evidence[index, 1] = 1.0
             if self.calibration is not None:
                 scores = self.calibration.probability(evidence)
@@ -513,11 +527,12 @@ class TextureCheck:
                 labels = np.concatenate([labels, found_labels])
                 confirmed = np.concatenate([confirmed, np.ones(len(found), dtype=bool)])
                 unmatched = np.concatenate([unmatched, np.zeros(len(found), dtype=bool)])
+                shown = np.concatenate([shown, found_shown])
                 evidence = np.concatenate([evidence, found_evidence])
                 network = np.concatenate([network, found_network.astype(np.float32)])
             keep = _merge(boxes, scores, labels)
             keep = keep[_one_per_sheet(boxes[keep], scores[keep], confirmed[keep], evidence[keep, coverage_column])]
-            boxes, scores, labels, confirmed, unmatched, evidence, network = (
+            boxes, scores, labels, confirmed, unmatched, evidence, network, shown = (
                 boxes[keep],
                 scores[keep],
                 labels[keep],
@@ -525,24 +540,31 @@ class TextureCheck:
                 unmatched[keep],
                 evidence[keep],
                 network[keep],
+                shown[keep],
             )
-            # A box in which a lookalike's texture fits a map on more matches than its own class's
-            # shows that lookalike (one of the user's other sheets): whatever the network or a
-            # template the two share said, it drops under the cut, its confirmation withdrawn.
-            shows_lookalike = self._shows_lookalike(
+            # Another sheet: a box in which a lookalike's texture fits a map on more matches than its
+            # own class's (one of the user's other sheets), or a confirmed sheet whose maps explain
+            # too little of the print the image shows of it (``MIN_SHOWN``: a form of its
+            # template). Whatever the network or the print they share said, it drops under the cut,
+            # its confirmation withdrawn.
+            another_sheet = self._shows_lookalike(
                 boxes, np.expm1(evidence[:, FEATURES.index("inliers")]), image_points, match_labels, texture_points
             )
-            if shows_lookalike.any():
-                confirmed[shows_lookalike] = False
-                scores[shows_lookalike] = np.minimum(
-                    scores[shows_lookalike],
-                    SECOND_NAME_FLOOR + (PAPER_CUT - SECOND_NAME_FLOOR) * network[shows_lookalike],
+            another_sheet |= confirmed & (shown < MIN_SHOWN)
+            if another_sheet.any():
+                confirmed[another_sheet] = False
+                scores[another_sheet] = np.minimum(
+                    scores[another_sheet],
+                    SECOND_NAME_FLOOR + (PAPER_CUT - SECOND_NAME_FLOOR) * network[another_sheet],
                 ).astype(np.float32)
             if self.calibration is None:  # a calibrated score says what such a box is worth
                 below = unmatched.copy() if not self.unmatched_drawn else np.zeros(len(scores), dtype=bool)
-                below &= ~shows_lookalike  # already under the cut
+                # A box without evidence on another sheet's box: that sheet is accounted for.
+                on_another = np.array([any(_one_sheet(box, other) for other in boxes[another_sheet]) for box in boxes])
+                below |= ~confirmed & on_another.astype(bool)
+                below &= ~another_sheet  # already under the cut
                 if not self.every_name:  # a box dropped for its keypoints stands for no sheet
-                    below[_named_again(boxes, scores, confirmed, standing=~(below | shows_lookalike))] = True
+                    below[_named_again(boxes, scores, confirmed, standing=~(below | another_sheet))] = True
                 scores[below] = np.where(
                     scores[below] >= PAPER_CUT, SECOND_NAME_FLOOR + (scores[below] - PAPER_CUT), scores[below]
                 ).astype(np.float32)
@@ -581,8 +603,8 @@ class TextureCheck:
         return shown
 
     def _fit(
-        self, image_points, match_labels, texture_points, label: int, box, width: int, height: int
-    ) -> tuple[np.ndarray | None, int, float]:
+        self, image_points, match_labels, texture_points, label: int, box, width: int, height: int, keypoints=None
+    ) -> tuple[np.ndarray | None, int, float, float]:
         """(outline, inliers, coverage) of ``label``'s texture among the matches given (a box's).
 
         The first affine map needs ``MIN_INLIERS`` matches that agree on it and is no false fit
@@ -591,14 +613,16 @@ class TextureCheck:
         the piece nearest to it in the texture takes it, and the outline is where all of them
         lie, clipped to the frame: a flat sheet's is its map's image of the whole texture, a
         creased or rolled one's follows its pieces. None where no first map is found.
-        ``inliers`` and ``coverage`` measure the maps' evidence (0 where there is none)."""
+        ``inliers`` and ``coverage`` measure the maps' evidence, ``shown`` how much of what the
+        image shows of the sheet they explain (``_shown_share`` of ``keypoints``, the image's
+        keypoints; 0 where there is no evidence, 1 where ``keypoints`` is None)."""
 
         own = np.flatnonzero(match_labels == label)
         if len(own) < MIN_INLIERS:
-            return None, 0, 0.0
+            return None, 0, 0.0, 0.0
         sources, targets = texture_points[own], image_points[own]
         remaining = np.ones(len(own), bool)
-        pieces: list[tuple[np.ndarray, np.ndarray]] = []  # (affine, its inliers' texture points)
+        pieces: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (affine, its inliers' texture and image points)
         for piece in range(LOCAL_MAPS):
             candidates = np.flatnonzero(remaining)
             needed = MIN_INLIERS if piece == 0 else LOCAL_MIN_INLIERS
@@ -607,15 +631,52 @@ class TextureCheck:
                 break
             affine, agreeing = fitted
             inliers = candidates[agreeing]
-            pieces.append((affine, sources[inliers]))
+            pieces.append((affine, sources[inliers], targets[inliers]))
             remaining[inliers] = False
         if not pieces:
-            return None, 0, 0.0
+            return None, 0, 0.0, 0.0
         outline = self._pieces_outline(pieces, label, width, height)
         if outline is None:
-            return None, 0, 0.0
-        agreeing = np.concatenate([points for _, points in pieces])
-        return outline, len(agreeing), self._coverage(agreeing, label)
+            return None, 0, 0.0, 0.0
+        agreeing = np.concatenate([points for _, points, _ in pieces])
+        # The keypoints whose matches were fitted: a box on a piece of the sheet shows only that piece.
+        shown = 1.0 if keypoints is None else self._shown_share(pieces, keypoints[_inside(keypoints, box)], label)
+        return outline, len(agreeing), self._coverage(agreeing, label), shown
+
+    def _shown_share(self, pieces, keypoints: np.ndarray, label: int) -> float:
+        """Of the texture's cells (``COVER_GRID``) where the image shows keypoints of the sheet, the
+        share holding one of the maps' inliers. Each image keypoint is taken back into the texture
+        by the map of the piece whose inliers lie nearest to it; a cell counts as shown where
+        ``SHOWN_KEYPOINTS`` land in it, and keypoints landing off the texture are the ground's.
+        The sheet itself is explained wherever it shows print; another sheet of its template only
+        on the template, its own text and figures showing keypoints no map explains. A sheet too
+        small or blurred to show keypoints shows few cells, and so loses little."""
+        import cv2
+
+        texture_width, texture_height = self._features.sizes[label]
+        verified = np.unique(
+            _cell_index(np.concatenate([points for _, points, _ in pieces]), texture_width, texture_height)
+        )
+        if not len(keypoints):
+            return 1.0
+        if len(pieces) == 1:
+            nearest = np.zeros(len(keypoints), np.int64)
+        else:
+            nearest = np.stack(
+                [
+                    np.linalg.norm(keypoints[:, None] - image_points[None], axis=2).min(1)
+                    for _, _, image_points in pieces
+                ]
+            ).argmin(0)
+        back = np.empty_like(keypoints, dtype=np.float64)
+        for index, (affine, _, _) in enumerate(pieces):
+            which = nearest == index
+            inverse = cv2.invertAffineTransform(affine.astype(np.float64))
+            back[which] = keypoints[which] @ inverse[:, :2].T + inverse[:, 2]
+        on_sheet = (back[:, 0] >= 0) & (back[:, 0] < texture_width) & (back[:, 1] >= 0) & (back[:, 1] < texture_height)
+        cells, counts = np.unique(_cell_index(back[on_sheet], texture_width, texture_height), return_counts=True)
+        shown = np.union1d(np.intersect1d(cells[counts >= SHOWN_KEYPOINTS], self._cells[label]), verified)
+        return float(len(verified)) / max(len(shown), 1)
 
     def _pieces_outline(self, pieces, label: int, width: int, height: int) -> np.ndarray | None:
         """Where the texture lies under its pieces' maps (see ``_fit``), xyxy clipped to the frame."""
@@ -628,11 +689,11 @@ class TextureCheck:
             np.meshgrid((steps_x[:-1] + steps_x[1:]) / 2, (steps_y[:-1] + steps_y[1:]) / 2), axis=-1
         ).reshape(-1, 2)
         nearest = np.stack(
-            [np.linalg.norm(centres[:, None] - points[None], axis=2).min(1) for _, points in pieces]
+            [np.linalg.norm(centres[:, None] - points[None], axis=2).min(1) for _, points, _ in pieces]
         ).argmin(0)
         half = np.array([texture_width, texture_height]) / COVER_GRID / 2
         mapped = []
-        for index, (affine, _points) in enumerate(pieces):
+        for index, (affine, _points, _) in enumerate(pieces):
             cells = centres[nearest == index]
             if not len(cells):
                 continue
@@ -661,15 +722,17 @@ class TextureCheck:
         return _clipped_extent(corners, width, height)
 
     def _search(
-        self, image_points, match_labels, texture_points, width: int, height: int
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        self, image_points, match_labels, texture_points, width: int, height: int, every: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Sheets the texture alone finds over the whole image: (outlines (n, 4), class indices
-        (n,), evidence (n, len(FEATURES)) with the confirmation, inliers and coverage filled in)."""
+        (n,), evidence (n, len(FEATURES)) with the confirmation, inliers and coverage filled in,
+        the share of what the image shows of each that its map explains (``_shown_share`` of
+        ``every``, the image's keypoints))."""
         import cv2
 
         from workers.train.calibration import FEATURES
 
-        found, found_labels, found_evidence = [], [], []
+        found, found_labels, found_evidence, found_shown = [], [], [], []
         first_threshold = max(3.0, SEARCH_RANSAC_FRACTION * float(np.hypot(width, height)))
         for label in range(len(self.classes)):
             own = match_labels == label
@@ -703,10 +766,18 @@ class TextureCheck:
                         row = np.zeros(len(FEATURES), np.float32)
                         row[1:4] = (1.0, np.log1p(int(inliers.sum())), self._coverage(sources[inliers], label))
                         found_evidence.append(row)
+                        piece = (affine, sources[inliers], points[inliers])
+                        found_shown.append(self._shown_share([piece], every[_inside(every, outline)], label))
                 points, sources = points[~inliers], sources[~inliers]
         if not found:
-            return np.zeros((0, 4), np.float32), np.zeros(0, np.int64), np.zeros((0, len(FEATURES)), np.float32)
-        return np.stack(found).astype(np.float32), np.array(found_labels, np.int64), np.stack(found_evidence)
+            none = np.zeros(0, np.float32)
+            return np.zeros((0, 4), np.float32), np.zeros(0, np.int64), np.zeros((0, len(FEATURES)), np.float32), none
+        return (
+            np.stack(found).astype(np.float32),
+            np.array(found_labels, np.int64),
+            np.stack(found_evidence),
+            np.array(found_shown, np.float32),
+        )
 
 
 def confirmed_score(network: np.ndarray, coverage: np.ndarray) -> np.ndarray:
@@ -804,23 +875,23 @@ def _named_again(
     order = np.argsort(-scores, kind="stable")
     if standing is not None:
         order = order[standing[order]]
-    areas = np.maximum(boxes[:, 2] - boxes[:, 0], 0) * np.maximum(boxes[:, 3] - boxes[:, 1], 0)
     kept: list[int] = []
     again: list[int] = []
     for index in order:
-        box = boxes[index]
-        named = False
-        if not confirmed[index]:
-            for other in kept:
-                overlap = _intersection(box, boxes[other])
-                if overlap <= 0:
-                    continue
-                union = areas[index] + areas[other] - overlap
-                if overlap >= SHEET_IOU * union or overlap >= PIECE_INSIDE * min(areas[index], areas[other]):
-                    named = True
-                    break
+        named = not confirmed[index] and any(_one_sheet(boxes[index], boxes[other]) for other in kept)
         (again if named else kept).append(int(index))
     return np.array(sorted(again), np.int64)
+
+
+def _one_sheet(box: np.ndarray, other: np.ndarray) -> bool:
+    """Whether two xyxy boxes stand for one sheet: IoU ≥ ``SHEET_IOU``, or either ``PIECE_INSIDE`` of the other."""
+    overlap = _intersection(box, other)
+    if overlap <= 0:
+        return False
+    area = max(box[2] - box[0], 0) * max(box[3] - box[1], 0)
+    other_area = max(other[2] - other[0], 0) * max(other[3] - other[1], 0)
+    union = area + other_area - overlap
+    return overlap >= SHEET_IOU * union or overlap >= PIECE_INSIDE * min(area, other_area)
 
 
 def _intersection(box: np.ndarray, other: np.ndarray) -> float:

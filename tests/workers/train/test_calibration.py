@@ -82,6 +82,61 @@ def test_a_lookalike_of_the_template_covers_less_of_the_texture_than_the_sheet()
     assert coverages[1] < coverages[0] / 2
 
 
+def _photographed(page: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The page nearly at its own size in a 600x640 frame, as a phone photographs a sheet: every
+    part of it shows enough print for the check to tell whether its maps explain it."""
+    image = np.full((640, 600, 3), 90, np.uint8)
+    affine = np.array([[0.95, 0, 60], [0, 0.95, 40]], np.float64)
+    cv2.warpAffine(page, affine, (600, 640), dst=image, borderMode=cv2.BORDER_TRANSPARENT)
+    h, w = page.shape[:2]
+    return image, np.array([60, 40, 60 + w * 0.95, 40 + h * 0.95], np.float32)
+
+
+def test_a_sheet_of_the_targets_template_is_not_confirmed_by_the_print_the_two_share(monkeypatch):
+    """Another sheet of the target's template matches its letterhead and footer, enough for a
+    map; its own body shows print those maps do not explain, so it is not confirmed and drops
+    under the cut. The target itself is confirmed over it."""
+    check = TextureCheck({"sheet": _page(seed=1)}, ["sheet"])
+
+    def checked(page):
+        image, box = _photographed(page)
+        return check.apply(image, {"boxes": box[None], "scores": np.array([0.9], np.float32), "labels": np.array([0])})
+
+    sheet, form = checked(_page(seed=1)), checked(_page(seed=2))
+    assert sheet["confirmed"].tolist() == [True] and sheet["scores"][0] >= texture_check.CONFIRMED_FLOOR
+    assert form["confirmed"].tolist() == [False] and form["scores"][0] < texture_check.PAPER_CUT
+    monkeypatch.setattr(texture_check, "MIN_SHOWN", 0.0)  # the template's matches alone: a map, so confirmed
+    assert checked(_page(seed=2))["confirmed"].tolist() == [True]
+
+
+def test_a_small_sheet_showing_little_print_keeps_its_confirmation():
+    """Far away, a cell of the sheet holds too few keypoints to say its print is unexplained: the
+    few matches that agree on a map confirm it, as before."""
+    page = _page(seed=1)
+    check = TextureCheck({"sheet": page}, ["sheet"])
+    image, box = _placed(page, scale=0.35)
+    found = check.apply(image, {"boxes": box[None], "scores": np.array([0.9], np.float32), "labels": np.array([0])})
+    assert found["confirmed"].tolist() == [True] and found["scores"][0] >= texture_check.CONFIRMED_FLOOR
+
+
+def test_no_box_is_drawn_on_a_sheet_shown_to_be_another(monkeypatch):
+    """A box without evidence (another class, no map) on a sheet whose own box was shown to be a
+    sheet of the target's template drops under the cut with it: the sheet is accounted for.
+    (``unmatched_drawn``: the box is not dropped for matching nothing of its texture.)"""
+    check = TextureCheck(
+        {"sheet": _page(seed=1), "other": _page(seed=5, letterhead_seed=9)}, ["sheet", "other"], unmatched_drawn=True
+    )
+    image, box = _photographed(_page(seed=2))
+    found = {
+        "boxes": np.array([box, box + 3], np.float32),
+        "scores": np.array([0.9, 0.85], np.float32),
+        "labels": np.array([0, 1]),
+    }
+    checked = check.apply(image, found)
+    assert not checked["confirmed"].any()
+    assert (checked["scores"] < texture_check.PAPER_CUT).all(), checked["scores"]
+
+
 def test_a_creased_sheet_is_followed_by_a_second_map(monkeypatch):
     """A sheet folded across its middle (each half its own affine image, 40° apart): the box
     takes both halves in, where the map of one half alone leaves the other out."""
