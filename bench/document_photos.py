@@ -163,9 +163,10 @@ def make_photo_set(documents: Path, out: Path, n: int, seed: int, size: tuple[in
     return out
 
 
-def score_rows(model: Path, documents: Path, data: Path, given: tuple[str, ...] = GIVEN) -> dict:
+def score_rows(model: Path, documents: Path, data: Path, given: tuple[str, ...] = GIVEN, parts=None) -> dict:
     """The three rows on the COCO folder ``data``: the detector as built, given ``given`` of the
-    lookalikes, and the keypoint recipe."""
+    lookalikes, and the keypoint recipe (``parts``: named lists of image indices, each also scored
+    alone)."""
     from bench.wild_scoring import _scores, score_keypoint_baseline
     from workers.train.checkpoint import load_detector
     from workers.train.data import load_coco_dataset
@@ -181,8 +182,9 @@ def score_rows(model: Path, documents: Path, data: Path, given: tuple[str, ...] 
     for name, which in (("as built", detector), (f"given {len(given)} lookalikes", with_lookalikes)):
         started = time.perf_counter()
         predictions, truth, groups, model_classes = detector_predictions(which, samples, classes)
-        rows[name] = _scores(predictions, truth, model_classes, groups, 0.8, 0.5, time.perf_counter() - started)
-    rows["keypoint recipe"] = score_keypoint_baseline(read_sheets(documents / "targets"), data, 0.8, 0.5)
+        seconds = time.perf_counter() - started
+        rows[name] = _scores(predictions, truth, model_classes, groups, 0.8, 0.5, seconds, parts)
+    rows["keypoint recipe"] = score_keypoint_baseline(read_sheets(documents / "targets"), data, 0.8, 0.5, parts)
     return rows
 
 

@@ -9,6 +9,7 @@ the keypoint recipe (bench/keypoint_baseline.py) scored the same way, side by si
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -64,10 +65,19 @@ def _at_threshold(predictions, truth, classes, score_threshold: float, iou_thres
 
 
 def _scores(
-    predictions, truth, model_classes, groups, score_threshold: float, iou_threshold: float, seconds: float
+    predictions,
+    truth,
+    model_classes,
+    groups,
+    score_threshold: float,
+    iou_threshold: float,
+    seconds: float,
+    parts: Mapping[str, Sequence[int]] | None = None,
 ) -> dict:
     """One detector's report on one set: the paper's mAP (and unthresholded), class-agnostic mAP,
-    per class and per scene kind, what a user drawing boxes at the threshold sees, and time."""
+    per class and per scene kind, what a user drawing boxes at the threshold sees, and time.
+    ``parts``: named lists of image indices, each also scored alone (its mAP and what is drawn at
+    the threshold), e.g. the half of a set a setting was chosen on and the half held out."""
     from workers.train.evaluation import evaluate_predictions
 
     protocol = {"score_threshold": score_threshold, "iou_threshold": iou_threshold, "coco": False}
@@ -81,7 +91,17 @@ def _scores(
         }
         for name, group in payload.get("breakdown", {}).get("difficulty", {}).items()
     }
+    scored_parts = {}
+    for name, indices in (parts or {}).items():
+        part_predictions, part_truth = [predictions[i] for i in indices], [truth[i] for i in indices]
+        part = evaluate_predictions(part_predictions, part_truth, model_classes, **protocol).to_dict()
+        scored_parts[name] = {
+            "images": len(indices),
+            "map": part["map"],
+            "at_threshold": _at_threshold(part_predictions, part_truth, model_classes, score_threshold, iou_threshold),
+        }
     return {
+        **({"parts": scored_parts} if parts else {}),
         "images": len(truth),
         "map": payload["map"],
         "map_unthresholded": payload["map_unthresholded"],
@@ -94,8 +114,11 @@ def _scores(
     }
 
 
-def score_keypoint_baseline(textures: dict, data: Path, score_threshold: float, iou_threshold: float) -> dict:
-    """The keypoint recipe (bench/keypoint_baseline.py) on a COCO folder, scored as ``score`` scores foldwise."""
+def score_keypoint_baseline(
+    textures: dict, data: Path, score_threshold: float, iou_threshold: float, parts=None
+) -> dict:
+    """The keypoint recipe (bench/keypoint_baseline.py) on a COCO folder, scored as ``score`` scores
+    foldwise (``parts``: as ``_scores`` takes them)."""
     from bench.keypoint_baseline import KeypointBaseline
     from workers.train.data import load_coco_dataset, read_image_rgb
 
@@ -106,7 +129,7 @@ def score_keypoint_baseline(textures: dict, data: Path, score_threshold: float, 
     seconds = time.perf_counter() - started
     truth = [{"boxes": sample.boxes, "labels": np.asarray(sample.labels, np.int64)} for sample in samples]
     groups = [{"condition": sample.condition, "difficulty": sample.difficulty} for sample in samples]
-    return _scores(predictions, truth, classes, groups, score_threshold, iou_threshold, seconds)
+    return _scores(predictions, truth, classes, groups, score_threshold, iou_threshold, seconds, parts)
 
 
 def score(

@@ -62,9 +62,12 @@ def test_the_report_scores_the_set_with_every_lookalike_given_and_writes_its_row
     asked = {}
     row = {"images": 150, "map": 0.5, "at_threshold": {"precision": 0.25, "recall": 1.0}, "seconds_per_image": 2.0}
 
-    def scored(model, documents, data, given):
+    def scored(model, documents, data, given, parts):
         asked.update(model=model, documents=documents, data=data, given=given)
+        asked_parts.update(parts)
         return {"as built": row, "keypoint recipe": row}
+
+    asked_parts = {}
 
     monkeypatch.setattr(real_photos, "score_rows", scored)
     out = tmp_path / "real.json"
@@ -75,3 +78,7 @@ def test_the_report_scores_the_set_with_every_lookalike_given_and_writes_its_row
     assert json.loads(out.read_text())["rows"] == report["rows"] == {"as built": row, "keypoint recipe": row}
     assert report["headline"].startswith("150 real photographs: as built 0.500 (P 0.25, R 1.00, 2.00 s/image)")
     assert report["set"]["given"] == list(lookalikes) and report["machine"]["cores"]
+    # Every photograph is in one half: the one the texture check's setting was chosen on, or the held-out one.
+    chosen, held_out = asked_parts[real_photos.CHOSEN_ON], asked_parts[real_photos.HELD_OUT]
+    assert len(asked_parts) == 2 and sorted(chosen + held_out) == list(range(150)) and len(chosen) == 75
+    assert report["set"]["parts"] == [real_photos.CHOSEN_ON, real_photos.HELD_OUT]
