@@ -39,6 +39,15 @@ lookalike. It drops under the cut, confirmed or not (``_shows_lookalike``): on r
 invoices the network scored such sheets high, and keypoints that passed the ratio test still
 confirmed some (bench/README.md, "Real photographs of bent invoices").
 
+What a confirmed sheet shows is checked as well (``_shown_share``): each of the image's keypoints
+in the box is taken back into the texture by the map of the piece nearest to it, and of the
+texture's cells holding ``SHOWN_KEYPOINTS`` of them, the share holding one of the maps' inliers
+is what the maps explain. Another form of a target's template matches its letterhead, table and
+footer, enough for a map, while its own names and figures show print no map explains: under
+``MIN_SHOWN`` its confirmation is withdrawn and it drops under the cut, and so does any box
+without evidence on it. A small or blurred sheet shows few cells in such detail, so its
+confirmation stands on its matches (bench/README.md, "What the maps explain").
+
 With ``search`` (``detector.texture_search``) the texture also finds sheets the network gave no
 box for: over the whole image, each class's matches are fitted by RANSAC as above, one sheet
 after another (its inliers taken out), and a map that ``SEARCH_MIN_INLIERS`` matches agree on,
@@ -162,10 +171,10 @@ COVER_GRID = 8
 # A confirmed sheet whose maps' inliers lie in less than MIN_SHOWN of the coverage cells the image
 # shows in detail (SHOWN_KEYPOINTS of its keypoints, taken back into the texture by the maps, in
 # the cell) is another sheet sharing part of its print, a form of its template: its confirmation
-# is withdrawn and it drops under the cut (``_shown_share``). Chosen on one half of the real
-# photographs of invoices and measured on the other half (bench/README.md, "What the maps
-# explain"): with fewer keypoints to a cell, blur, grain and ground around small rendered sheets
-# count as print their maps leave unexplained.
+# is withdrawn and it drops under the cut (``_shown_share``). MIN_SHOWN was chosen on one half of
+# the real photographs of invoices, the other half held out; with fewer keypoints to a cell,
+# grain and ground around small rendered sheets count as print their maps leave unexplained
+# (bench/README.md, "What the maps explain").
 SHOWN_KEYPOINTS = 20
 MIN_SHOWN = 0.55
 # A box at least this much inside a better-scored box the texture confirmed is a piece of that
