@@ -450,9 +450,8 @@ class TextureCheck:
         checked = np.flatnonzero(scores >= MIN_SCORE)
         confirmed = np.zeros(len(scores), dtype=bool)
         unmatched = np.zeros(len(scores), dtype=bool)  # no keypoint matching its class: evidence against
-        shown = np.ones(
-            len(scores), np.float32
-        )  # of what the image shows of a confirmed sheet, the share its maps explain
+        # Of what the image shows of each confirmed sheet, the share its maps explain (``_shown_share``).
+        shown = np.ones(len(scores), np.float32)
         evidence = np.zeros((len(scores), len(FEATURES)), np.float32)
         evidence[:, 0] = network_logit(scores)
         network = scores.copy()  # each box's own score, which its confirmed score reads
@@ -569,8 +568,10 @@ class TextureCheck:
             if self.calibration is None:  # a calibrated score says what such a box is worth
                 below = unmatched.copy() if not self.unmatched_drawn else np.zeros(len(scores), dtype=bool)
                 # A box without evidence on another sheet's box: that sheet is accounted for.
-                on_another = np.array([any(_one_sheet(box, other) for other in boxes[another_sheet]) for box in boxes])
-                below |= ~confirmed & on_another.astype(bool)
+                on_another = np.array(
+                    [any(_one_sheet(box, other) for other in boxes[another_sheet]) for box in boxes], dtype=bool
+                )
+                below |= ~confirmed & on_another
                 below &= ~another_sheet  # already under the cut
                 if not self.every_name:  # a box dropped for its keypoints stands for no sheet
                     below[_named_again(boxes, scores, confirmed, standing=~(below | another_sheet))] = True
@@ -614,7 +615,7 @@ class TextureCheck:
     def _fit(
         self, image_points, match_labels, texture_points, label: int, box, width: int, height: int, keypoints=None
     ) -> tuple[np.ndarray | None, int, float, float]:
-        """(outline, inliers, coverage) of ``label``'s texture among the matches given (a box's).
+        """(outline, inliers, coverage, shown) of ``label``'s texture among the matches given (a box's).
 
         The first affine map needs ``MIN_INLIERS`` matches that agree on it and is no false fit
         (``_false_fit``); further maps (``LOCAL_MAPS``) take the matches left over, each a piece
