@@ -613,7 +613,7 @@ class TextureCheck:
         return shown
 
     def _fit(
-        self, image_points, match_labels, texture_points, label: int, box, width: int, height: int, keypoints=None
+        self, image_points, match_labels, texture_points, label: int, box, width: int, height: int, keypoints
     ) -> tuple[np.ndarray | None, int, float, float]:
         """(outline, inliers, coverage, shown) of ``label``'s texture among the matches given (a box's).
 
@@ -625,7 +625,7 @@ class TextureCheck:
         creased or rolled one's follows its pieces. None where no first map is found.
         ``inliers`` and ``coverage`` measure the maps' evidence, ``shown`` how much of what the
         image shows of the sheet they explain (``_shown_share`` of ``keypoints``, the image's
-        keypoints; 0 where there is no evidence, 1 where ``keypoints`` is None)."""
+        keypoints); all 0 where there is no evidence."""
 
         own = np.flatnonzero(match_labels == label)
         if len(own) < MIN_INLIERS:
@@ -650,7 +650,7 @@ class TextureCheck:
             return None, 0, 0.0, 0.0
         agreeing = np.concatenate([points for _, points, _ in pieces])
         # The keypoints whose matches were fitted: a box on a piece of the sheet shows only that piece.
-        shown = 1.0 if keypoints is None else self._shown_share(pieces, keypoints[_inside(keypoints, box)], label)
+        shown = self._shown_share(pieces, keypoints[_inside(keypoints, box)], label)
         return outline, len(agreeing), self._coverage(agreeing, label), shown
 
     def _shown_share(self, pieces, keypoints: np.ndarray, label: int) -> float:
@@ -663,12 +663,10 @@ class TextureCheck:
         small or blurred to show keypoints shows few cells, and so loses little."""
         import cv2
 
-        texture_width, texture_height = self._features.sizes[label]
-        verified = np.unique(
-            _cell_index(np.concatenate([points for _, points, _ in pieces]), texture_width, texture_height)
-        )
         if not len(keypoints):
             return 1.0
+        texture_width, texture_height = self._features.sizes[label]
+        verified = self._cells_hit(np.concatenate([points for _, points, _ in pieces]), label)
         if len(pieces) == 1:
             nearest = np.zeros(len(keypoints), np.int64)
         else:
@@ -714,11 +712,12 @@ class TextureCheck:
     def _coverage(self, texture_points: np.ndarray, label: int) -> float:
         """The share of ``label``'s keypoint-bearing cells (``COVER_GRID``) that ``texture_points`` fall in."""
         cells = self._cells[label]
-        if not len(cells):
-            return 0.0
+        return float(len(self._cells_hit(texture_points, label))) / len(cells) if len(cells) else 0.0
+
+    def _cells_hit(self, texture_points: np.ndarray, label: int) -> np.ndarray:
+        """The keypoint-bearing cells of ``label``'s texture that ``texture_points`` fall in (sorted)."""
         texture_width, texture_height = self._features.sizes[label]
-        hit = np.intersect1d(_cell_index(texture_points, texture_width, texture_height), cells)
-        return float(len(hit)) / len(cells)
+        return np.intersect1d(_cell_index(texture_points, texture_width, texture_height), self._cells[label])
 
     def _outline(self, affine: np.ndarray, label: int, width: int, height: int) -> np.ndarray | None:
         """The class's texture outline mapped by ``affine`` into the image, clipped to the frame
