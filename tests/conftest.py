@@ -162,9 +162,9 @@ def _postgres_tables(connection) -> list[str]:
 
 
 @pytest.fixture(scope="session")
-def migrated_postgres_session_url():
-    """One PostgreSQL database migrated to head for this session's tests (``migrated_postgres_url``
-    empties it for each); dropped at the end of the session."""
+def migrated_postgres_run_url():
+    """One PostgreSQL database migrated to head for the whole test run (``migrated_postgres_url``
+    empties it for each test); dropped when the run ends."""
     from sqlalchemy import create_engine, func, select, table
 
     from db.migrate import upgrade
@@ -187,14 +187,14 @@ def migrated_postgres_session_url():
 
 
 @pytest.fixture
-def migrated_postgres_url(migrated_postgres_session_url):
-    """A PostgreSQL database at head holding no rows, as a fresh one would: the session's, any
+def migrated_postgres_url(migrated_postgres_run_url):
+    """A PostgreSQL database at head holding no rows, as a fresh one would: the run's, any
     connection an earlier test left open ended (as DROP DATABASE … WITH (FORCE) ends them), every
-    table but the schema version's emptied and its ids restarted at 1. Some 0.02 s, where
-    creating a copy of a migrated template and dropping it took 0.4-1 s a test."""
+    table but the schema version's emptied and its ids restarted at 1: some 0.02 s a test, where
+    copying a migrated template and dropping the copy costs 0.4-1 s."""
     from sqlalchemy import create_engine, text
 
-    url = migrated_postgres_session_url
+    url = migrated_postgres_run_url
     admin = create_engine(_postgres_admin_url(), isolation_level="AUTOCOMMIT")
     with admin.connect() as connection:
         connection.execute(

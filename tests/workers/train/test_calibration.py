@@ -111,7 +111,7 @@ def test_a_sheet_of_the_targets_template_is_not_confirmed_by_the_print_the_two_s
 
 def test_a_small_sheet_showing_little_print_keeps_its_confirmation():
     """Far away, a cell of the sheet holds too few keypoints to say its print is unexplained: the
-    few matches that agree on a map confirm it, as before."""
+    few matches that agree on a map confirm it."""
     page = _page(seed=1)
     check = TextureCheck({"sheet": page}, ["sheet"])
     image, box = _placed(page, scale=0.35)
