@@ -12,9 +12,9 @@ sheet lies: the texture's outline, mapped into the image and clipped to the fram
   without such evidence (``0.9 + 0.1 * score`` while boxes merge). Boxes of one class that now
   overlap (IoU ≥ ``NMS_IOU``: two boxes on one sheet, confirmed by one outline) are merged to
   the best, as the detector's views are. The boxes kept then rank among the confirmed by their
-  evidence too (``confirmed_score``: the network's score and the share of the texture their
-  inliers cover), so a sheet of a target's template confirmed on its letterhead ranks below the
-  whole sheets.
+  evidence (``confirmed_score``: the share of the texture their inliers cover), so a sheet of a
+  target's template confirmed on its letterhead ranks below the whole sheets, however sure the
+  network was of it.
 - A map that mirrors the texture is a false fit (a printed sheet shows its front), and so is one
   that squashes it flatter than ``MIN_AXIS_RATIO`` (a few clustered matches stretched into a
   strip across the frame): no evidence.
@@ -454,7 +454,7 @@ class TextureCheck:
         shown = np.ones(len(scores), np.float32)
         evidence = np.zeros((len(scores), len(FEATURES)), np.float32)
         evidence[:, 0] = network_logit(scores)
-        network = scores.copy()  # each box's own score, which its confirmed score reads
+        network = scores.copy()  # each box's own score, which a sheet shown to be another drops by
         if len(checked) or self.search:
             if matches is None:
                 matches = self.matches(image)
@@ -579,8 +579,8 @@ class TextureCheck:
                     scores[below] >= PAPER_CUT, SECOND_NAME_FLOOR + (scores[below] - PAPER_CUT), scores[below]
                 ).astype(np.float32)
                 # The merges above kept the boxes the network's scores ordered; among themselves the
-                # confirmed now rank by their evidence as well (``confirmed_score``).
-                scores[confirmed] = confirmed_score(network[confirmed], evidence[confirmed, coverage_column])
+                # confirmed now rank by their evidence (``confirmed_score``).
+                scores[confirmed] = confirmed_score(evidence[confirmed, coverage_column])
         order = np.argsort(-scores, kind="stable")
         checked_detections = {
             "boxes": boxes[order],
@@ -789,16 +789,16 @@ class TextureCheck:
         )
 
 
-def confirmed_score(network: np.ndarray, coverage: np.ndarray) -> np.ndarray:
+def confirmed_score(coverage: np.ndarray) -> np.ndarray:
     """A confirmed box's score (float32): ``CONFIRMED_FLOOR`` plus the rest in proportion to the
-    mean of the network's score for it and the share of its texture's cells its inliers cover
-    (``COVER_GRID``). The network's score alone says nothing where it has learnt little (printed
-    documents, whose pages look alike at its input size), while a sheet of the same template as a
-    target, confirmed on its letterhead and footer, covers a fifth of the texture or less: ranked
-    by both, such sheets fall below the whole ones (bench/README.md, "Documents as a phone
-    photographs them")."""
-    mean = (np.asarray(network, np.float64) + np.clip(np.asarray(coverage, np.float64), 0.0, 1.0)) / 2
-    return (CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * mean).astype(np.float32)
+    share of its texture's cells its inliers cover (``COVER_GRID``). Among boxes the texture
+    confirmed, the network's score says little: on photographs of printed documents, whose pages
+    look alike at its input size, it scored forms of a target's template, confirmed on their
+    letterhead and footer, as high as the targets, while such a form covers less of the texture
+    than the whole sheet (bench/README.md, "Confirmed boxes ranked by their evidence")."""
+    return (CONFIRMED_FLOOR + (1 - CONFIRMED_FLOOR) * np.clip(np.asarray(coverage, np.float64), 0.0, 1.0)).astype(
+        np.float32
+    )
 
 
 def _affine_map(sources: np.ndarray, targets: np.ndarray, box, needed: int) -> tuple[np.ndarray, np.ndarray] | None:

@@ -69,17 +69,23 @@ def _placed(texture: np.ndarray, scale: float = 0.5) -> tuple[np.ndarray, np.nda
     return image, np.array([80, 30, 80 + w * scale, 30 + h * scale], np.float32)
 
 
-def test_a_lookalike_of_the_template_covers_less_of_the_texture_than_the_sheet():
+def test_a_lookalike_of_the_template_covers_less_of_the_texture_and_ranks_below_the_sheet(monkeypatch):
+    """Both confirmed (``MIN_SHOWN`` off: the rule that withdraws such a sheet is tested below),
+    the lookalike ranks below the sheet by the share of the texture it covers, however much surer
+    the network is of it (the sheet at the least score the check looks at, the lookalike near 1)."""
+    monkeypatch.setattr(texture_check, "MIN_SHOWN", 0.0)
     sheet, lookalike = _page(seed=1), _page(seed=2)  # one template, other bodies
     check = TextureCheck({"sheet": sheet}, ["sheet"])
-    coverages = []
-    for page in (sheet, lookalike):
+    checked = []
+    for page, network in ((sheet, texture_check.MIN_SCORE), (lookalike, 0.999)):
         image, box = _placed(page)
-        found = {"boxes": box[None], "scores": np.array([0.9], np.float32), "labels": np.array([0])}
-        evidence = check.apply(image, found, with_evidence=True)["evidence"][0]
-        coverages.append(evidence[FEATURES.index("coverage")])
+        found = {"boxes": box[None], "scores": np.array([network], np.float32), "labels": np.array([0])}
+        checked.append(check.apply(image, found, with_evidence=True))
+    coverages = [found["evidence"][0, FEATURES.index("coverage")] for found in checked]
     assert coverages[0] > 0.5
     assert coverages[1] < coverages[0] / 2
+    assert [found["confirmed"].tolist() for found in checked] == [[True], [True]]
+    assert checked[0]["scores"][0] > checked[1]["scores"][0] >= texture_check.CONFIRMED_FLOOR
 
 
 def _photographed(page: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -73,12 +73,12 @@ def test_a_confirmed_box_becomes_the_outline_raised_over_the_cut_in_its_order(ch
     slightly_off = box + np.array([6, -5, 4, 3], np.float32)  # agrees with the sheet, loosely
     checked = checker.apply(image, detections((slightly_off, 0.5, 0)), with_evidence=True)
     assert checked["evidence"][0, COVERAGE] > 0.5  # the whole sheet's keypoints agree
-    assert checked["scores"][0] == pytest.approx(confirmed_score(0.5, checked["evidence"][0, COVERAGE]))
+    assert checked["scores"][0] == pytest.approx(confirmed_score(checked["evidence"][0, COVERAGE]))
     assert checked["confirmed"].tolist() == [True]
     assert checked["labels"][0] == 0
     assert _iou(checked["boxes"][0], box) > _iou(slightly_off, box)  # the texture's outline: closer to the sheet
-    higher = checker.apply(image, detections((slightly_off, 0.9, 0)))["scores"][0]
-    assert higher > checked["scores"][0]  # a surer box stays surer
+    surer = checker.apply(image, detections((slightly_off, 0.9, 0)))["scores"][0]
+    assert surer == checked["scores"][0]  # ranked by the texture's evidence, not the network's
 
 
 def test_a_piece_of_the_sheet_becomes_the_outline_and_merges_with_the_whole(checker, scene):
@@ -86,12 +86,12 @@ def test_a_piece_of_the_sheet_becomes_the_outline_and_merges_with_the_whole(chec
     x0, y0, x1, y1 = box
     piece = [x0, y0, (x0 + x1) / 2, (y0 + y1) / 2]
     alone = checker.apply(image, detections((piece, 0.9, 0)), with_evidence=True)
-    assert alone["scores"][0] == pytest.approx(confirmed_score(0.9, alone["evidence"][0, COVERAGE]))
+    assert alone["scores"][0] == pytest.approx(confirmed_score(alone["evidence"][0, COVERAGE]))
     assert _iou(alone["boxes"][0], box) > 0.8  # the whole sheet, not the piece
     found = detections((piece, 0.9, 0), (box, 0.6, 0))
     merged = checker.apply(image, found, with_evidence=True)
     assert len(merged["scores"]) == 1 and merged["scores"][0] == pytest.approx(
-        confirmed_score(0.9, merged["evidence"][0, COVERAGE])
+        confirmed_score(merged["evidence"][0, COVERAGE])
     )
     np.testing.assert_array_equal(found["boxes"][0], piece)  # the caller's arrays are left as they were
 
@@ -339,12 +339,6 @@ def test_a_mirrored_or_squashed_fit_is_no_evidence(checker, scene, monkeypatch, 
         assert bool(checker.apply(image, found)["scores"][0] > 0.8) == raised
 
 
-def search_floor_scores(found: dict) -> np.ndarray:
-    """The scores of sheets the search found where the network had no box of their class as high
-    as the check's floor (``found`` checked with its evidence)."""
-    return confirmed_score(np.full(len(found["scores"]), MIN_SCORE), found["evidence"][:, COVERAGE])
-
-
 @pytest.fixture(scope="module")
 def searcher(textures):
     return TextureCheck(textures, CLASSES, search=True)
@@ -369,7 +363,7 @@ def test_the_search_finds_a_sheet_the_network_gave_no_box_for(checker, searcher,
         image, detections(([250, 20, 300, 50], 0.2, 1)), with_evidence=True
     )  # a weak box elsewhere stays
     assert found["labels"].tolist() == [0, 1] and found["confirmed"].tolist() == [True, False]
-    assert found["scores"][0] == pytest.approx(search_floor_scores(found)[0])  # confirmed, at the network's floor
+    assert found["scores"][0] == pytest.approx(confirmed_score(found["evidence"][0, COVERAGE]))  # by its evidence
     assert float(found["scores"][0]) >= CONFIRMED_FLOOR  # in float32 too
     assert _iou(found["boxes"][0], box) > 0.8
     assert found["scores"][1] == pytest.approx(0.2)
@@ -387,7 +381,8 @@ def test_the_search_adds_nothing_to_a_sheet_the_network_found(checker, searcher,
     assert checker.apply(image, weak)["scores"].tolist() == pytest.approx([0.2])
     lent = searcher.apply(image, weak, with_evidence=True)
     assert lent["labels"].tolist() == [0]
-    assert lent["scores"][0] == pytest.approx(search_floor_scores(lent)[0]) and lent["confirmed"].tolist() == [True]
+    assert lent["scores"][0] == pytest.approx(confirmed_score(lent["evidence"][0, COVERAGE]))
+    assert lent["confirmed"].tolist() == [True]
     assert _iou(lent["boxes"][0], box) > 0.8
 
 
@@ -404,7 +399,9 @@ def test_the_search_finds_each_sheet_of_several_and_no_sheet_where_there_is_none
     for box, label in truth:
         ious = [_iou(b, box) for b, lab in zip(found["boxes"], found["labels"]) if lab == label]
         assert max(ious) > 0.7
-    assert found["scores"] == pytest.approx(search_floor_scores(found)) and found["confirmed"].all()
+    assert (
+        found["scores"] == pytest.approx(confirmed_score(found["evidence"][:, COVERAGE])) and found["confirmed"].all()
+    )
     noise = cv2.GaussianBlur(np.random.default_rng(6).integers(0, 255, (300, 560, 3)).astype(np.uint8), (0, 0), 3)
     for empty in (noise, np.full((240, 320, 3), 90, np.uint8)):
         nothing = searcher.apply(empty, detections())
