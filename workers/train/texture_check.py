@@ -30,7 +30,9 @@ sheet lies: the texture's outline, mapped into the image and clipped to the fram
   box that a better-scored box of any class already covers is that sheet named again
   (``SHEET_IOU``); and a box not one of whose keypoints matches its class's texture
   (``unmatched``): one holding many shows something printed that is not its sheet, one holding
-  next to none a blank surface, where the sheet's print, enlarged, would show keypoints.
+  next to none a blank surface, where the sheet's print, enlarged, would show keypoints. So
+  does a box no map fits that holds ``DETAILED_KEYPOINTS``: its own print, in such detail,
+  would have fitted one.
 
 Lookalikes (``lookalikes``: the user's other sheets of the objects' kind) join the textures'
 index as no class's: a keypoint one shares with an object fails the ratio test, and a box in which
@@ -109,6 +111,12 @@ UPSCALE = 2
 # ... but never past this longer side: a phone's 12-MP photograph (4032x3024) enlarged twice cost
 # SIFT 25 s; shrunk to this, 1.0 s for as many matches (838 against 840 on one test scene).
 SIFT_MAX_SIDE = 2048
+# A box holding this many of the image's keypoints (at SIFT's scale) whose class's texture fits
+# no map is no sheet of that class: it shows print in such detail that its own would have fitted
+# one (on real photographs, other invoices, 3,600-7,300 keypoints and no map), while the true
+# sheets the texture could not confirm, blurred, tilted or grainy, held at most 1,573 over
+# bench/wild.py's six sets (bench/README.md, "Evidence against a box").
+DETAILED_KEYPOINTS = 2000
 # The search over the whole image (search=True): more agreeing matches than a box's check needs,
 # as nothing but the texture vouches for the sheet (at 6 or 8 it added false sheets on
 # foldwise's out-of-domain sets; at 10 none: bench/README.md, "The texture search").
@@ -309,8 +317,8 @@ class TextureCheck:
         with a class's texture (a letterhead, a table head) fails the ratio test and is no
         evidence, and one that matches a lookalike best is none either. ``every_name``: leave a
         sheet named again over the cut (``SHEET_IOU``; bench/detect_speed.py measures both).
-        ``unmatched_drawn``: leave a box over the cut whose keypoints match nothing of its texture
-        (bench/detect_speed.py measures both)."""
+        ``unmatched_drawn``: leave a box over the cut whose keypoints match nothing of its texture,
+        or that holds ``DETAILED_KEYPOINTS`` and fits no map (bench/detect_speed.py measures both)."""
         import cv2
 
         if not sharpen >= 0:
@@ -449,7 +457,7 @@ class TextureCheck:
         labels = np.array(detections["labels"], dtype=np.int64, copy=True)
         checked = np.flatnonzero(scores >= MIN_SCORE)
         confirmed = np.zeros(len(scores), dtype=bool)
-        unmatched = np.zeros(len(scores), dtype=bool)  # no keypoint matching its class: evidence against
+        unmatched = np.zeros(len(scores), dtype=bool)  # no keypoint of its class, or many and no map: evidence against
         # Of what the image shows of each confirmed sheet, the share its maps explain (``_shown_share``).
         shown = np.ones(len(scores), np.float32)
         evidence = np.zeros((len(scores), len(FEATURES)), np.float32)
@@ -499,8 +507,10 @@ class TextureCheck:
                     # Not one keypoint matching its class: many show something printed that is not
                     # its sheet (which, that sharp, would match somewhere); next to none, a blank
                     # surface, as the sheet's print enlarged shows keypoints (bench/README.md,
-                    # "Evidence against a box"). It drops under the cut as a second name does.
-                    unmatched[index] = counts[label] == 0
+                    # "Evidence against a box"). And print in such detail that its sheet would
+                    # have fitted a map (``DETAILED_KEYPOINTS``). It drops under the cut as a
+                    # second name does.
+                    unmatched[index] = counts[label] == 0 or keypoints >= DETAILED_KEYPOINTS
                     continue
                 labels[index] = candidate
                 boxes[index] = outline

@@ -311,6 +311,27 @@ def test_a_box_whose_keypoints_match_nothing_of_its_texture_drops_under_the_cut(
     assert (drawn["scores"] >= PAPER_CUT).all()
 
 
+@pytest.mark.parametrize("keypoints", [texture_check.DETAILED_KEYPOINTS - 1, texture_check.DETAILED_KEYPOINTS])
+def test_a_box_in_detailed_print_that_fits_no_map_drops_under_the_cut(checker, textures, monkeypatch, keypoints):
+    """A box holding ``DETAILED_KEYPOINTS`` of the image's keypoints, a few of them matching its
+    class but agreeing on no map, shows print in such detail that its own sheet would have fitted
+    one: it drops under the cut. One keypoint fewer, it keeps its place over the cut (too few
+    matches for a map is no evidence against), and so it does with ``unmatched_drawn``."""
+    rng = np.random.default_rng(0)
+    box = [100, 100, 500, 400]
+    every = rng.uniform((100, 100), (500, 400), (keypoints, 2)).astype(np.float32)
+    matched = every[:3]  # fewer than MIN_INLIERS: no map
+    texture_points = rng.uniform(0, 200, (3, 2)).astype(np.float32)
+    for check in (checker, TextureCheck(textures, CLASSES, unmatched_drawn=True)):
+        monkeypatch.setattr(
+            check, "_keypoints_and_matches", lambda gray: (every, matched, np.zeros(3, np.int64), texture_points)
+        )
+        checked = check.apply(np.full((480, 640, 3), 90, np.uint8), detections((box, 0.95, 0)))
+        assert not checked["confirmed"].any()
+        drops = keypoints >= texture_check.DETAILED_KEYPOINTS and not check.unmatched_drawn
+        assert (checked["scores"][0] < PAPER_CUT) == drops, (keypoints, check.unmatched_drawn)
+
+
 def test_grayscale_images_and_textures_work_and_a_missing_texture_is_named(textures, scene):
     image, box = scene
     gray = {name: cv2.cvtColor(t, cv2.COLOR_RGB2GRAY) for name, t in textures.items()}
