@@ -35,6 +35,13 @@ def configure(app: Celery, settings: Settings) -> None:
         task_ignore_result=True,
         result_backend=result_backend_url(settings.broker_url),
         result_expires=600,
+        # Only detect replies travel through it, to a request that waits with a timeout of its own:
+        # a lost broker answers a detect with a 503 in about a second, not after the Redis
+        # backend's default 20 reconnections a second apart, each holding one of the API's
+        # broker threads.
+        result_backend_transport_options={
+            "retry_policy": {"max_retries": 2, "interval_start": 0, "interval_step": 0.5, "interval_max": 0.5}
+        },
         task_queues=(Queue(RENDER_QUEUE), Queue(TRAIN_QUEUE), Queue(DETECT_QUEUE)),
         task_routes={
             RENDER_TASK: {"queue": RENDER_QUEUE},
