@@ -50,11 +50,12 @@ def shares(data: Path, config_path: Path, keypoints: list[int]) -> list[dict]:
             every, points, labels, texture_points = check.matches(image)
             for box, label in zip(np.asarray(sample.boxes, np.float32).reshape(-1, 4), sample.labels):
                 inside = texture_check._inside(points, box)
+                in_box = every[texture_check._inside(every, box)]
                 row = {"image": sample.image_path.name, "shown": {}}
                 for count in keypoints:
                     texture_check.SHOWN_KEYPOINTS = count
                     outline, inliers, coverage, shown = check._fit(
-                        points[inside], labels[inside], texture_points[inside], int(label), box, width, height, every
+                        points[inside], labels[inside], texture_points[inside], int(label), box, width, height, in_box
                     )
                     row.update(confirmed=outline is not None, inliers=inliers, coverage=coverage)
                     row["shown"][count] = shown

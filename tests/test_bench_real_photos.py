@@ -59,15 +59,13 @@ def test_a_folder_without_its_parts_is_refused_by_name(tmp_path, missing):
 
 
 def test_the_report_scores_the_set_with_every_lookalike_given_and_writes_its_rows(tmp_path, monkeypatch, capsys):
-    asked = {}
+    asked, asked_parts = {}, {}
     row = {"images": 150, "map": 0.5, "at_threshold": {"precision": 0.25, "recall": 1.0}, "seconds_per_image": 2.0}
 
     def scored(model, documents, data, given, parts):
         asked.update(model=model, documents=documents, data=data, given=given)
         asked_parts.update(parts)
         return {"as built": row, "keypoint recipe": row}
-
-    asked_parts = {}
 
     monkeypatch.setattr(real_photos, "score_rows", scored)
     out = tmp_path / "real.json"

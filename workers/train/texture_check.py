@@ -475,7 +475,10 @@ class TextureCheck:
                 found_network = _network_score(found, found_labels, boxes, scores, labels)
             for index in checked:
                 inside = _inside(image_points, boxes[index])
-                keypoints = int(_inside(every, boxes[index]).sum())
+                # The image's keypoints in the box: their count is evidence, and the maps found must
+                # explain them (``_shown_share``; a box on a piece of a sheet shows only that piece).
+                in_box = every[_inside(every, boxes[index])]
+                keypoints = len(in_box)
                 counts = np.bincount(match_labels[inside], minlength=len(self.classes))[: len(self.classes)]
                 label = int(labels[index])
                 best = int(np.argmax(counts))
@@ -496,7 +499,7 @@ class TextureCheck:
                         boxes[index],
                         width,
                         height,
-                        every,
+                        in_box,
                     )
                     if outline is not None:
                         break
@@ -623,7 +626,7 @@ class TextureCheck:
         return shown
 
     def _fit(
-        self, image_points, match_labels, texture_points, label: int, box, width: int, height: int, keypoints
+        self, image_points, match_labels, texture_points, label: int, box, width: int, height: int, box_keypoints
     ) -> tuple[np.ndarray | None, int, float, float]:
         """(outline, inliers, coverage, shown) of ``label``'s texture among the matches given (a box's).
 
@@ -634,8 +637,8 @@ class TextureCheck:
         lie, clipped to the frame: a flat sheet's is its map's image of the whole texture, a
         creased or rolled one's follows its pieces. None where no first map is found.
         ``inliers`` and ``coverage`` measure the maps' evidence, ``shown`` how much of what the
-        image shows of the sheet they explain (``_shown_share`` of ``keypoints``, the image's
-        keypoints); all 0 where there is no evidence."""
+        image shows of the sheet they explain (``_shown_share`` of ``box_keypoints``, the image's
+        keypoints in ``box``); all 0 where there is no evidence."""
 
         own = np.flatnonzero(match_labels == label)
         if len(own) < MIN_INLIERS:
@@ -659,8 +662,7 @@ class TextureCheck:
         if outline is None:
             return None, 0, 0.0, 0.0
         agreeing = np.concatenate([points for _, points, _ in pieces])
-        # The keypoints whose matches were fitted: a box on a piece of the sheet shows only that piece.
-        shown = self._shown_share(pieces, keypoints[_inside(keypoints, box)], label)
+        shown = self._shown_share(pieces, box_keypoints, label)
         return outline, len(agreeing), self._coverage(agreeing, label), shown
 
     def _shown_share(self, pieces, keypoints: np.ndarray, label: int) -> float:
