@@ -684,7 +684,7 @@ def detect_object(
         runtime = detector.runtime if own_views else None
         if runtime is not None:
             return [runtime.detect(array) for array in arrays]
-        return [_found(output) for output in model(tensors)]
+        return [_found(output) for output in _by_shape(model, tensors)]
 
     results: list[dict[str, np.ndarray]] = []
     threads = int(detector.meta.get("config", {}).get("num_threads", 0))
@@ -711,7 +711,7 @@ def detect_object(
                 with ThreadPoolExecutor(1) as keypoints:
                     pending = [keypoints.submit(checker.matches, array) for array, _ in arrays]
                     with _test_views(model, () if first_size is None else (first_size,), ()):
-                        first = model(tensors)
+                        first = _by_shape(model, tensors)
                     matches = [found.result() for found in pending]
                 checked = [
                     checker.apply(array, _found(output), with_evidence=with_evidence, matches=found)
@@ -730,6 +730,23 @@ def detect_object(
             if on_batch is not None:
                 on_batch(len(results))
     return results
+
+
+def _by_shape(model: nn.Module, tensors: list[torch.Tensor]) -> list[Mapping[str, torch.Tensor]]:
+    """``model(tensors)``, one forward pass per image shape, outputs in the tensors' order.
+
+    torchvision pads a batch to its largest image, and the padding moves the features near an
+    image's edges: an image batched beside one of another size would get other boxes and scores
+    than alone. Images of one shape are padded alike, so each image's detections depend on it alone.
+    """
+    groups: dict[tuple[int, ...], list[int]] = {}
+    for index, tensor in enumerate(tensors):
+        groups.setdefault(tuple(tensor.shape), []).append(index)
+    outputs: list[Mapping[str, torch.Tensor]] = [{} for _ in tensors]
+    for indices in groups.values():
+        for index, output in zip(indices, model([tensors[index] for index in indices])):
+            outputs[index] = output
+    return outputs
 
 
 def _found(output: Mapping[str, torch.Tensor]) -> dict[str, np.ndarray]:

@@ -99,6 +99,21 @@ def test_round_trip_gives_identical_detections(trained, tmp_path):
         assert a["scores"][0] == pytest.approx(b["scores"][0], abs=1e-5)
 
 
+def test_an_image_detects_the_same_beside_an_image_of_another_shape(trained, tmp_path):
+    """torchvision pads a batch to its largest image: a wide image batched beside a tall one
+    would be padded to a square and get other boxes and scores than alone."""
+    _, path, _, _ = trained
+    detector = load_detector(path)
+    _, (wide,) = write_images(tmp_path / "wide", n=1, size=(60, 150), seed=4)
+    _, (tall,) = write_images(tmp_path / "tall", n=1, size=(150, 60), seed=5)
+    alone = detect_object(detector, [wide, tall], batch_size=1)
+    together = detect_object(detector, [wide, tall, wide], batch_size=3)
+    for result, reference in zip(together, alone + alone[:1]):
+        assert len(reference["boxes"]) > 0
+        for key in ("boxes", "scores", "labels"):
+            np.testing.assert_allclose(result[key], reference[key], rtol=0, atol=1e-4)
+
+
 def test_detections_are_numpy_zero_based_in_original_pixels(trained, tmp_path):
     _, path, _, _ = trained
     detector = load_detector(path, device="cpu")
