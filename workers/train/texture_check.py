@@ -172,6 +172,20 @@ LOCAL_MIN_INLIERS = 5
 # RANSAC's threshold for a box's maps, as a fraction of the box's diagonal: room for a sheet's
 # gentle curl within one map; sharper bends are the further maps' pieces.
 RANSAC_FRACTION = 0.05
+# A bent sheet moves its print smoothly: near any inlier, its neighbours agree on one affine map.
+# So loose a threshold also lets chance matches agree (another document's words and figures in the
+# same font, near where the sheet has its own): each inlier is judged by the inliers around it in
+# the texture (LOCAL_RING, fractions of the texture's diagonal: past the inlier's own word, within
+# a bend's reach), LOCAL_NEIGHBOURS of them fitted by least squares, and dropped where it lies off
+# their map by more than LOCAL_TOLERANCE of the sheet's size in the image (at least
+# LOCAL_TOLERANCE_PX). An inlier with fewer than LOCAL_MIN_NEIGHBOURS such neighbours is not
+# judged: a small sheet's few matches keep their say (bench/README.md, "Inliers their
+# neighbours vouch for").
+LOCAL_RING = (0.03, 0.15)
+LOCAL_NEIGHBOURS = 12
+LOCAL_MIN_NEIGHBOURS = 4
+LOCAL_TOLERANCE = 0.02
+LOCAL_TOLERANCE_PX = 2.0
 # Coverage: the texture cut into COVER_GRID x COVER_GRID cells; a map's coverage is the share of
 # the cells holding texture keypoints that hold one of its inliers. A lookalike sheet of the same
 # template matches its letterhead and footer; the sheet itself, all over.
@@ -179,12 +193,13 @@ COVER_GRID = 8
 # A confirmed sheet whose maps' inliers lie in less than MIN_SHOWN of the coverage cells the image
 # shows in detail (SHOWN_KEYPOINTS of its keypoints, taken back into the texture by the maps, in
 # the cell) is another sheet sharing part of its print, a form of its template: its confirmation
-# is withdrawn and it drops under the cut (``_shown_share``). MIN_SHOWN was chosen on one half of
-# the real photographs of invoices, the other half held out; with fewer keypoints to a cell,
-# grain and ground around small rendered sheets count as print their maps leave unexplained
-# (bench/README.md, "What the maps explain").
+# is withdrawn and it drops under the cut (``_shown_share``). MIN_SHOWN (with the inliers their
+# neighbours vouch for, LOCAL_TOLERANCE) was chosen on one half of the real photographs of
+# invoices, the other half held out; with fewer keypoints to a cell, grain and ground around small
+# rendered sheets count as print their maps leave unexplained (bench/README.md, "What the maps
+# explain", "Inliers their neighbours vouch for").
 SHOWN_KEYPOINTS = 20
-MIN_SHOWN = 0.55
+MIN_SHOWN = 0.5
 # A box at least this much inside a better-scored box the texture confirmed is a piece of that
 # sheet: one box per sheet is drawn. Of boxes scored alike, the one covering more of its texture
 # counts as the better (bench/README.md, "Documents as a phone photographs them").
@@ -658,12 +673,35 @@ class TextureCheck:
             remaining[inliers] = False
         if not pieces:
             return None, 0, 0.0, 0.0
+        pieces = self._vouched_pieces(pieces, label)
+        if not pieces:
+            return None, 0, 0.0, 0.0
         outline = self._pieces_outline(pieces, label, width, height)
         if outline is None:
             return None, 0, 0.0, 0.0
         agreeing = np.concatenate([points for _, points, _ in pieces])
         shown = self._shown_share(pieces, box_keypoints, label)
         return outline, len(agreeing), self._coverage(agreeing, label), shown
+
+    def _vouched_pieces(self, pieces, label: int) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+        """``pieces`` (affine, inliers' texture points, their image points) without the inliers
+        their neighbours contradict (``_off_their_neighbours``, over every piece's inliers): the
+        first piece needs ``MIN_INLIERS`` left, each further one ``LOCAL_MIN_INLIERS``. Empty
+        where the first piece falls short."""
+        sources = np.concatenate([texture for _, texture, _ in pieces])
+        targets = np.concatenate([image for _, _, image in pieces])
+        texture_width, texture_height = self._features.sizes[label]
+        scale = float(np.sqrt(abs(np.linalg.det(pieces[0][0][:, :2]))))
+        vouched = ~_off_their_neighbours(sources, targets, float(np.hypot(texture_width, texture_height)), scale)
+        kept, start = [], 0
+        for index, (affine, texture, image) in enumerate(pieces):
+            which = vouched[start : start + len(texture)]
+            start += len(texture)
+            if which.sum() >= (MIN_INLIERS if index == 0 else LOCAL_MIN_INLIERS):
+                kept.append((affine, texture[which], image[which]))
+            elif index == 0:
+                return []
+        return kept
 
     def _shown_share(self, pieces, keypoints: np.ndarray, label: int) -> float:
         """Of the texture's cells (``COVER_GRID``) where the image shows keypoints of the sheet, the
@@ -777,17 +815,21 @@ class TextureCheck:
                     refit, _ = cv2.estimateAffine2D(sources[inliers], points[inliers], method=cv2.LMEDS)
                     affine = refit if refit is not None else affine
                     outline = self._outline(affine, label, width, height)
+                    # All of them are spent; the sheet stands on those their neighbours vouch for.
+                    vouched = self._vouched_pieces([(affine, sources[inliers], points[inliers])], label)
                     if (
-                        not _false_fit(affine)
+                        vouched
+                        and len(vouched[0][1]) >= SEARCH_MIN_INLIERS
+                        and not _false_fit(affine)
                         and outline is not None
                         and min(outline[2] - outline[0], outline[3] - outline[1]) >= SEARCH_MIN_SIDE
                     ):
                         found.append(outline)
                         found_labels.append(label)
+                        piece = vouched[0]
                         row = np.zeros(len(FEATURES), np.float32)
-                        row[1:4] = (1.0, np.log1p(int(inliers.sum())), self._coverage(sources[inliers], label))
+                        row[1:4] = (1.0, np.log1p(len(piece[1])), self._coverage(piece[1], label))
                         found_evidence.append(row)
-                        piece = (affine, sources[inliers], points[inliers])
                         found_shown.append(self._shown_share([piece], every[_inside(every, outline)], label))
                 points, sources = points[~inliers], sources[~inliers]
         if not found:
@@ -827,6 +869,33 @@ def _affine_map(sources: np.ndarray, targets: np.ndarray, box, needed: int) -> t
     if affine is None or mask is None or int(mask.sum()) < needed or _false_fit(affine):
         return None
     return affine, mask.ravel().astype(bool)
+
+
+def _off_their_neighbours(sources: np.ndarray, targets: np.ndarray, diagonal: float, scale: float) -> np.ndarray:
+    """(n,) bool: the matches (texture ``sources`` to image ``targets``) that lie off the affine
+    map their neighbours agree on: the ``LOCAL_NEIGHBOURS`` nearest in the texture within
+    ``LOCAL_RING`` of the texture's ``diagonal``, fitted by least squares; off by more than
+    ``LOCAL_TOLERANCE`` of the sheet's diagonal in the image (``scale`` times the texture's, the
+    image's pixels per texture pixel) or ``LOCAL_TOLERANCE_PX``. A match with fewer than
+    ``LOCAL_MIN_NEIGHBOURS`` such neighbours is not judged (False)."""
+    count = len(sources)
+    if count <= LOCAL_MIN_NEIGHBOURS:
+        return np.zeros(count, dtype=bool)
+    sources, targets = sources.astype(np.float64), targets.astype(np.float64)
+    distances = np.linalg.norm(sources[:, None] - sources[None], axis=2)
+    in_ring = (distances > LOCAL_RING[0] * diagonal) & (distances < LOCAL_RING[1] * diagonal)
+    distances = np.where(in_ring, distances, np.inf)
+    nearest = np.argsort(distances, axis=1)[:, : min(LOCAL_NEIGHBOURS, count - 1)]
+    weights = np.isfinite(np.take_along_axis(distances, nearest, axis=1)).astype(np.float64)[..., None]
+    # Each match's neighbours' map by least squares (normal equations, batched; a tiny ridge keeps
+    # the unjudged matches' degenerate systems solvable).
+    homogeneous = np.concatenate([sources, np.ones((count, 1))], axis=1)
+    design = homogeneous[nearest] * weights
+    normal = np.einsum("nki,nkj->nij", design, design) + 1e-9 * np.eye(3)
+    maps = np.linalg.solve(normal, np.einsum("nki,nkj->nij", design, targets[nearest] * weights))
+    residuals = np.linalg.norm(np.einsum("ni,nij->nj", homogeneous, maps) - targets, axis=1)
+    tolerance = max(LOCAL_TOLERANCE * scale * diagonal, LOCAL_TOLERANCE_PX)
+    return (weights[..., 0].sum(axis=1) >= LOCAL_MIN_NEIGHBOURS) & (residuals > tolerance)
 
 
 def _false_fit(affine: np.ndarray) -> bool:

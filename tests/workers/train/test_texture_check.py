@@ -360,6 +360,55 @@ def test_a_mirrored_or_squashed_fit_is_no_evidence(checker, scene, monkeypatch, 
         assert bool(checker.apply(image, found)["scores"][0] > 0.8) == raised
 
 
+def _bent_and_chance_matches(box, count: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(texture points of the 512-px astronaut, where a sheet curled about a vertical axis on
+    ``box`` shows them, where chance puts them: each 9-12 px off one flat map of the texture,
+    inside RANSAC's threshold for ``box`` but no smooth bend's image)."""
+    x0, y0, x1, _ = box
+    rng = np.random.default_rng(seed)
+    texture_points = rng.uniform(0, 512, (count, 2)).astype(np.float32)
+    scale = (x1 - x0) / 512
+    radius = 120.0  # px: the curl's radius in the image
+    bent = np.stack(
+        [x0 + radius * np.sin(texture_points[:, 0] * scale / radius), y0 + texture_points[:, 1] * scale], axis=1
+    )
+    angle = rng.uniform(0, 2 * np.pi, count)
+    offsets = rng.uniform(9, 12, count)[:, None] * np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    flat = np.stack([x0 + texture_points[:, 0] * scale, y0 + texture_points[:, 1] * scale], axis=1)
+    return texture_points, bent.astype(np.float32), (flat + offsets).astype(np.float32)
+
+
+def test_inliers_their_neighbours_contradict_are_no_evidence(checker, scene, monkeypatch):
+    """A curled sheet's matches move smoothly: each agrees with the map its neighbours in the
+    texture agree on, and they confirm the box. As many matches each a few pixels off one flat
+    map, inside RANSAC's threshold (another document's words near where the sheet has its own),
+    agree on that map but not with their neighbours: the box is left as the network gave it. They
+    would confirm it without the neighbours' say."""
+    image, box = scene
+    texture_points, bent, chance = _bent_and_chance_matches(box, count=60, seed=2)
+    found = detections((box, 0.5, 0))
+    for points, confirmed in ((bent, True), (chance, False)):
+        monkeypatch.setattr(
+            checker, "_keypoints_and_matches", lambda gray, p=points: (p, p, np.zeros(len(p), np.int64), texture_points)
+        )
+        checked = checker.apply(image, found)
+        assert checked["confirmed"].tolist() == [confirmed]
+        assert bool(checked["scores"][0] > PAPER_CUT) == confirmed
+    monkeypatch.setattr(texture_check, "LOCAL_TOLERANCE", 1.0)  # every inlier within its neighbours' reach
+    assert checker.apply(image, found)["confirmed"].tolist() == [True]
+
+
+def test_the_search_finds_no_sheet_in_matches_their_neighbours_contradict(searcher, scene, monkeypatch):
+    """The search stands a sheet on the inliers their neighbours vouch for, too: the curled
+    sheet's matches are found as a sheet, chance matches near one map are not."""
+    image, box = scene
+    texture_points, bent, chance = _bent_and_chance_matches(box, count=60, seed=3)
+    for points, sheets in ((bent, 1), (chance, 0)):
+        matches = (points, np.zeros(len(points), np.int64), texture_points)
+        monkeypatch.setattr(searcher, "_keypoints_and_matches", lambda gray, m=matches: (m[0], *m))
+        assert len(searcher.apply(image, detections())["scores"]) == sheets
+
+
 @pytest.fixture(scope="module")
 def searcher(textures):
     return TextureCheck(textures, CLASSES, search=True)
