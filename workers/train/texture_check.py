@@ -885,7 +885,9 @@ def _off_their_neighbours(sources: np.ndarray, targets: np.ndarray, diagonal: fl
     distances = np.linalg.norm(sources[:, None] - sources[None], axis=2)
     in_ring = (distances > LOCAL_RING[0] * diagonal) & (distances < LOCAL_RING[1] * diagonal)
     distances = np.where(in_ring, distances, np.inf)
-    nearest = np.argsort(distances, axis=1)[:, : min(LOCAL_NEIGHBOURS, count - 1)]
+    nearest = np.argpartition(distances, min(LOCAL_NEIGHBOURS, count - 1) - 1, axis=1)[
+        :, : min(LOCAL_NEIGHBOURS, count - 1)
+    ]
     weights = np.isfinite(np.take_along_axis(distances, nearest, axis=1)).astype(np.float64)[..., None]
     # Each match's neighbours' map by least squares (normal equations, batched; a tiny ridge keeps
     # the unjudged matches' degenerate systems solvable).
