@@ -8,13 +8,14 @@ the same kind (six of them printed from a target's own template), which must dra
 ``lookalikes/`` holds the flat originals of five of those ten, as a user would give their other
 forms (``foldwise lookalikes``); the other five are photographed only.
 
-Three choices of foldwise were made on these photographs, on one half of them (``CHOSEN_ON``:
+Four choices of foldwise were made on these photographs, on one half of them (``CHOSEN_ON``:
 the even-numbered photographs in the order the set is read): how much of what the image shows of
-a confirmed sheet its maps must explain (``texture_check.MIN_SHOWN``); how many keypoints a box
-that fits no map may hold before it counts as unmatched (``texture_check.DETAILED_KEYPOINTS``);
-and confirmed boxes ranked by the share of the texture they cover alone
-(``texture_check.confirmed_score``). Every row is also scored on
-each half alone (``parts``), and the other half (``HELD_OUT``) is the one to judge it by. Rows,
+a confirmed sheet its maps must explain (``texture_check.MIN_SHOWN``), with how far an inlier may
+lie off the map its neighbours agree on (``texture_check.LOCAL_TOLERANCE``); how many keypoints
+a box that fits no map may hold before it counts as unmatched
+(``texture_check.DETAILED_KEYPOINTS``); and confirmed boxes ranked by the share of the texture
+they cover alone (``texture_check.confirmed_score``). Every row is also scored on each half
+alone (``parts``), and the other half (``HELD_OUT``) is the one to judge it by. Rows,
 as ``bench/document_photos.py`` scores its drawn pictures: the detector as built, the same
 detector given the five lookalikes, and the keypoint recipe; each with the paper's mAP,
 precision and recall at the 0.8 cut, the boxes drawn and seconds per image, also by light
