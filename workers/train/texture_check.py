@@ -186,6 +186,7 @@ LOCAL_NEIGHBOURS = 12
 LOCAL_MIN_NEIGHBOURS = 4
 LOCAL_TOLERANCE = 0.02
 LOCAL_TOLERANCE_PX = 2.0
+LOCAL_MAX_CARRIED = 1000.0  # see _off_their_neighbours: only a degenerate fit carries its noise this far
 # Coverage: the texture cut into COVER_GRID x COVER_GRID cells; a map's coverage is the share of
 # the cells holding texture keypoints that hold one of its inliers. A lookalike sheet of the same
 # template matches its letterhead and footer; the sheet itself, all over.
@@ -876,28 +877,34 @@ def _off_their_neighbours(sources: np.ndarray, targets: np.ndarray, diagonal: fl
     map their neighbours agree on: the ``LOCAL_NEIGHBOURS`` nearest in the texture within
     ``LOCAL_RING`` of the texture's ``diagonal``, fitted by least squares; off by more than
     ``LOCAL_TOLERANCE`` of the sheet's diagonal in the image (``scale`` times the texture's, the
-    image's pixels per texture pixel) or ``LOCAL_TOLERANCE_PX``. A match with fewer than
-    ``LOCAL_MIN_NEIGHBOURS`` such neighbours is not judged (False)."""
+    image's pixels per texture pixel) or ``LOCAL_TOLERANCE_PX``. A match is not judged (False)
+    where fewer than ``LOCAL_MIN_NEIGHBOURS`` such neighbours surround it, or where they lie
+    along one line (of print) beside it, which fixes no map across it (``LOCAL_MAX_CARRIED``)."""
     count = len(sources)
-    if count <= LOCAL_MIN_NEIGHBOURS:
+    if count <= LOCAL_MIN_NEIGHBOURS or diagonal <= 0:
         return np.zeros(count, dtype=bool)
-    sources, targets = sources.astype(np.float64), targets.astype(np.float64)
+    # Texture points in units of its diagonal, so the normal equations below are well scaled.
+    sources, targets = sources.astype(np.float64) / diagonal, targets.astype(np.float64)
     distances = np.linalg.norm(sources[:, None] - sources[None], axis=2)
-    in_ring = (distances > LOCAL_RING[0] * diagonal) & (distances < LOCAL_RING[1] * diagonal)
-    distances = np.where(in_ring, distances, np.inf)
-    nearest = np.argpartition(distances, min(LOCAL_NEIGHBOURS, count - 1) - 1, axis=1)[
-        :, : min(LOCAL_NEIGHBOURS, count - 1)
-    ]
-    weights = np.isfinite(np.take_along_axis(distances, nearest, axis=1)).astype(np.float64)[..., None]
-    # Each match's neighbours' map by least squares (normal equations, batched; a tiny ridge keeps
-    # the unjudged matches' degenerate systems solvable).
-    homogeneous = np.concatenate([sources, np.ones((count, 1))], axis=1)
-    design = homogeneous[nearest] * weights
-    normal = np.einsum("nki,nkj->nij", design, design) + 1e-9 * np.eye(3)
-    maps = np.linalg.solve(normal, np.einsum("nki,nkj->nij", design, targets[nearest] * weights))
-    residuals = np.linalg.norm(np.einsum("ni,nij->nj", homogeneous, maps) - targets, axis=1)
+    distances = np.where((distances > LOCAL_RING[0]) & (distances < LOCAL_RING[1]), distances, np.inf)
+    neighbours = min(LOCAL_NEIGHBOURS, count - 1)
+    nearest = np.argpartition(distances, neighbours - 1, axis=1)[:, :neighbours]
+    weights = np.isfinite(np.take_along_axis(distances, nearest, axis=1)).astype(np.float64)
+    # Each match's neighbours' map by least squares, about the match itself: the map's constant is
+    # where they put it. Normal equations, batched; the ridge keeps every system solvable.
+    offsets = (sources[nearest] - sources[:, None]) * weights[..., None]
+    design = np.concatenate([offsets, weights[..., None]], axis=2)
+    normal = np.einsum("nki,nkj->nij", design, design) + 1e-12 * np.eye(3)
+    maps = np.linalg.solve(normal, np.einsum("nki,nkj->nij", design, targets[nearest] * weights[..., None]))
+    residuals = np.linalg.norm(maps[:, 2] - targets, axis=1)
+    # How far the neighbours' noise carries into their map at the match, against one neighbour's
+    # own (a few times, for neighbours around it or to one side): a map of neighbours along a
+    # line of print that passes beside the match is the ridge's across that line, not theirs,
+    # and carries it a trillion times (a line the match lies on still fixes where it should be).
+    carried = np.linalg.inv(normal)[:, 2, 2]
+    judged = (weights.sum(axis=1) >= LOCAL_MIN_NEIGHBOURS) & (carried <= LOCAL_MAX_CARRIED)
     tolerance = max(LOCAL_TOLERANCE * scale * diagonal, LOCAL_TOLERANCE_PX)
-    return (weights[..., 0].sum(axis=1) >= LOCAL_MIN_NEIGHBOURS) & (residuals > tolerance)
+    return judged & (residuals > tolerance)
 
 
 def _false_fit(affine: np.ndarray) -> bool:

@@ -398,6 +398,26 @@ def test_inliers_their_neighbours_contradict_are_no_evidence(checker, scene, mon
     assert checker.apply(image, found)["confirmed"].tolist() == [True]
 
 
+def test_an_inlier_is_judged_only_where_its_neighbours_fix_a_map_around_it():
+    """One line of print: a match on the line but moved along it is off its neighbours' map; a
+    match beside the line, whose neighbours all lie on it, is not judged (they fix no map across
+    the line), nor is a match with too few neighbours, and matches that all share one texture
+    point or are too few for any neighbours raise nothing."""
+    from workers.train.texture_check import _off_their_neighbours
+
+    diagonal = float(np.hypot(800, 800))
+    line = np.stack([np.linspace(0, 800, 61), np.full(61, 400.0)], axis=1)
+    sources = np.concatenate([line, [[400.0, 420.0]]])  # the last one 20 px beside the line
+    targets = sources * 0.5 + 10
+    targets[30, 0] += 12  # on the line, 12 px along it: off by more than 2% of the 566-px sheet
+    targets[-1, 1] += 40  # beside it, far off any map: still not judged
+    off = _off_their_neighbours(sources, targets, diagonal, 0.5)
+    assert off.tolist() == [index == 30 for index in range(len(sources))]
+    same_point = np.full((10, 2), 300.0)
+    assert not _off_their_neighbours(same_point, same_point + np.arange(10)[:, None] * 50, diagonal, 0.5).any()
+    assert _off_their_neighbours(sources[:4], targets[:4] + 99, diagonal, 0.5).tolist() == [False] * 4
+
+
 def test_the_search_finds_no_sheet_in_matches_their_neighbours_contradict(searcher, scene, monkeypatch):
     """The search stands a sheet on the inliers their neighbours vouch for, too: the curled
     sheet's matches are found as a sheet, chance matches near one map are not."""
