@@ -672,9 +672,7 @@ class TextureCheck:
             inliers = candidates[agreeing]
             pieces.append((affine, sources[inliers], targets[inliers]))
             remaining[inliers] = False
-        if not pieces:
-            return None, 0, 0.0, 0.0
-        pieces = self._vouched_pieces(pieces, label)
+        pieces = self._vouched_pieces(pieces, label) if pieces else []
         if not pieces:
             return None, 0, 0.0, 0.0
         outline = self._pieces_outline(pieces, label, width, height)
@@ -891,17 +889,18 @@ def _off_their_neighbours(sources: np.ndarray, targets: np.ndarray, diagonal: fl
     nearest = np.argpartition(distances, neighbours - 1, axis=1)[:, :neighbours]
     weights = np.isfinite(np.take_along_axis(distances, nearest, axis=1)).astype(np.float64)
     # Each match's neighbours' map by least squares, about the match itself: the map's constant is
-    # where they put it. Normal equations, batched; the ridge keeps every system solvable.
+    # where they put it, and only it is solved for. Normal equations, batched; the ridge keeps
+    # every system solvable.
     offsets = (sources[nearest] - sources[:, None]) * weights[..., None]
     design = np.concatenate([offsets, weights[..., None]], axis=2)
-    normal = np.einsum("nki,nkj->nij", design, design) + 1e-12 * np.eye(3)
-    maps = np.linalg.solve(normal, np.einsum("nki,nkj->nij", design, targets[nearest] * weights[..., None]))
-    residuals = np.linalg.norm(maps[:, 2] - targets, axis=1)
+    inverse = np.linalg.inv(np.einsum("nki,nkj->nij", design, design) + 1e-12 * np.eye(3))
+    constants = np.einsum("nj,nkj,nki->ni", inverse[:, 2], design, targets[nearest] * weights[..., None])
+    residuals = np.linalg.norm(constants - targets, axis=1)
     # How far the neighbours' noise carries into their map at the match, against one neighbour's
     # own (a few times, for neighbours around it or to one side): a map of neighbours along a
     # line of print that passes beside the match is the ridge's across that line, not theirs,
     # and carries it a trillion times (a line the match lies on still fixes where it should be).
-    carried = np.linalg.inv(normal)[:, 2, 2]
+    carried = inverse[:, 2, 2]
     judged = (weights.sum(axis=1) >= LOCAL_MIN_NEIGHBOURS) & (carried <= LOCAL_MAX_CARRIED)
     tolerance = max(LOCAL_TOLERANCE * scale * diagonal, LOCAL_TOLERANCE_PX)
     return judged & (residuals > tolerance)
