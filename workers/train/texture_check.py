@@ -110,6 +110,9 @@ NMS_IOU = 0.5
 UPSCALE = 2
 # ... but never past this longer side: a phone's 12-MP photograph (4032x3024) enlarged twice cost
 # SIFT 25 s; shrunk to this, 1.0 s for as many matches (838 against 840 on one test scene).
+# Lower caps, and SIFT's blur halved on the image as it is (the same scale space from a quarter
+# of the pixels), were faster and matched worse (bench/README.md, "Detection's speed against its
+# accuracy").
 SIFT_MAX_SIDE = 2048
 # A box holding this many of the image's keypoints (at SIFT's scale) whose class's texture fits
 # no map is no sheet of that class: it shows print in such detail that its own would have fitted
