@@ -675,7 +675,7 @@ class TextureCheck:
             inliers = candidates[agreeing]
             pieces.append((affine, sources[inliers], targets[inliers]))
             remaining[inliers] = False
-        pieces = self._vouched_pieces(pieces, label) if pieces else []
+        pieces = self._vouched_pieces(pieces, label)
         if not pieces:
             return None, 0, 0.0, 0.0
         outline = self._pieces_outline(pieces, label, width, height)
@@ -689,7 +689,9 @@ class TextureCheck:
         """``pieces`` (affine, inliers' texture points, their image points) without the inliers
         their neighbours contradict (``_off_their_neighbours``, over every piece's inliers): the
         first piece needs ``MIN_INLIERS`` left, each further one ``LOCAL_MIN_INLIERS``. Empty
-        where the first piece falls short."""
+        where the first piece falls short, or there is none."""
+        if not pieces:
+            return []
         sources = np.concatenate([texture for _, texture, _ in pieces])
         targets = np.concatenate([image for _, _, image in pieces])
         texture_width, texture_height = self._features.sizes[label]
