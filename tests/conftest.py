@@ -224,14 +224,30 @@ def pytest_xdist_make_scheduler(config, log):
     rendered set, built once), and tests/integration as one unit: its modules share one compose
     stack per session, and a session holds Redis db 9 until it ends (a second worker would wait
     for it, then fail). xdist's own ``xdist_group`` marks would say this, but pytest 9.2 drops
-    them silently (pytest-dev/pytest-xdist#1386)."""
+    them silently (pytest-dev/pytest-xdist#1386).
+
+    The heaviest units go first (``unit_weight``), so that the run does not end on one worker
+    still busy with a benchmark's end-to-end test while the other has nothing left."""
     from xdist.scheduler import LoadScopeScheduling
 
     class ModuleScheduling(LoadScopeScheduling):
         def _split_scope(self, nodeid: str) -> str:
             return xdist_unit(nodeid)
 
+        def _assign_work_unit(self, node) -> None:
+            heaviest = max(self.workqueue, key=lambda unit: unit_weight(unit, len(self.workqueue[unit])))
+            self.workqueue.move_to_end(heaviest, last=False)  # the unit xdist hands out next
+            super()._assign_work_unit(node)
+
     return ModuleScheduling(config, log)
+
+
+def unit_weight(unit: str, tests: int) -> tuple[bool, int]:
+    """How early a unit goes to a worker: tests/integration and the benchmarks' modules
+    (tests/test_bench_*.py: each runs a whole service stack or benchmark, in a few tests of tens
+    of seconds) before the rest, and within each, units of more tests first (xdist's own order)."""
+    whole_runs = unit == "tests/integration" or unit.startswith("tests/test_bench_")
+    return whole_runs, tests
 
 
 def xdist_unit(nodeid: str) -> str:

@@ -29,3 +29,20 @@ def test_integration_tests_are_one_unit_and_every_other_module_its_own(pytestcon
     assert (
         unit("tests/test_integration_notes.py::test_a") == "tests/test_integration_notes.py"
     )  # only the folder is one unit
+
+
+def test_whole_runs_go_to_the_workers_first_then_the_units_of_most_tests(pytestconfig):
+    weight = _root_conftest(pytestconfig).unit_weight
+    units = {
+        "tests/workers/train/test_evaluation.py": 60,
+        "tests/test_bench_wild.py": 6,
+        "tests/integration": 12,
+        "tests/test_docs.py": 3,
+    }
+    order = sorted(units, key=lambda unit: weight(unit, units[unit]), reverse=True)
+    assert order == [
+        "tests/integration",
+        "tests/test_bench_wild.py",
+        "tests/workers/train/test_evaluation.py",
+        "tests/test_docs.py",
+    ]
