@@ -68,11 +68,16 @@ def network_detections(detector, samples, classes, cache: Path | None, first_siz
 def cascaded(check, image, network: dict, index: int, cascade, matches) -> dict:
     """Image ``index``'s detections as the detector draws them, with their evidence: the first
     view's, checked, unless ``cascade`` (None: none) sends the image on to every view's."""
+    return cascade_pass(check, image, network, index, cascade, matches)[0]
+
+
+def cascade_pass(check, image, network: dict, index: int, cascade, matches) -> tuple[dict, bool]:
+    """``cascaded``'s detections, and whether the cascade sent the image on to every view."""
     if cascade is not None:
         checked = check.apply(image, network["first"][index], with_evidence=True, matches=matches)
         if not cascade.again(checked):
-            return checked
-    return check.apply(image, network["every"][index], with_evidence=True, matches=matches)
+            return checked, False
+    return check.apply(image, network["every"][index], with_evidence=True, matches=matches), cascade is not None
 
 
 def _confirmed_only(checked: dict) -> dict:
