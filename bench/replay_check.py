@@ -27,8 +27,9 @@ import dataclasses
 import hashlib
 import sys
 import time
-from contextlib import contextmanager
+from contextlib import nullcontext
 from pathlib import Path
+from unittest import mock
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -81,32 +82,20 @@ def parse_variant(text: str) -> Variant:
     return variant
 
 
-@contextmanager
-def constants_set(values: dict):
-    """The check's module constants set to ``values`` inside the block, restored after it."""
-    from workers.train import texture_check
-
-    saved = {name: getattr(texture_check, name) for name in values}
-    try:
-        for name, value in values.items():
-            setattr(texture_check, name, value)
-        yield
-    finally:
-        for name, value in saved.items():
-            setattr(texture_check, name, value)
-
-
 def replay(detector, images, network_for, variant: Variant, lookalikes=None) -> tuple[list[dict], dict]:
     """Each image's detections as the detector draws them under ``variant``, and what that took:
     the check's seconds per image and the share of images the cascade sent on to every view.
     ``network_for(first_size)``: the stored network detections with the first view at that size."""
+    from workers.train import texture_check
     from workers.train.texture_check import TextureCheck
 
     built = detector.active_cascade()
     cascade = dataclasses.replace(built, **variant.cascade) if built is not None else None
     first_size = cascade.first_size(detector.model.test_sizes) if cascade is not None else None
     network = network_for(first_size)
-    with constants_set(variant.constants):
+    # The constants are restored after the block (patch.multiple needs at least one).
+    constants = mock.patch.multiple(texture_check, **variant.constants) if variant.constants else nullcontext()
+    with constants:
         # Made anew inside the variant: its constants may change the textures' keypoints too.
         check = TextureCheck(
             detector.textures,
