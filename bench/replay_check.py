@@ -82,7 +82,7 @@ def parse_variant(text: str) -> Variant:
     return variant
 
 
-def replay(detector, images, network_for, variant: Variant, lookalikes=None) -> tuple[list[dict], dict]:
+def replay(detector, images, network_for, variant: Variant) -> tuple[list[dict], dict]:
     """Each image's detections as the detector draws them under ``variant``, and what that took:
     the check's seconds per image and the share of images the cascade sent on to every view.
     ``network_for(first_size)``: the stored network detections with the first view at that size."""
@@ -96,13 +96,18 @@ def replay(detector, images, network_for, variant: Variant, lookalikes=None) -> 
     # The constants are restored after the block (patch.multiple needs at least one).
     constants = mock.patch.multiple(texture_check, **variant.constants) if variant.constants else nullcontext()
     with constants:
-        # Made anew inside the variant: its constants may change the textures' keypoints too.
-        check = TextureCheck(
-            detector.textures,
-            detector.classes,
-            search=detector.config.texture_search,
-            calibration=detector.calibration,
-            lookalikes=lookalikes if lookalikes is not None else detector.lookalikes,
+        # The detector's own check as built; made anew inside a variant, whose constants may change
+        # the textures' keypoints too.
+        check = (
+            TextureCheck(
+                detector.textures,
+                detector.classes,
+                search=detector.config.texture_search,
+                calibration=detector.calibration,
+                lookalikes=detector.lookalikes,
+            )
+            if variant.constants
+            else detector.texture_check()
         )
         sent_on = 0
         started = time.perf_counter()
